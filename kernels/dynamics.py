@@ -1,0 +1,299 @@
+"""Vehicle dynamics: invertible kinematic bicycle, delta-local, and their inverses.
+
+The bicycle is Waymax's invertible model with action (acceleration a [m/s^2],
+curvature kappa [1/m]) and state (x, y, yaw, velocity); over one step dt
+
+    x'   = x + vx dt + 0.5 a cos(yaw) dt^2
+    y'   = y + vy dt + 0.5 a sin(yaw) dt^2
+    yaw' = yaw + kappa (|v| dt + 0.5 a dt^2)
+    |v'| = |v| + a dt,          v' = |v'| (cos yaw', sin yaw')
+
+and the inverse recovers (a, kappa) from two consecutive states. Delta-local
+moves the agent by (dx, dy, dyaw) given in its own frame.
+
+This module also replays logs for non-controlled agents: one kernel moves
+every agent slot one step, whoever drives it. It must not touch collision,
+road or reward state beyond clearing the per-step event flags it owns.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+DYNAMICS_BICYCLE = wp.constant(0)
+DYNAMICS_DELTA_LOCAL = wp.constant(1)
+
+# a speed below which curvature is undefined: the inverse reports kappa = 0
+_MIN_ARC = wp.constant(1.0e-3)
+
+
+@wp.func
+def wrap_angle(a: float):
+    return wp.atan2(wp.sin(a), wp.cos(a))
+
+
+@wp.func
+def bicycle_forward(pos: wp.vec2, yaw: float, vel: wp.vec2, accel: float, kappa: float, dt: float):
+    """One step of the bicycle; returns (pos', yaw', vel', speed')."""
+    c = wp.cos(yaw)
+    s = wp.sin(yaw)
+    speed = wp.length(vel)
+    new_pos = pos + vel * dt + wp.vec2(c, s) * (0.5 * accel * dt * dt)
+    new_yaw = wrap_angle(yaw + kappa * (speed * dt + 0.5 * accel * dt * dt))
+    new_speed = wp.max(speed + accel * dt, 0.0)
+    new_vel = wp.vec2(wp.cos(new_yaw), wp.sin(new_yaw)) * new_speed
+    return new_pos, new_yaw, new_vel, new_speed
+
+
+@wp.func
+def bicycle_inverse(yaw: float, vel: wp.vec2, next_yaw: float, next_vel: wp.vec2, dt: float,
+                    max_accel: float, max_kappa: float):
+    """(a, kappa) that take (yaw, vel) to (next_yaw, |next_vel|), clipped to the action box."""
+    speed = wp.length(vel)
+    accel = wp.clamp((wp.length(next_vel) - speed) / dt, -max_accel, max_accel)
+    arc = speed * dt + 0.5 * accel * dt * dt
+    kappa = float(0.0)
+    if wp.abs(arc) > _MIN_ARC:
+        kappa = wp.clamp(wrap_angle(next_yaw - yaw) / arc, -max_kappa, max_kappa)
+    return accel, kappa
+
+
+@wp.func
+def delta_local_forward(pos: wp.vec2, yaw: float, delta: wp.vec3, dt: float):
+    c = wp.cos(yaw)
+    s = wp.sin(yaw)
+    step = wp.vec2(c * delta[0] - s * delta[1], s * delta[0] + c * delta[1])
+    new_yaw = wrap_angle(yaw + delta[2])
+    vel = step / dt
+    return pos + step, new_yaw, vel, wp.length(vel)
+
+
+@wp.func
+def delta_local_inverse(pos: wp.vec2, yaw: float, next_pos: wp.vec2, next_yaw: float):
+    d = next_pos - pos
+    c = wp.cos(yaw)
+    s = wp.sin(yaw)
+    return wp.vec3(c * d[0] + s * d[1], -s * d[0] + c * d[1], wrap_angle(next_yaw - yaw))
+
+
+@wp.func
+def nearest_bin(v: float, lo: float, hi: float, n: int):
+    if n <= 1:
+        return 0
+    x = (v - lo) / (hi - lo) * float(n - 1)
+    return wp.clamp(int(wp.round(x)), 0, n - 1)
+
+
+@wp.func
+def bin_value(i: int, lo: float, hi: float, n: int):
+    if n <= 1:
+        return 0.5 * (lo + hi)
+    return lo + (hi - lo) * float(i) / float(n - 1)
+
+
+@wp.kernel
+def expert_actions_kernel(
+    # model
+    log_pos: wp.array2d(dtype=wp.vec2),  # (agent, step) m
+    log_yaw: wp.array2d(dtype=float),
+    log_vel: wp.array2d(dtype=wp.vec2),
+    log_valid: wp.array2d(dtype=wp.int32),
+    init_step: int,
+    dt: float,
+    dynamics: int,
+    max_accel: float,
+    max_kappa: float,
+    discrete: int,
+    n_accel: int,
+    n_kappa: int,
+    # out
+    action_out: wp.array2d(dtype=wp.vec3),  # (agent, step) action taking step -> step + 1
+    index_out: wp.array2d(dtype=wp.int32),  # (agent, step) discrete grid index (or -1)
+    track_pos_out: wp.array2d(dtype=wp.vec2),  # (agent, step) state the expert actions produce
+):
+    """Closed-loop inverse dynamics: from `init_step` on, the action at step t
+    takes the *simulated* state (not the log) to the log at t + 1, so clipping
+    and grid quantisation are corrected at every step instead of accumulating.
+    Before `init_step` the log itself is inverted (those steps are warm-up)."""
+    i = wp.tid()
+    T = log_pos.shape[1]
+    pos = log_pos[i, 0]
+    yaw = log_yaw[i, 0]
+    vel = log_vel[i, 0]
+    active = int(0)
+    for t in range(T):
+        if t <= init_step or active == 0:
+            # warm-up or not yet seen: snap to the log
+            if log_valid[i, t] != 0:
+                pos = log_pos[i, t]
+                yaw = log_yaw[i, t]
+                vel = log_vel[i, t]
+                active = 1
+        track_pos_out[i, t] = pos
+        if t == T - 1:
+            action_out[i, t] = wp.vec3(0.0, 0.0, 0.0)
+            index_out[i, t] = -1
+            continue
+        if active == 0 or log_valid[i, t + 1] == 0:
+            action_out[i, t] = wp.vec3(0.0, 0.0, 0.0)
+            index_out[i, t] = -1
+            continue
+        if dynamics == DYNAMICS_BICYCLE:
+            a, k = bicycle_inverse(yaw, vel, log_yaw[i, t + 1], log_vel[i, t + 1], dt, max_accel, max_kappa)
+            idx = int(-1)
+            if discrete != 0:
+                ia = nearest_bin(a, -max_accel, max_accel, n_accel)
+                ik = nearest_bin(k, -max_kappa, max_kappa, n_kappa)
+                idx = ia * n_kappa + ik
+                a = bin_value(ia, -max_accel, max_accel, n_accel)
+                k = bin_value(ik, -max_kappa, max_kappa, n_kappa)
+            action_out[i, t] = wp.vec3(a, k, 0.0)
+            index_out[i, t] = idx
+            if t >= init_step:
+                pos, yaw, vel, speed = bicycle_forward(pos, yaw, vel, a, k, dt)
+        else:
+            d = delta_local_inverse(pos, yaw, log_pos[i, t + 1], log_yaw[i, t + 1])
+            action_out[i, t] = d
+            index_out[i, t] = -1
+            if t >= init_step:
+                pos, yaw, vel, speed = delta_local_forward(pos, yaw, d, dt)
+
+
+@wp.kernel
+def step_agents_kernel(
+    # model
+    agents_per_world: int,
+    slot_valid: wp.array(dtype=wp.int32),  # (world * agent,)
+    controlled: wp.array(dtype=wp.int32),
+    log_pos: wp.array2d(dtype=wp.vec2),  # (world * agent, step)
+    log_yaw: wp.array2d(dtype=float),
+    log_vel: wp.array2d(dtype=wp.vec2),
+    log_valid: wp.array2d(dtype=wp.int32),
+    dt: float,
+    dynamics: int,
+    discrete: int,
+    max_accel: float,
+    max_kappa: float,
+    n_accel: int,
+    n_kappa: int,
+    delta_max: wp.vec3,
+    # control
+    action: wp.array(dtype=wp.vec3),  # (world * agent,) continuous action
+    action_index: wp.array(dtype=wp.int32),  # (world * agent,) discrete grid index
+    # state in/out
+    step: wp.array(dtype=wp.int32),  # (world,) log step the state is at
+    agent_done: wp.array(dtype=wp.int32),
+    removed: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec2),
+    yaw: wp.array(dtype=float),
+    vel: wp.array(dtype=wp.vec2),
+    speed: wp.array(dtype=float),
+    # out
+    present_out: wp.array(dtype=wp.int32),
+    alive_out: wp.array(dtype=wp.int32),
+    applied_out: wp.array(dtype=wp.vec3),  # action actually applied (after decoding/clipping)
+):
+    """Advance every slot by one step: controlled agents integrate their action,
+    the others replay the log at step + 1; done agents stay frozen (stop) or
+    absent (remove)."""
+    i = wp.tid()
+    w = i / agents_per_world
+    tn = step[w] + 1
+    alive_out[i] = 0
+    applied_out[i] = wp.vec3(0.0, 0.0, 0.0)
+    if slot_valid[i] == 0 or removed[i] != 0:
+        present_out[i] = 0
+        return
+    if controlled[i] == 0:
+        if log_valid[i, tn] != 0:
+            pos[i] = log_pos[i, tn]
+            yaw[i] = log_yaw[i, tn]
+            vel[i] = log_vel[i, tn]
+            speed[i] = wp.length(log_vel[i, tn])
+            present_out[i] = 1
+        else:
+            present_out[i] = 0
+        return
+    present_out[i] = 1
+    if agent_done[i] != 0:
+        vel[i] = wp.vec2(0.0, 0.0)
+        speed[i] = 0.0
+        return
+    alive_out[i] = 1
+    if dynamics == DYNAMICS_BICYCLE:
+        a = float(0.0)
+        k = float(0.0)
+        if discrete != 0:
+            idx = wp.clamp(action_index[i], 0, n_accel * n_kappa - 1)
+            a = bin_value(idx / n_kappa, -max_accel, max_accel, n_accel)
+            k = bin_value(idx % n_kappa, -max_kappa, max_kappa, n_kappa)
+        else:
+            a = wp.clamp(action[i][0], -max_accel, max_accel)
+            k = wp.clamp(action[i][1], -max_kappa, max_kappa)
+        p, y, v, s = bicycle_forward(pos[i], yaw[i], vel[i], a, k, dt)
+        pos[i] = p
+        yaw[i] = y
+        vel[i] = v
+        speed[i] = s
+        applied_out[i] = wp.vec3(a, k, 0.0)
+    else:
+        d = wp.vec3(
+            wp.clamp(action[i][0], -delta_max[0], delta_max[0]),
+            wp.clamp(action[i][1], -delta_max[1], delta_max[1]),
+            wp.clamp(action[i][2], -delta_max[2], delta_max[2]),
+        )
+        p, y, v, s = delta_local_forward(pos[i], yaw[i], d, dt)
+        pos[i] = p
+        yaw[i] = y
+        vel[i] = v
+        speed[i] = s
+        applied_out[i] = d
+
+
+def launch_expert_actions(model, cfg) -> None:
+    """Fill model.expert_action / expert_index / expert_track from the logs."""
+    wp.launch(
+        expert_actions_kernel,
+        dim=model.num_slots,
+        inputs=[model.log_pos, model.log_yaw, model.log_vel, model.log_valid, cfg.init_steps, model.dt,
+                model.dynamics, cfg.max_accel, cfg.max_curvature, model.discrete, cfg.accel_bins,
+                cfg.curvature_bins],
+        outputs=[model.expert_action, model.expert_index, model.expert_track],
+        device=model.device,
+    )
+
+
+def launch_step_agents(model, state, control, cfg) -> None:
+    wp.launch(
+        step_agents_kernel,
+        dim=model.num_slots,
+        inputs=[model.max_agents, model.slot_valid, model.controlled, model.log_pos, model.log_yaw,
+                model.log_vel, model.log_valid, model.dt, model.dynamics, model.discrete, cfg.max_accel,
+                cfg.max_curvature, cfg.accel_bins, cfg.curvature_bins, wp.vec3(*cfg.delta_max),
+                control.action, control.action_index, state.step, state.agent_done, state.removed,
+                state.pos, state.yaw, state.vel, state.speed],
+        outputs=[state.present, state.alive, state.applied_action],
+        device=model.device,
+    )
+
+
+@wp.kernel
+def expert_to_control_kernel(
+    agents_per_world: int,
+    step: wp.array(dtype=wp.int32),
+    expert_action: wp.array2d(dtype=wp.vec3),
+    expert_index: wp.array2d(dtype=wp.int32),
+    action_out: wp.array(dtype=wp.vec3),
+    index_out: wp.array(dtype=wp.int32),
+):
+    """Write the expert action of the current step into the control buffers."""
+    i = wp.tid()
+    t = step[i / agents_per_world]
+    action_out[i] = expert_action[i, t]
+    index_out[i] = wp.max(expert_index[i, t], 0)
+
+
+def launch_expert_to_control(model, state, control) -> None:
+    wp.launch(expert_to_control_kernel, dim=model.num_slots, device=model.device,
+              inputs=[model.max_agents, state.step, model.expert_action, model.expert_index],
+              outputs=[control.action, control.action_index])

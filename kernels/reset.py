@@ -1,0 +1,229 @@
+"""Collision-mode response, episode bookkeeping and auto-reset.
+
+Order within a step: `respond_kernel` (per agent) applies the collision mode
+and accumulates episode outcomes; `finish_world_kernel` (per world) advances
+the step counter and decides whether the episode ended; `reset_agents_kernel`
+(per agent) copies the finished episode's outcomes to the `final_*` arrays and
+restores the scene's state at `init_step`. `reset()` runs the last kernel with
+`force=1`.
+
+Collision modes (tg_gpudrive.types.CollisionMode): IGNORE counts the event
+and keeps driving; STOP freezes the agent and ends its episode; REMOVE takes
+it out of the scene (and of later collision checks) and ends its episode.
+The same response applies to off-road events. Goal behaviour: 0 continue,
+1 stop, 2 remove (default: remove, as GPUDrive does for agents at their goal).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+MODE_IGNORE = wp.constant(0)
+MODE_STOP = wp.constant(1)
+MODE_REMOVE = wp.constant(2)
+
+BIG_DISTANCE = wp.constant(1.0e6)
+
+
+@wp.kernel
+def respond_kernel(
+    collision_mode: int,
+    goal_behaviour: int,
+    alive: wp.array(dtype=wp.int32),
+    collided: wp.array(dtype=wp.int32),
+    offroad: wp.array(dtype=wp.int32),
+    goal_event: wp.array(dtype=wp.int32),
+    reward: wp.array(dtype=float),
+    cost: wp.array(dtype=float),
+    nearest: wp.array(dtype=float),
+    # state in/out
+    agent_done: wp.array(dtype=wp.int32),
+    removed: wp.array(dtype=wp.int32),
+    ep_collided: wp.array(dtype=wp.int32),
+    ep_offroad: wp.array(dtype=wp.int32),
+    ep_goal: wp.array(dtype=wp.int32),
+    ep_return: wp.array(dtype=float),
+    ep_cost: wp.array(dtype=float),
+    ep_min_dist: wp.array(dtype=float),
+    ep_steps: wp.array(dtype=wp.int32),
+    # out
+    terminated_out: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    terminated_out[i] = 0
+    if alive[i] == 0:
+        return
+    ep_steps[i] = ep_steps[i] + 1
+    ep_return[i] = ep_return[i] + reward[i]
+    ep_cost[i] = ep_cost[i] + cost[i]
+    ep_min_dist[i] = wp.min(ep_min_dist[i], nearest[i])
+    if collided[i] != 0:
+        ep_collided[i] = 1
+    if offroad[i] != 0:
+        ep_offroad[i] = 1
+    term = int(0)
+    rem = int(0)
+    if goal_event[i] != 0:
+        ep_goal[i] = 1
+        if goal_behaviour != MODE_IGNORE:
+            term = 1
+            if goal_behaviour == MODE_REMOVE:
+                rem = 1
+    if (collided[i] != 0 or offroad[i] != 0) and collision_mode != MODE_IGNORE:
+        term = 1
+        if collision_mode == MODE_REMOVE:
+            rem = 1
+    if term != 0:
+        agent_done[i] = 1
+        terminated_out[i] = 1
+    if rem != 0:
+        removed[i] = 1
+
+
+@wp.kernel
+def finish_world_kernel(
+    agents_per_world: int,
+    init_step: int,
+    controlled: wp.array(dtype=wp.int32),
+    last_step: wp.array(dtype=wp.int32),  # (world,)
+    agent_done: wp.array(dtype=wp.int32),
+    step: wp.array(dtype=wp.int32),  # in/out
+    world_reset_out: wp.array(dtype=wp.int32),  # (world,) episode ended this step
+    world_truncated_out: wp.array(dtype=wp.int32),  # (world,) ... by the time limit
+    episode_count: wp.array(dtype=wp.int32),  # (world,) in/out
+):
+    w = wp.tid()
+    t = step[w] + 1
+    n_ctrl = int(0)
+    n_done = int(0)
+    for a in range(agents_per_world):
+        i = w * agents_per_world + a
+        if controlled[i] != 0:
+            n_ctrl += 1
+            if agent_done[i] != 0:
+                n_done += 1
+    trunc = int(0)
+    if t >= last_step[w]:
+        trunc = 1
+    end = trunc
+    if n_ctrl > 0 and n_done == n_ctrl:
+        end = 1
+    world_reset_out[w] = end
+    world_truncated_out[w] = trunc
+    if end != 0:
+        step[w] = init_step
+        episode_count[w] = episode_count[w] + 1
+    else:
+        step[w] = t
+
+
+@wp.kernel
+def reset_agents_kernel(
+    agents_per_world: int,
+    init_step: int,
+    force: int,
+    slot_valid: wp.array(dtype=wp.int32),
+    controlled: wp.array(dtype=wp.int32),
+    log_pos: wp.array2d(dtype=wp.vec2),
+    log_yaw: wp.array2d(dtype=float),
+    log_vel: wp.array2d(dtype=wp.vec2),
+    log_valid: wp.array2d(dtype=wp.int32),
+    goal: wp.array(dtype=wp.vec2),
+    world_reset: wp.array(dtype=wp.int32),
+    world_truncated: wp.array(dtype=wp.int32),
+    alive: wp.array(dtype=wp.int32),
+    terminated: wp.array(dtype=wp.int32),
+    # state in/out
+    pos: wp.array(dtype=wp.vec2),
+    yaw: wp.array(dtype=float),
+    vel: wp.array(dtype=wp.vec2),
+    speed: wp.array(dtype=float),
+    present: wp.array(dtype=wp.int32),
+    agent_done: wp.array(dtype=wp.int32),
+    removed: wp.array(dtype=wp.int32),
+    goal_dist: wp.array(dtype=float),
+    ep_collided: wp.array(dtype=wp.int32),
+    ep_offroad: wp.array(dtype=wp.int32),
+    ep_goal: wp.array(dtype=wp.int32),
+    ep_return: wp.array(dtype=float),
+    ep_cost: wp.array(dtype=float),
+    ep_min_dist: wp.array(dtype=float),
+    ep_steps: wp.array(dtype=wp.int32),
+    # out: outcomes of the episode that just ended (valid where world_reset)
+    truncated_out: wp.array(dtype=wp.int32),
+    final_goal: wp.array(dtype=wp.int32),
+    final_collided: wp.array(dtype=wp.int32),
+    final_offroad: wp.array(dtype=wp.int32),
+    final_return: wp.array(dtype=float),
+    final_cost: wp.array(dtype=float),
+    final_min_dist: wp.array(dtype=float),
+    final_steps: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    w = i / agents_per_world
+    truncated_out[i] = 0
+    if force == 0 and world_reset[w] == 0:
+        return
+    if force == 0:
+        if alive[i] != 0 and terminated[i] == 0 and world_truncated[w] != 0:
+            truncated_out[i] = 1
+        final_goal[i] = ep_goal[i]
+        final_collided[i] = ep_collided[i]
+        final_offroad[i] = ep_offroad[i]
+        final_return[i] = ep_return[i]
+        final_cost[i] = ep_cost[i]
+        final_min_dist[i] = ep_min_dist[i]
+        final_steps[i] = ep_steps[i]
+    agent_done[i] = 0
+    removed[i] = 0
+    ep_collided[i] = 0
+    ep_offroad[i] = 0
+    ep_goal[i] = 0
+    ep_return[i] = 0.0
+    ep_cost[i] = 0.0
+    ep_min_dist[i] = BIG_DISTANCE
+    ep_steps[i] = 0
+    if slot_valid[i] != 0 and log_valid[i, init_step] != 0:
+        pos[i] = log_pos[i, init_step]
+        yaw[i] = log_yaw[i, init_step]
+        vel[i] = log_vel[i, init_step]
+        speed[i] = wp.length(log_vel[i, init_step])
+        present[i] = 1
+    else:
+        pos[i] = wp.vec2(0.0, 0.0)
+        yaw[i] = 0.0
+        vel[i] = wp.vec2(0.0, 0.0)
+        speed[i] = 0.0
+        present[i] = 0
+    goal_dist[i] = wp.length(goal[i] - pos[i])
+
+
+def _reset_agents(model, state, force: int) -> None:
+    wp.launch(reset_agents_kernel, dim=model.num_slots, device=model.device,
+              inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.controlled,
+                      model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.goal,
+                      state.world_reset, state.world_truncated, state.alive, state.terminated,
+                      state.pos, state.yaw, state.vel, state.speed, state.present, state.agent_done,
+                      state.removed, state.goal_dist, state.ep_collided, state.ep_offroad, state.ep_goal,
+                      state.ep_return, state.ep_cost, state.ep_min_dist, state.ep_steps],
+              outputs=[state.truncated, state.final_goal, state.final_collided, state.final_offroad,
+                       state.final_return, state.final_cost, state.final_min_dist, state.final_steps])
+
+
+def launch_respond_and_finish(model, state) -> None:
+    wp.launch(respond_kernel, dim=model.num_slots, device=model.device,
+              inputs=[model.collision_mode, model.goal_behaviour, state.alive, state.collided, state.offroad,
+                      state.goal_event, state.reward, state.cost, state.nearest, state.agent_done,
+                      state.removed, state.ep_collided, state.ep_offroad, state.ep_goal, state.ep_return,
+                      state.ep_cost, state.ep_min_dist, state.ep_steps],
+              outputs=[state.terminated])
+    wp.launch(finish_world_kernel, dim=model.num_worlds, device=model.device,
+              inputs=[model.max_agents, model.init_step, model.controlled, model.last_step, state.agent_done,
+                      state.step],
+              outputs=[state.world_reset, state.world_truncated, state.episode_count])
+    _reset_agents(model, state, force=0)
+
+
+def launch_force_reset(model, state) -> None:
+    state.step.fill_(model.init_step)
+    _reset_agents(model, state, force=1)

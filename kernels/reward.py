@@ -1,0 +1,90 @@
+"""Reward terms and the distance cost, per agent and per step.
+
+Rewards are named, weighted terms (REWARD_TERMS, in this order in the
+`terms_out` rows); the total is their weighted sum. Only agents that acted
+this step (`alive`) earn anything; every other row is zero.
+
+    goal_progress   m      decrease of the distance to the goal (TrafficGamer's distance term)
+    goal_reached    0/1    the agent came within `goal_radius` of its goal this step
+    collision       0/1    its box overlaps another present agent's box
+    offroad         0/1    its box crosses a road edge
+    lane_deviation  m      distance to the nearest lane centerline, capped
+    overspeed       m/s    speed above the limit
+
+cost = 1 when the nearest other present agent is closer than `beta` metres
+(centre to centre), the constraint signal of CCE-MAPPO.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+REWARD_TERMS = ("goal_progress", "goal_reached", "collision", "offroad", "lane_deviation", "overspeed")
+NUM_TERMS = len(REWARD_TERMS)
+
+
+@wp.kernel
+def reward_kernel(
+    goal_radius: float,
+    beta: float,
+    speed_limit: float,
+    lane_cap: float,
+    weights: wp.array(dtype=float),  # (NUM_TERMS,)
+    goal: wp.array(dtype=wp.vec2),
+    # state
+    alive: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec2),
+    speed: wp.array(dtype=float),
+    collided: wp.array(dtype=wp.int32),
+    offroad: wp.array(dtype=wp.int32),
+    lane_dist: wp.array(dtype=float),
+    nearest: wp.array(dtype=float),
+    ep_goal: wp.array(dtype=wp.int32),
+    goal_dist: wp.array(dtype=float),  # in: distance before the step; out: after
+    # out
+    goal_event_out: wp.array(dtype=wp.int32),
+    terms_out: wp.array2d(dtype=float),  # (world * agent, NUM_TERMS)
+    reward_out: wp.array(dtype=float),
+    cost_out: wp.array(dtype=float),
+):
+    i = wp.tid()
+    if alive[i] == 0:
+        goal_event_out[i] = 0
+        for k in range(NUM_TERMS):
+            terms_out[i, k] = 0.0
+        reward_out[i] = 0.0
+        cost_out[i] = 0.0
+        return
+    d = wp.length(goal[i] - pos[i])
+    ev = int(0)
+    if d < goal_radius and ep_goal[i] == 0:
+        ev = 1
+    goal_event_out[i] = ev
+    t0 = goal_dist[i] - d
+    goal_dist[i] = d
+    t1 = float(ev)
+    t2 = float(collided[i])
+    t3 = float(offroad[i])
+    t4 = wp.min(lane_dist[i], lane_cap)
+    t5 = wp.max(speed[i] - speed_limit, 0.0)
+    terms_out[i, 0] = t0
+    terms_out[i, 1] = t1
+    terms_out[i, 2] = t2
+    terms_out[i, 3] = t3
+    terms_out[i, 4] = t4
+    terms_out[i, 5] = t5
+    reward_out[i] = (weights[0] * t0 + weights[1] * t1 + weights[2] * t2
+                     + weights[3] * t3 + weights[4] * t4 + weights[5] * t5)
+    c = float(0.0)
+    if nearest[i] < beta:
+        c = 1.0
+    cost_out[i] = c
+
+
+def launch_reward(model, state, cfg) -> None:
+    r = cfg.reward
+    wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
+              inputs=[cfg.goal_radius, cfg.beta, r.speed_limit, r.lane_cap, model.reward_weights, model.goal,
+                      state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
+                      state.nearest, state.ep_goal, state.goal_dist],
+              outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

@@ -1,0 +1,188 @@
+"""Configuration: frozen dataclasses whose values live in YAML under configs/.
+
+`load_config(cls, path, overrides)` fills a dataclass (nested dataclasses
+included) from a YAML file and `key.sub=value` overrides; an unknown key, or
+a value of the wrong kind, is an error naming the key and the file. Dataclass
+defaults equal configs/env/default.yaml (a test keeps them in step).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from tg_gpudrive.types import CollisionMode, parse_enum
+
+REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+class ConfigError(ValueError):
+    pass
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    """Weights of the named reward terms (kernels/reward.py) and their parameters."""
+
+    goal_progress: float = 0.1  # per metre closer to the goal
+    goal_reached: float = 1.0
+    collision: float = -1.0
+    offroad: float = -1.0
+    lane_deviation: float = -0.02  # per metre from the nearest lane centerline
+    overspeed: float = -0.1  # per m/s above speed_limit
+    speed_limit: float = 20.0  # m/s
+    lane_cap: float = 5.0  # m, lane deviation is capped here
+
+
+@dataclasses.dataclass(frozen=True)
+class EngineConfig:
+    """Everything the engine needs besides the scenes. Units: metres, seconds, radians."""
+
+    max_agents: int = 64  # agent slots per world (A)
+    dynamics: str = "bicycle"  # bicycle | delta_local
+    action_space: str = "discrete"  # discrete | continuous (discrete only for bicycle)
+    accel_bins: int = 7
+    curvature_bins: int = 13
+    max_accel: float = 6.0  # m/s^2
+    max_curvature: float = 0.3  # 1/m
+    delta_max: tuple[float, float, float] = (6.0, 1.0, 0.5)  # m, m, rad per step (delta_local)
+    init_steps: int = 10  # steps of log warm-up before control starts
+    goal_radius: float = 2.0
+    collision_mode: str = "ignore"  # ignore | stop | remove
+    goal_behaviour: str = "remove"  # continue | stop | remove
+    control: str = "vehicles"  # vehicles | all_agents | none : who is driven by the policy
+    beta: float = 4.0  # m, distance under which the cost is 1
+    partner_k: int = 16
+    partner_radius: float = 50.0
+    road_k: int = 128
+    road_radius: float = 50.0
+    road_query_radius: float = 5.0  # m, search (and cap) for edge and lane distances
+    max_segment_length: float = 5.0  # m, longer road segments are split
+    road_cell_size: float = 10.0  # m, static road grid
+    collision_cells: int = 128  # hashed buckets per world for the agent broad phase
+    use_graph: bool = True  # capture the step as a CUDA graph on GPU
+    reward: RewardConfig = RewardConfig()
+
+    def __post_init__(self):
+        if self.dynamics not in ("bicycle", "delta_local"):
+            raise ConfigError(f"dynamics: expected bicycle or delta_local, got {self.dynamics!r}")
+        if self.action_space not in ("discrete", "continuous"):
+            raise ConfigError(f"action_space: expected discrete or continuous, got {self.action_space!r}")
+        if self.dynamics == "delta_local" and self.action_space == "discrete":
+            raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
+        parse_enum(CollisionMode, self.collision_mode, "collision_mode")
+        if self.goal_behaviour not in ("continue", "stop", "remove"):
+            raise ConfigError(f"goal_behaviour: expected continue, stop or remove, got {self.goal_behaviour!r}")
+        if self.control not in ("vehicles", "all_agents", "none"):
+            raise ConfigError(f"control: expected vehicles, all_agents or none, got {self.control!r}")
+        if not 1 <= self.max_agents <= 1024:
+            raise ConfigError(f"max_agents: expected 1..1024, got {self.max_agents}")
+        if self.init_steps < 0:
+            raise ConfigError("init_steps must be >= 0")
+
+    @property
+    def num_actions(self) -> int:
+        return self.accel_bins * self.curvature_bins
+
+
+def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: key '{key}': expected a mapping, got {value!r}")
+        return from_dict(tp, value, source, prefix=key + ".")
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{source}: key '{key}': expected true/false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{source}: key '{key}': expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{source}: key '{key}': expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{source}: key '{key}': expected a string, got {value!r}")
+        return value
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise ConfigError(f"{source}: key '{key}': expected a list of {len(args)} values, got {value!r}")
+        return tuple(_coerce(a, v, f"{key}[{n}]", source) for n, (a, v) in enumerate(zip(args, value)))
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in typing.get_args(tp):
+            return None
+        inner = [a for a in typing.get_args(tp) if a is not type(None)]
+        return _coerce(inner[0], value, key, source)
+    if origin is list:
+        (a,) = typing.get_args(tp)
+        if not isinstance(value, list):
+            raise ConfigError(f"{source}: key '{key}': expected a list, got {value!r}")
+        return [_coerce(a, v, f"{key}[{n}]", source) for n, v in enumerate(value)]
+    if origin is dict or tp is dict:
+        return dict(value)
+    return value
+
+
+def from_dict(cls, data: dict, source: str = "<dict>", prefix: str = ""):
+    """Build dataclass `cls` from a mapping; unknown keys are errors naming key and source."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in (data or {}).items():
+        if key not in names:
+            raise ConfigError(f"{source}: unknown key '{prefix}{key}' (known: {', '.join(sorted(names))})")
+        kwargs[key] = _coerce(hints[key], value, prefix + key, source)
+    try:
+        return cls(**kwargs)
+    except ConfigError as e:
+        raise ConfigError(f"{source}: {e}") from None
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    if "=" not in text:
+        raise ConfigError(f"override {text!r}: expected key=value")
+    key, raw = text.split("=", 1)
+    return key.strip().split("."), yaml.safe_load(raw)
+
+
+def apply_overrides(data: dict, overrides: list[str]) -> dict:
+    data = dict(data)
+    for text in overrides or []:
+        path, value = parse_override(text)
+        node = data
+        for p in path[:-1]:
+            node[p] = dict(node.get(p) or {})
+            node = node[p]
+        node[path[-1]] = value
+    return data
+
+
+def load_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: invalid YAML: {e}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: top level must be a mapping")
+    return data
+
+
+def load_config(cls, path: str | Path | None = None, overrides: list[str] | None = None):
+    data = load_yaml(path) if path else {}
+    return from_dict(cls, apply_overrides(data, overrides or []), str(path or "<defaults>"))
+
+
+def to_dict(cfg) -> dict:
+    return dataclasses.asdict(cfg)

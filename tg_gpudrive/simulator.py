@@ -1,0 +1,246 @@
+"""`Simulator`: the batched engine's Python API.
+
+    sim = Simulator(scenes, EngineConfig(), device="cuda:0")
+    sim.reset()
+    while ...:
+        sim.actions_index[:] = policy(sim.obs)   # write actions in place (or pass them to step)
+        sim.step()
+        sim.reward, sim.cost, sim.terminated, sim.truncated, sim.obs   # torch views, no copies
+
+Every tensor attribute is a zero-copy torch view of an engine array on the
+engine's device, shaped (W, A, ...) or (W,). On CUDA the whole step is
+captured once as a CUDA graph; step() allocates nothing after the first call.
+Worlds whose episode ended are reset to their scene's `init_step` inside the
+step (`world_reset` says which); the outcomes of the finished episode are
+kept in the `final_*` tensors for that step.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.engine import Control, Model, State
+from tg_gpudrive.kernels.collision import launch_collision
+from tg_gpudrive.kernels.dynamics import launch_expert_to_control, launch_step_agents
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM, launch_observations
+from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_finish
+from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
+from tg_gpudrive.kernels.road import launch_road_query
+from tg_gpudrive.scene import Scene
+
+log = logging.getLogger("tg_gpudrive")
+
+_VIEWS_WA = ("present", "alive", "active", "agent_done", "removed", "collided", "offroad", "goal_event",
+             "terminated", "truncated", "ep_collided", "ep_offroad", "ep_goal", "ep_steps", "final_goal",
+             "final_collided", "final_offroad", "final_steps", "yaw", "speed", "goal_dist", "edge_dist",
+             "lane_dist", "nearest", "reward", "cost", "ep_return", "ep_cost", "ep_min_dist", "final_return",
+             "final_cost", "final_min_dist")
+_VIEWS_W = ("world_reset", "world_truncated", "episode_count")
+
+
+def resolve_device(device: str | torch.device | None) -> str:
+    """'cpu', 'cuda' or 'cuda:N' -> the Warp/torch device string; a clear error without CUDA."""
+    d = str(device or "cpu")
+    if d == "cuda":
+        d = "cuda:0"
+    if d.startswith("cuda"):
+        wp.init()
+        if not wp.is_cuda_available():
+            raise RuntimeError(f"device {d!r} requested but Warp sees no CUDA device")
+    elif d != "cpu":
+        raise ValueError(f"device: expected cpu, cuda or cuda:N, got {device!r}")
+    return d
+
+
+class Simulator:
+    def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "cpu",
+                 controlled: Sequence[np.ndarray] | None = None):
+        self.cfg = config or EngineConfig()
+        self.device = resolve_device(device)
+        self.is_cuda = self.device.startswith("cuda")
+        self._build(list(scenes), controlled)
+
+    # ------------------------------------------------------------------ setup
+    def _build(self, scenes: list[Scene], controlled) -> None:
+        with wp.ScopedDevice(self.device):
+            self.model = Model(scenes, self.cfg, self.device, controlled)
+            self.state = State(self.model, self.cfg)
+            self.control = Control(self.model)
+        self._graph = None
+        self._steps_run = 0
+        self._make_views()
+        if self.model.report.total_truncated:
+            log.warning("%d agents dropped over %d worlds (max_agents=%d); see sim.model.report",
+                        self.model.report.total_truncated, self.num_worlds, self.max_agents)
+
+    def _make_views(self) -> None:
+        m, s, c = self.model, self.state, self.control
+        W, A, T = m.num_worlds, m.max_agents, m.num_steps
+        t = wp.to_torch
+        for name in _VIEWS_WA:
+            setattr(self, name, t(getattr(s, name)).view(W, A))
+        for name in _VIEWS_W:
+            setattr(self, name, t(getattr(s, name)))
+        self.world_step = t(s.step)  # (W,) log step each world is at
+        self.pos = t(s.pos).view(W, A, 2)
+        self.vel = t(s.vel).view(W, A, 2)
+        self.applied_action = t(s.applied_action).view(W, A, 3)
+        self.reward_terms = t(s.reward_terms).view(W, A, len(REWARD_TERMS))
+        self.obs = t(s.obs).view(W, A, m.obs_dim)
+        self.controlled = t(m.controlled).view(W, A)
+        self.slot_valid = t(m.slot_valid).view(W, A)
+        self.goal = t(m.goal).view(W, A, 2)
+        self.length = t(m.length).view(W, A)
+        self.width = t(m.width).view(W, A)
+        self.agent_type = t(m.agent_type).view(W, A)
+        self.expert_action = t(m.expert_action).view(W, A, T, 3)
+        self.expert_index = t(m.expert_index).view(W, A, T)
+        self.expert_track = t(m.expert_track).view(W, A, T, 2)
+        self.actions = t(c.action).view(W, A, 3)
+        self.actions_index = t(c.action_index).view(W, A)
+        # named slices of the observation row (views too)
+        k, kr = self.cfg.partner_k, self.cfg.road_k
+        self.obs_ego = self.obs[..., :EGO_DIM]
+        self.obs_partners = self.obs[..., EGO_DIM:EGO_DIM + k * PARTNER_DIM].view(W, A, k, PARTNER_DIM)
+        self.obs_road = self.obs[..., EGO_DIM + k * PARTNER_DIM:].view(W, A, kr, ROAD_DIM)
+        if self.is_cuda:
+            self._torch_stream = wp.stream_from_torch(torch.cuda.current_stream(torch.device(self.device)))
+            self._warp_stream = wp.get_stream(self.device)
+            self._ev_in = wp.Event(self.device)
+            self._ev_out = wp.Event(self.device)
+
+    def set_scenes(self, scenes: Sequence[Scene], controlled: Sequence[np.ndarray] | None = None) -> None:
+        """Load a new batch of scenes (resampling); the step graph is captured again."""
+        self._build(list(scenes), controlled)
+        self.reset()
+
+    # -------------------------------------------------------------- properties
+    @property
+    def num_worlds(self) -> int:
+        return self.model.num_worlds
+
+    @property
+    def max_agents(self) -> int:
+        return self.model.max_agents
+
+    @property
+    def obs_dim(self) -> int:
+        return self.model.obs_dim
+
+    @property
+    def num_actions(self) -> int:
+        return self.cfg.num_actions
+
+    @property
+    def reward_term_names(self) -> tuple[str, ...]:
+        return REWARD_TERMS
+
+    @property
+    def episode_length(self) -> int:
+        return self.model.num_steps - 1 - self.model.init_step
+
+    # ---------------------------------------------------------------- stepping
+    def reset(self) -> None:
+        """Every world back to its scene's state at init_step; observations refreshed."""
+        m, s = self.model, self.state
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_force_reset(m, s)
+            launch_road_query(m, s, self.cfg)
+            launch_observations(m, s, self.cfg)
+            s.world_reset.zero_()
+            self._sync_out()
+
+    def _launch_step(self) -> None:
+        m, s, c, cfg = self.model, self.state, self.control, self.cfg
+        launch_step_agents(m, s, c, cfg)
+        launch_collision(m, s)
+        launch_road_query(m, s, cfg)
+        launch_reward(m, s, cfg)
+        launch_respond_and_finish(m, s)
+        launch_road_query(m, s, cfg, only_reset_worlds=True)
+        launch_observations(m, s, cfg)
+
+    def step(self, actions: torch.Tensor | np.ndarray | None = None) -> None:
+        """Advance every world by one step.
+
+        `actions`: (W, A) grid indices for a discrete config, (W, A, 2) bicycle
+        or (W, A, 3) delta-local actions for a continuous one; omitted, the
+        action buffers (`actions_index` / `actions`) are used as they are."""
+        if actions is not None:
+            self._write_actions(actions)
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            if self._graph is not None:
+                wp.capture_launch(self._graph)
+            elif self.is_cuda and self.cfg.use_graph and self._steps_run > 0:
+                # modules are loaded by the first (plain) step: capture once, replay ever after
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    self._launch_step()
+                self._graph = cap.graph
+                wp.capture_launch(self._graph)
+            else:
+                self._launch_step()
+            self._sync_out()
+        self._steps_run += 1
+
+    def use_expert_actions(self) -> None:
+        """Fill the action buffers with the logged (inverse-dynamics) expert actions of the current step."""
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_expert_to_control(self.model, self.state, self.control)
+            self._sync_out()
+
+    def _write_actions(self, actions) -> None:
+        W, A = self.num_worlds, self.max_agents
+        a = torch.as_tensor(actions, device=self.device)
+        if self.cfg.action_space == "discrete":
+            if tuple(a.shape) != (W, A) or a.dtype.is_floating_point or a.dtype == torch.bool:
+                raise ValueError(f"discrete actions: expected integer tensor of shape ({W}, {A}), "
+                                 f"got {a.dtype} {tuple(a.shape)}")
+            if a.numel() and (int(a.min()) < 0 or int(a.max()) >= self.num_actions):
+                raise ValueError(f"discrete actions must lie in [0, {self.num_actions}), "
+                                 f"got [{int(a.min())}, {int(a.max())}]")
+            self.actions_index.copy_(a)
+        else:
+            k = 2 if self.cfg.dynamics == "bicycle" else 3
+            if tuple(a.shape) != (W, A, k) or not a.dtype.is_floating_point:
+                raise ValueError(f"continuous actions: expected float tensor of shape ({W}, {A}, {k}), "
+                                 f"got {a.dtype} {tuple(a.shape)}")
+            if not torch.isfinite(a).all():
+                raise ValueError("continuous actions contain NaN or inf")
+            self.actions[..., :k].copy_(a)
+
+    # torch and warp may run on different CUDA streams: order them with events
+    def _sync_in(self) -> None:
+        if self.is_cuda:
+            self._warp_stream.wait_stream(self._torch_stream, event=self._ev_in)
+
+    def _sync_out(self) -> None:
+        if self.is_cuda:
+            self._torch_stream.wait_stream(self._warp_stream, event=self._ev_out)
+
+    # --------------------------------------------------------------- read-outs
+    def finished_episodes(self) -> dict[str, torch.Tensor]:
+        """Outcomes of the controlled agents whose episode ended at the last step (1-D tensors)."""
+        rows = (self.world_reset[:, None] != 0) & (self.controlled != 0)
+        return {
+            "goal": self.final_goal[rows], "collided": self.final_collided[rows],
+            "offroad": self.final_offroad[rows], "return": self.final_return[rows],
+            "cost": self.final_cost[rows], "min_dist": self.final_min_dist[rows],
+            "steps": self.final_steps[rows],
+        }
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """A host copy of the whole State (tests, debugging, determinism checks)."""
+        out = {}
+        for name, arr in vars(self.state).items():
+            if isinstance(arr, wp.array):
+                out[name] = arr.numpy().copy()
+        return out
