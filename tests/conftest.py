@@ -1,0 +1,41 @@
+"""Shared fixtures: the device matrix (cpu always, cuda when Warp sees a GPU) and small scenes."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).parent))  # tests/reference.py
+
+wp.config.quiet = True
+wp.init()
+
+DATA = Path(__file__).parent / "data"
+WOMD_FILES = sorted(DATA.glob("womd_*.json"))
+
+
+def _cuda_available() -> bool:
+    try:
+        return wp.is_cuda_available()
+    except Exception:  # pragma: no cover - driver probing failed
+        return False
+
+
+DEVICES = [
+    "cpu",
+    pytest.param("cuda:0", marks=pytest.mark.skipif(not _cuda_available(), reason="no CUDA device")),
+]
+
+
+@pytest.fixture(params=DEVICES)
+def device(request):
+    return request.param
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
