@@ -91,6 +91,28 @@ def bin_value(i: int, lo: float, hi: float, n: int):
     return lo + (hi - lo) * float(i) / float(n - 1)
 
 
+@wp.func
+def tracking_target(pos: wp.vec2, yaw: float, vel: wp.vec2, pos1: wp.vec2, yaw1: float, vel1: wp.vec2,
+                    pos2: wp.vec2, has2: int, dt: float, gain_long: float, gain_lat: float):
+    """Yaw and speed to aim for at t+1 so the simulated agent follows the logged path.
+
+    Matching only the logged yaw and speed (Waymax's plain inverse) lets position
+    errors integrate; here the speed target also closes the along-track error
+    and the yaw target turns towards the logged position at t+2."""
+    h = wp.vec2(wp.cos(yaw), wp.sin(yaw))
+    # along-track error left after a step that matches the logged speed change
+    e_long = wp.dot(pos1 - (pos + vel * dt), h) - 0.5 * (wp.length(vel1) - wp.length(vel)) * dt
+    speed_t = wp.max(wp.length(vel1) + gain_long * e_long / dt, 0.0)
+    yaw_t = yaw1
+    if has2 != 0:
+        speed = wp.length(vel)
+        p1 = pos + h * (0.5 * (speed + speed_t) * dt)
+        d = pos2 - p1
+        if wp.length(d) > 0.5:
+            yaw_t = yaw1 + gain_lat * wrap_angle(wp.atan2(d[1], d[0]) - yaw1)
+    return yaw_t, wp.vec2(speed_t, 0.0)
+
+
 @wp.kernel
 def expert_actions_kernel(
     # model
@@ -106,6 +128,8 @@ def expert_actions_kernel(
     discrete: int,
     n_accel: int,
     n_kappa: int,
+    gain_long: float,
+    gain_lat: float,
     # out
     action_out: wp.array2d(dtype=wp.vec3),  # (agent, step) action taking step -> step + 1
     index_out: wp.array2d(dtype=wp.int32),  # (agent, step) discrete grid index (or -1)
@@ -139,7 +163,18 @@ def expert_actions_kernel(
             index_out[i, t] = -1
             continue
         if dynamics == DYNAMICS_BICYCLE:
-            a, k = bicycle_inverse(yaw, vel, log_yaw[i, t + 1], log_vel[i, t + 1], dt, max_accel, max_kappa)
+            yaw_t = log_yaw[i, t + 1]
+            vel_t = log_vel[i, t + 1]
+            if t >= init_step:
+                has2 = int(0)
+                pos2 = log_pos[i, t + 1]
+                if t + 2 < T:
+                    if log_valid[i, t + 2] != 0:
+                        has2 = 1
+                        pos2 = log_pos[i, t + 2]
+                yaw_t, vel_t = tracking_target(pos, yaw, vel, log_pos[i, t + 1], log_yaw[i, t + 1],
+                                               log_vel[i, t + 1], pos2, has2, dt, gain_long, gain_lat)
+            a, k = bicycle_inverse(yaw, vel, yaw_t, vel_t, dt, max_accel, max_kappa)
             idx = int(-1)
             if discrete != 0:
                 ia = nearest_bin(a, -max_accel, max_accel, n_accel)
@@ -250,6 +285,11 @@ def step_agents_kernel(
         applied_out[i] = d
 
 
+# gains of the closed-loop expert (tracking_target); 0, 0 is Waymax's plain inverse
+TRACK_GAIN_LONG = 0.3
+TRACK_GAIN_LAT = 1.0
+
+
 def launch_expert_actions(model, cfg) -> None:
     """Fill model.expert_action / expert_index / expert_track from the logs."""
     wp.launch(
@@ -257,7 +297,7 @@ def launch_expert_actions(model, cfg) -> None:
         dim=model.num_slots,
         inputs=[model.log_pos, model.log_yaw, model.log_vel, model.log_valid, cfg.init_steps, model.dt,
                 model.dynamics, cfg.max_accel, cfg.max_curvature, model.discrete, cfg.accel_bins,
-                cfg.curvature_bins],
+                cfg.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
         outputs=[model.expert_action, model.expert_index, model.expert_track],
         device=model.device,
     )

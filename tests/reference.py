@@ -115,3 +115,33 @@ def point_segment_distance(p, a, b):
 def to_local(d, yaw):
     c, s = np.cos(yaw), np.sin(yaw)
     return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+
+
+def expert_track(pos, yaw, vel, valid, init, dt=0.1, gain_long=0.3, gain_lat=1.0, max_accel=6.0, max_kappa=0.3):
+    """Closed-loop expert of one agent (kernels/dynamics.py expert_actions_kernel), written out step by step."""
+    T = len(pos)
+    p, y, v = pos[0].astype(np.float64), float(yaw[0]), vel[0].astype(np.float64)
+    out = np.zeros((T, 2))
+    seen = False
+    for t in range(T):
+        if t <= init or not seen:
+            if valid[t]:
+                p, y, v, seen = pos[t].astype(np.float64), float(yaw[t]), vel[t].astype(np.float64), True
+        out[t] = p
+        if t == T - 1 or not seen or not valid[t + 1]:
+            continue
+        y_t, s_t = float(yaw[t + 1]), float(np.linalg.norm(vel[t + 1]))
+        if t >= init:
+            h = np.array([np.cos(y), np.sin(y)])
+            sp = np.linalg.norm(v)
+            e = (pos[t + 1] - p - v * dt) @ h - 0.5 * (s_t - sp) * dt
+            s_t = max(s_t + gain_long * e / dt, 0.0)
+            if t + 2 < T and valid[t + 2]:
+                d = pos[t + 2] - (p + h * 0.5 * (sp + s_t) * dt)
+                if np.linalg.norm(d) > 0.5:
+                    y_t = y_t + gain_lat * wrap(np.arctan2(d[1], d[0]) - y_t)
+        a, k = bicycle_inverse(np.array(y), v, np.array(y_t), np.array([s_t, 0.0]), dt, max_accel, max_kappa)
+        if t >= init:
+            p, y, v = bicycle_forward(p, np.array(y), v, a, k, dt)
+            y = float(y)
+    return out

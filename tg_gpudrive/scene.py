@@ -228,7 +228,9 @@ def make_scene(
     log_valid = np.ones((n, t), bool) if log_valid is None else np.asarray(log_valid, bool)
     if log_vel is None:
         log_vel = np.zeros_like(log_pos)
-        log_vel[:, 1:] = np.diff(log_pos, axis=1) / dt
+        both = log_valid[:, 1:] & log_valid[:, :-1]
+        with np.errstate(invalid="ignore"):
+            log_vel[:, 1:] = np.where(both[..., None], np.diff(log_pos, axis=1) / dt, 0.0)
         log_vel[:, 0] = log_vel[:, 1] if t > 1 else 0.0
     if goal is None:
         last = t - 1 - np.argmax(log_valid[:, ::-1], axis=1)
