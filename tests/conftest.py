@@ -11,7 +11,8 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).parent))  # tests/reference.py
 
-wp.config.quiet = True
+import tg_gpudrive  # noqa: F401  (sets Warp's log level)
+
 wp.init()
 
 DATA = Path(__file__).parent / "data"

@@ -200,8 +200,8 @@ class Model:
             idx = select_slots(sc, A, cfg.init_steps)
             dropped = int(sc.log_valid.any(1).sum()) - len(idx)
             if dropped > 0:
-                log.warning("scene %s: %d agents beyond max_agents=%d were dropped (least relevant first)",
-                            sc.scene_id, dropped, A)
+                log.info("scene %s: %d agents beyond max_agents=%d were dropped (least relevant first)",
+                         sc.scene_id, dropped, A)
             report.truncated_agents.append(max(dropped, 0))
             n, t = len(idx), sc.num_steps
             if controlled is not None:

@@ -75,9 +75,13 @@ class Simulator:
         self._graph = None
         self._steps_run = 0
         self._make_views()
-        if self.model.report.total_truncated:
-            log.warning("%d agents dropped over %d worlds (max_agents=%d); see sim.model.report",
-                        self.model.report.total_truncated, self.num_worlds, self.max_agents)
+        rep = self.model.report
+        if rep.total_truncated:
+            hit = sorted({s.scene_id for s, n in zip(scenes, rep.truncated_agents) if n})
+            log.warning("%d agents beyond max_agents=%d dropped (least relevant first) over %d worlds; "
+                        "scenes: %s%s; counts per world in sim.model.report.truncated_agents",
+                        rep.total_truncated, self.max_agents, sum(1 for n in rep.truncated_agents if n),
+                        ", ".join(hit[:5]), " ..." if len(hit) > 5 else "")
 
     def _make_views(self) -> None:
         m, s, c = self.model, self.state, self.control

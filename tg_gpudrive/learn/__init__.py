@@ -1,0 +1,1 @@
+"""The CCE-MAPPO learner: losses, advantage estimation and risk measures (see ``losses``)."""

@@ -1,0 +1,156 @@
+"""Built-in policies and the rollout loop that turns episodes into rates.
+
+A policy is a callable `policy(sim) -> None` that writes the action buffers of
+the simulator in place (`sim.actions_index` or `sim.actions`). Rollouts run
+any number of steps; every finished episode of every controlled agent is
+counted once, with the outcome flags the engine kept for it.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import torch
+
+from tg_gpudrive.simulator import Simulator
+
+Policy = Callable[[Simulator], None]
+
+
+def expert_policy(sim: Simulator) -> None:
+    sim.use_expert_actions()
+
+
+def constant_policy(sim: Simulator) -> None:
+    """Zero acceleration, zero curvature (or no motion for delta-local)."""
+    cfg = sim.cfg
+    if cfg.action_space == "discrete":
+        sim.actions_index.fill_((cfg.accel_bins // 2) * cfg.curvature_bins + cfg.curvature_bins // 2)
+    else:
+        sim.actions.zero_()
+
+
+def make_random_policy(seed: int, device: str) -> Policy:
+    gen = torch.Generator(device=device).manual_seed(seed)
+
+    def random_policy(sim: Simulator) -> None:
+        cfg = sim.cfg
+        if cfg.action_space == "discrete":
+            sim.actions_index.copy_(torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen,
+                                                  device=sim.actions_index.device, dtype=torch.int32))
+        else:
+            hi = (torch.tensor([cfg.max_accel, cfg.max_curvature, 0.0]) if cfg.dynamics == "bicycle"
+                  else torch.tensor(cfg.delta_max)).to(sim.actions.device)
+            u = torch.rand(sim.actions.shape, generator=gen, device=sim.actions.device)
+            sim.actions.copy_((2 * u - 1) * hi)
+
+    return random_policy
+
+
+def builtin_policy(name: str, seed: int, device: str) -> Policy:
+    if name == "expert":
+        return expert_policy
+    if name == "constant":
+        return constant_policy
+    if name == "random":
+        return make_random_policy(seed, device)
+    raise ValueError(f"policy: expected expert, random or constant, got {name!r}")
+
+
+class EpisodeStats:
+    """Sums of episode outcomes per scenario type, accumulated on the device."""
+
+    KEYS = ("episodes", "goal", "collided", "offroad", "cost", "min_dist", "return", "steps")
+
+    def __init__(self, sim: Simulator):
+        self.sim = sim
+        types = [s.metadata.get("scenario_type", "unknown") for s in sim.model.scenes]
+        self.type_names = sorted(set(types))
+        self.world_type = torch.tensor([self.type_names.index(t) for t in types], device=sim.reward.device)
+        n = len(self.type_names)
+        self.sums = {k: torch.zeros(n, dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
+        self.speed_sum = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
+        self.alive_steps = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
+
+    def _add(self, rows: torch.Tensor, goal, collided, offroad, cost, min_dist, ret, steps) -> None:
+        wt = self.world_type[:, None].expand_as(rows)[rows]
+        for key, val in (("episodes", torch.ones_like(goal, dtype=torch.float64)), ("goal", goal),
+                         ("collided", collided), ("offroad", offroad), ("cost", cost), ("min_dist", min_dist),
+                         ("return", ret), ("steps", steps)):
+            self.sums[key].index_add_(0, wt, val[rows].to(torch.float64))
+
+    def after_step(self) -> None:
+        s = self.sim
+        self.speed_sum += (s.speed * s.alive).sum()
+        self.alive_steps += s.alive.sum()
+        rows = (s.world_reset[:, None] != 0) & (s.controlled != 0)
+        self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
+                  s.final_return, s.final_steps)
+
+    def add_unfinished(self) -> None:
+        """Count episodes still running (used when a rollout ends before any episode did)."""
+        s = self.sim
+        rows = (s.controlled != 0) & (s.ep_steps > 0)
+        self._add(rows, s.ep_goal, s.ep_collided, s.ep_offroad, s.ep_cost, s.ep_min_dist, s.ep_return, s.ep_steps)
+
+    def summary(self) -> dict:
+        tot = {k: float(v.sum()) for k, v in self.sums.items()}
+
+        def rates(d: dict) -> dict:
+            n = max(d["episodes"], 1.0)
+            return {
+                "episodes": int(d["episodes"]),
+                "goal_rate": d["goal"] / n,
+                "collision_rate": d["collided"] / n,
+                "offroad_rate": d["offroad"] / n,
+                "mean_cost": d["cost"] / max(d["steps"], 1.0),  # per controlled agent-step
+                "mean_min_distance": d["min_dist"] / n,  # m, capped at the broad-phase cell size
+                "mean_return": d["return"] / n,
+            }
+
+        out = rates(tot)
+        out["mean_speed"] = float(self.speed_sum / self.alive_steps.clamp(min=1))
+        if len(self.type_names) > 1:
+            out["per_type"] = {name: rates({k: float(v[i]) for k, v in self.sums.items()})
+                               for i, name in enumerate(self.type_names)}
+        return out
+
+
+def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False) -> dict:
+    """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed."""
+    sim.reset()
+    stats = EpisodeStats(sim)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="simulate", unit="step", leave=False)
+    if sim.is_cuda:
+        torch.cuda.synchronize(sim.device)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        policy(sim)
+        sim.step()
+        stats.after_step()
+        if bar is not None:
+            bar.update(1)
+    if sim.is_cuda:
+        torch.cuda.synchronize(sim.device)
+    seconds = time.perf_counter() - t0
+    if bar is not None:
+        bar.close()
+    if float(stats.sums["episodes"].sum()) == 0:
+        stats.add_unfinished()
+    out = stats.summary()
+    n_ctrl = int(sim.controlled.sum())
+    out.update({
+        "worlds": sim.num_worlds,
+        "agents_controlled": n_ctrl,
+        "steps": steps,
+        "seconds": seconds,
+        "agent_steps_per_s": n_ctrl * steps / seconds,
+        "slot_steps_per_s": sim.num_worlds * sim.max_agents * steps / seconds,
+        "device": sim.device,
+    })
+    return out
