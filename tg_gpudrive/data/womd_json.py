@@ -1,0 +1,378 @@
+"""Load GPUDrive's processed WOMD JSON scenes into `Scene`.
+
+GPUDrive (and Nocturne before it) convert each Waymo Open Motion Dataset
+scenario into one JSON file:
+
+    key                  content
+    name, scenario_id    source file tag, WOMD scenario id
+    objects[i]           position [{x,y,z}]*T, velocity [{x,y}]*T, heading [rad]*T,
+                         valid [bool]*T, width, length, height, goalPosition {x,y,z},
+                         type (vehicle/pedestrian/cyclist/...), id, mark_as_expert
+    roads[r]             geometry [{x,y,z}]*k, type (lane/road_line/road_edge/stop_sign/
+                         crosswalk/speed_bump/driveway), id, map_element_id
+    tl_states            {lane_id: {state: [str], x: [..], y: [..], time_index: [..]}} or {}
+    metadata             sdc_track_index, objects_of_interest (ids),
+                         tracks_to_predict [{track_index, difficulty}]
+
+Invalid steps hold -10000 in position, velocity and heading; here they become
+`log_valid` False and never reach the Scene. Every structural problem (bad
+JSON, missing key, wrong type, NaN, nothing valid) raises
+`SceneError(path, "objects[3].position[17].x", problem)` rather than a KeyError
+or TypeError from deep inside, so a bad file in a large dataset is easy to find.
+
+Required keys are the ones the Scene needs (objects with their trajectories,
+sizes, goal, type and id; roads with geometry, type and id). `name`,
+`scenario_id`, `tl_states`, `metadata`, `map_element_id` and `mark_as_expert`
+are optional. Traffic-signal entries that cannot be read are dropped and
+counted in metadata["tl_dropped"], since signals are auxiliary.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from typing import Any
+
+import numpy as np
+
+from tg_gpudrive.data.simplify import simplify_scene
+from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+
+__all__ = ["load_gpudrive_json", "scene_origin", "SENTINEL", "WOMD_SUBTYPE_BY_MAP_ELEMENT"]
+
+SENTINEL = -10000.0  # GPUDrive's value for fields of invalid steps
+
+_AGENT_TYPES = {"vehicle": AgentType.VEHICLE, "pedestrian": AgentType.PEDESTRIAN, "cyclist": AgentType.CYCLIST}
+_ROAD_TYPES = {m.name.lower(): m for m in RoadType if m != RoadType.NONE}
+
+
+def _map_element_subtype(mid: int) -> int:
+    """GPUDrive's map_element_id (WOMD tf.Example roadgraph type) -> the WOMD
+    per-kind enum (LaneCenter.LaneType, RoadLine.RoadLineType, RoadEdge.RoadEdgeType)."""
+    if 0 <= mid <= 3:
+        return mid  # lane: undefined, freeway, surface street, bike lane
+    if 5 <= mid <= 13:
+        return mid - 5  # road line: unknown, broken single white, ...
+    if 14 <= mid <= 16:
+        return mid - 14  # road edge: unknown, boundary, median
+    return 0
+
+
+WOMD_SUBTYPE_BY_MAP_ELEMENT = {mid: _map_element_subtype(mid) for mid in range(21)}
+
+
+def scene_origin(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Scene-frame origin: mean of the valid agent positions, rounded to whole metres.
+
+    Any point near the agents keeps float32 at ~0.1 mm precision; rounding makes
+    the origin reproducible from the positions themselves, so a scene written to
+    a TFRecord in global coordinates and read back recovers the same origin and
+    bit-identical float32 positions (WOMD coordinates are float32-representable,
+    so subtracting a whole number stays exact).
+    """
+    pts = np.asarray(xy, np.float64)[np.asarray(valid, bool)]
+    pts = pts[np.isfinite(pts).all(-1)]  # one bad point must not shift (or NaN) every position
+    if len(pts) == 0:
+        return np.zeros(2, np.float64)
+    return np.round(pts.mean(0))
+
+
+class _Reader:
+    """Typed access into parsed JSON that raises SceneError with the field path."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, field: str, problem: str):
+        raise SceneError(self.source, field, problem)
+
+    def key(self, obj: Any, key: str, path: str) -> Any:
+        if not isinstance(obj, dict):
+            self.fail(path, f"expected an object, got {type(obj).__name__}")
+        if key not in obj:
+            self.fail(f"{path}.{key}" if path else key, "missing key")
+        return obj[key]
+
+    def list(self, obj: Any, key: str, path: str) -> list:
+        v = self.key(obj, key, path)
+        if not isinstance(v, list):
+            self.fail(f"{path}.{key}", f"expected a list, got {type(v).__name__}")
+        return v
+
+    def number(self, v: Any, path: str) -> float:
+        if type(v) not in (int, float):
+            self.fail(path, f"expected a number, got {type(v).__name__}")
+        if not math.isfinite(v):
+            self.fail(path, f"non-finite value {v}")
+        return float(v)
+
+    def integer(self, v: Any, path: str) -> int:
+        if type(v) is not int:
+            self.fail(path, f"expected an integer, got {type(v).__name__}")
+        return v
+
+    def points(self, lst: list, path: str, keys: tuple[str, ...] = ("x", "y")) -> np.ndarray:
+        """(k, len(keys)) float64 from a list of {x, y, ...} dicts; sentinels kept, NaN rejected."""
+        try:
+            flat = [p[k] for p in lst for k in keys]
+            ok = {type(v) for v in flat} <= {int, float}
+        except (KeyError, TypeError, IndexError):
+            ok = False
+        if not ok:
+            self._locate(lst, path, keys)
+        arr = np.array(flat, np.float64).reshape(len(lst), len(keys))
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            t, k = np.argwhere(bad)[0]
+            self.fail(f"{path}[{t}].{keys[k]}", f"non-finite value {arr[t, k]}")
+        return arr
+
+    def _locate(self, lst: list, path: str, keys: tuple[str, ...]):
+        for t, p in enumerate(lst):
+            for k in keys:
+                self.number(self.key(p, k, f"{path}[{t}]"), f"{path}[{t}].{k}")
+        self.fail(path, "malformed point list")  # unreachable unless the fast path and this disagree
+
+    def numbers(self, lst: list, path: str) -> np.ndarray:
+        if not {type(v) for v in lst} <= {int, float}:
+            for t, v in enumerate(lst):
+                self.number(v, f"{path}[{t}]")
+        arr = np.array(lst, np.float64)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            t = int(np.nonzero(bad)[0][0])
+            self.fail(f"{path}[{t}]", f"non-finite value {arr[t]}")
+        return arr
+
+    def bools(self, lst: list, path: str) -> np.ndarray:
+        if not {type(v) for v in lst} <= {bool}:
+            for t, v in enumerate(lst):
+                if type(v) is not bool and v not in (0, 1):
+                    self.fail(f"{path}[{t}]", f"expected a bool, got {v!r}")
+        return np.array(lst, bool)
+
+
+def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | None = None) -> Scene:
+    """Load one GPUDrive processed WOMD JSON file as a validated Scene.
+
+    Positions are shifted by `scene_origin` (stored in `Scene.origin`); goals are
+    `goalPosition` in the same frame (the last valid position where the file
+    has a sentinel). With `simplify_tolerance` (metres) road polylines are
+    simplified by `simplify.simplify_scene` and its report is stored in
+    metadata["simplify"].
+    """
+    src = str(path)
+    rd = _Reader(src)
+    try:
+        with open(path, "rb") as f:
+            raw = json.loads(f.read())
+    except json.JSONDecodeError as e:
+        raise SceneError(src, "json", f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
+    except UnicodeDecodeError as e:
+        raise SceneError(src, "json", f"not UTF-8 text: {e.reason} at byte {e.start}") from None
+    if not isinstance(raw, dict):
+        rd.fail("json", f"expected a JSON object at the top level, got {type(raw).__name__}")
+
+    objects = rd.list(raw, "objects", "")
+    if not objects:
+        rd.fail("objects", "scene has no agents (empty list)")
+    n = len(objects)
+    t_steps = None
+    pos, vel, yaw, valid = [], [], [], []
+    length, width, height = np.zeros(n), np.zeros(n), np.zeros(n)
+    goal = np.zeros((n, 2))
+    agent_type = np.zeros(n, np.int8)
+    agent_id = np.zeros(n, np.int64)
+    expert = []
+    for i, o in enumerate(objects):
+        p = f"objects[{i}]"
+        if not isinstance(o, dict):
+            rd.fail(p, f"expected an object, got {type(o).__name__}")
+        traj = {
+            "position": rd.list(o, "position", p),
+            "velocity": rd.list(o, "velocity", p),
+            "heading": rd.list(o, "heading", p),
+            "valid": rd.list(o, "valid", p),
+        }
+        if t_steps is None:
+            t_steps = len(traj["position"])
+        for key, lst in traj.items():
+            if len(lst) != t_steps:
+                rd.fail(f"{p}.{key}", f"expected {t_steps} steps (as objects[0].position), got {len(lst)}")
+        pos.append(rd.points(traj["position"], f"{p}.position"))
+        vel.append(rd.points(traj["velocity"], f"{p}.velocity"))
+        yaw.append(rd.numbers(traj["heading"], f"{p}.heading"))
+        valid.append(rd.bools(traj["valid"], f"{p}.valid"))
+        length[i] = rd.number(rd.key(o, "length", p), f"{p}.length")
+        width[i] = rd.number(rd.key(o, "width", p), f"{p}.width")
+        height[i] = rd.number(rd.key(o, "height", p), f"{p}.height")
+        g = rd.key(o, "goalPosition", p)
+        goal[i] = [rd.number(rd.key(g, k, f"{p}.goalPosition"), f"{p}.goalPosition.{k}") for k in ("x", "y")]
+        kind = rd.key(o, "type", p)
+        if not isinstance(kind, str):
+            rd.fail(f"{p}.type", f"expected a string, got {type(kind).__name__}")
+        agent_type[i] = _AGENT_TYPES.get(kind.lower(), AgentType.OTHER)
+        agent_id[i] = rd.integer(rd.key(o, "id", p), f"{p}.id")
+        if o.get("mark_as_expert") is True:
+            expert.append(i)
+    pos_a, vel_a = np.stack(pos), np.stack(vel)
+    yaw_a, valid_a = np.stack(yaw), np.stack(valid)
+    # a step is real only if flagged valid and free of the sentinel
+    sentinel = (pos_a == SENTINEL).any(-1) | (vel_a == SENTINEL).any(-1) | (yaw_a == SENTINEL)
+    valid_a &= ~sentinel
+    if not valid_a.any():
+        rd.fail("objects[*].valid", "no object has a single valid step")
+    if t_steps < 2:
+        rd.fail("objects[0].position", f"need at least 2 logged steps, got {t_steps}")
+    pos_a[~valid_a] = 0.0
+    vel_a[~valid_a] = 0.0
+    yaw_a[~valid_a] = 0.0
+    origin = scene_origin(pos_a, valid_a)
+
+    has_valid = valid_a.any(1)
+    last = t_steps - 1 - np.argmax(valid_a[:, ::-1], axis=1)
+    last_pos = pos_a[np.arange(n), last]
+    no_goal = (goal == SENTINEL).any(-1)
+    goal = np.where(no_goal[:, None], last_pos, goal)
+    goal[~has_valid] = origin  # such agents never appear; keep their goal finite and harmless
+
+    roads = rd.list(raw, "roads", "")
+    pts, road_type, road_id, subtype = [], [], [], []
+    dropped_empty = 0
+    for r, road in enumerate(roads):
+        p = f"roads[{r}]"
+        geom = rd.points(rd.list(road, "geometry", p), f"{p}.geometry")
+        kind = rd.key(road, "type", p)
+        if not isinstance(kind, str) or kind.lower() not in _ROAD_TYPES:
+            rd.fail(f"{p}.type", f"unknown road type {kind!r}; expected one of {', '.join(_ROAD_TYPES)}")
+        rid = rd.integer(rd.key(road, "id", p), f"{p}.id")
+        if len(geom) == 0:
+            dropped_empty += 1  # an empty polyline has nothing to draw or collide with
+            continue
+        mid = road.get("map_element_id")
+        pts.append(geom)
+        road_type.append(int(_ROAD_TYPES[kind.lower()]))
+        road_id.append(rid)
+        subtype.append(WOMD_SUBTYPE_BY_MAP_ELEMENT.get(mid, 0) if type(mid) is int else 0)
+    road_points = (np.concatenate(pts) - origin) if pts else np.zeros((0, 2))
+    offsets = np.concatenate([[0], np.cumsum([len(g) for g in pts], dtype=np.int64)]).astype(np.int64)
+
+    tl_lane, tl_stop, tl_state, tl_dropped = _traffic_lights(raw.get("tl_states"), t_steps, origin)
+
+    meta = raw.get("metadata") or {}
+    if not isinstance(meta, dict):
+        rd.fail("metadata", f"expected an object, got {type(meta).__name__}")
+    is_sdc = np.zeros(n, bool)
+    sdc = meta.get("sdc_track_index")
+    if sdc is not None:
+        sdc = rd.integer(sdc, "metadata.sdc_track_index")
+        if sdc >= n:
+            rd.fail("metadata.sdc_track_index", f"index {sdc} out of range for {n} objects")
+        if sdc >= 0:
+            is_sdc[sdc] = True
+    is_interest = np.zeros(n, bool)
+    ttp = meta.get("tracks_to_predict") or []
+    tracks_to_predict = []
+    for k, item in enumerate(ttp):
+        fp = f"metadata.tracks_to_predict[{k}]"
+        idx = rd.integer(rd.key(item, "track_index", fp) if isinstance(item, dict) else item,
+                         f"{fp}.track_index")
+        if not 0 <= idx < n:
+            rd.fail(f"{fp}.track_index", f"index {idx} out of range for {n} objects")
+        is_interest[idx] = True
+        diff = item.get("difficulty", 0) if isinstance(item, dict) else 0
+        tracks_to_predict.append({"track_index": idx, "difficulty": int(diff) if type(diff) is int else 0})
+    ooi = meta.get("objects_of_interest") or []
+    index_of = {int(a): i for i, a in enumerate(agent_id)}
+    for k, oid in enumerate(ooi):
+        oid = rd.integer(oid, f"metadata.objects_of_interest[{k}]")
+        if oid in index_of:  # ids absent from objects refer to nothing here
+            is_interest[index_of[oid]] = True
+
+    name = raw.get("name")
+    scene = Scene(
+        scene_id=str(raw.get("scenario_id") or name or os.path.splitext(os.path.basename(src))[0]),
+        log_pos=(pos_a - origin).astype(np.float32),
+        log_yaw=yaw_a.astype(np.float32),
+        log_vel=vel_a.astype(np.float32),
+        log_valid=valid_a,
+        length=length.astype(np.float32),
+        width=width.astype(np.float32),
+        height=height.astype(np.float32),
+        agent_type=agent_type,
+        agent_id=agent_id,
+        goal=(goal - origin).astype(np.float32),
+        is_sdc=is_sdc,
+        is_interest=is_interest,
+        road_points=road_points.astype(np.float32),
+        road_offsets=offsets,
+        road_type=np.asarray(road_type, np.int8),
+        road_id=np.asarray(road_id, np.int64),
+        tl_lane=tl_lane,
+        tl_stop_point=tl_stop,
+        tl_state=tl_state,
+        origin=origin,
+        dt=0.1,
+        metadata={
+            "source": src,
+            "scenario_type": "womd",
+            "name": name if isinstance(name, str) else None,
+            "sdc_track_index": sdc,
+            "tracks_to_predict": tracks_to_predict,
+            "objects_of_interest": [int(v) for v in ooi],
+            "mark_as_expert": expert,
+            # WOMD per-kind subtype of each polyline (lane type, road-line type, road-edge type)
+            "road_subtype": subtype,
+            "dropped_empty_roads": dropped_empty,
+            "tl_dropped": tl_dropped,
+        },
+    ).validate(src)
+    if simplify_tolerance is not None:
+        scene, _ = simplify_scene(scene, simplify_tolerance)
+    return scene
+
+
+def _traffic_lights(tl: Any, t_steps: int, origin: np.ndarray):
+    """tl_states -> (tl_lane, tl_stop_point, tl_state); unreadable entries are dropped and counted."""
+    empty = (np.zeros(0, np.int64), np.zeros((0, 2), np.float32), np.zeros((t_steps, 0), np.int8), 0)
+    if not tl:
+        return empty
+    if isinstance(tl, dict):
+        entries = list(tl.items())
+    elif isinstance(tl, list):
+        entries = [(e.get("lane_id", e.get("id")) if isinstance(e, dict) else None, e) for e in tl]
+    else:
+        return empty[:3] + (1,)
+    lanes, stops, columns, dropped = [], [], [], 0
+    for lane, e in entries:
+        try:
+            lane = int(lane)
+            states, times = e["state"], e["time_index"]
+            x, y = float(e["x"][0]), float(e["y"][0])
+            if not (math.isfinite(x) and math.isfinite(y)) or x == SENTINEL:
+                raise ValueError("stop point")
+            col = np.zeros(t_steps, np.int8)
+            for s, t in zip(states, times):
+                t = int(t)
+                if 0 <= t < t_steps:
+                    col[t] = _tl_state(s)
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError):
+            dropped += 1
+            continue
+        lanes.append(lane)
+        stops.append((x, y))
+        columns.append(col)
+    if not lanes:
+        return empty[:3] + (dropped,)
+    return (np.asarray(lanes, np.int64), (np.asarray(stops) - origin).astype(np.float32),
+            np.stack(columns, 1), dropped)
+
+
+def _tl_state(s: Any) -> int:
+    if isinstance(s, str):
+        name = s.upper().removeprefix("LANE_STATE_")
+        return int(TrafficLightState[name]) if name in TrafficLightState.__members__ else 0
+    s = int(s)
+    return s if s in TrafficLightState._value2member_map_ else 0
