@@ -217,6 +217,7 @@ def step_agents_kernel(
     action_index: wp.array(dtype=wp.int32),  # (world * agent,) discrete grid index
     # state in/out
     step: wp.array(dtype=wp.int32),  # (world,) log step the state is at
+    world_done: wp.array(dtype=wp.int32),  # (world,) ended without auto-reset: frozen
     agent_done: wp.array(dtype=wp.int32),
     removed: wp.array(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec2),
@@ -236,6 +237,8 @@ def step_agents_kernel(
     tn = step[w] + 1
     alive_out[i] = 0
     applied_out[i] = wp.vec3(0.0, 0.0, 0.0)
+    if world_done[w] != 0:
+        return
     if slot_valid[i] == 0 or removed[i] != 0:
         present_out[i] = 0
         return
@@ -310,7 +313,8 @@ def launch_step_agents(model, state, control, cfg) -> None:
         inputs=[model.max_agents, model.slot_valid, model.controlled, model.log_pos, model.log_yaw,
                 model.log_vel, model.log_valid, model.dt, model.dynamics, model.discrete, cfg.max_accel,
                 cfg.max_curvature, cfg.accel_bins, cfg.curvature_bins, wp.vec3(*cfg.delta_max),
-                control.action, control.action_index, state.step, state.agent_done, state.removed,
+                control.action, control.action_index, state.step, state.world_done, state.agent_done,
+                state.removed,
                 state.pos, state.yaw, state.vel, state.speed],
         outputs=[state.present, state.alive, state.applied_action],
         device=model.device,

@@ -87,12 +87,20 @@ def finish_world_kernel(
     controlled: wp.array(dtype=wp.int32),
     last_step: wp.array(dtype=wp.int32),  # (world,)
     agent_done: wp.array(dtype=wp.int32),
+    auto_reset: int,
     step: wp.array(dtype=wp.int32),  # in/out
-    world_reset_out: wp.array(dtype=wp.int32),  # (world,) episode ended this step
+    world_done: wp.array(dtype=wp.int32),  # (world,) in/out: episode over, waiting for reset()
+    world_ended_out: wp.array(dtype=wp.int32),  # (world,) episode ended this step
+    world_reset_out: wp.array(dtype=wp.int32),  # (world,) ... and the world was reset
     world_truncated_out: wp.array(dtype=wp.int32),  # (world,) ... by the time limit
     episode_count: wp.array(dtype=wp.int32),  # (world,) in/out
 ):
     w = wp.tid()
+    if world_done[w] != 0:
+        world_ended_out[w] = 0
+        world_reset_out[w] = 0
+        world_truncated_out[w] = 0
+        return
     t = step[w] + 1
     n_ctrl = int(0)
     n_done = int(0)
@@ -108,13 +116,17 @@ def finish_world_kernel(
     end = trunc
     if n_ctrl > 0 and n_done == n_ctrl:
         end = 1
-    world_reset_out[w] = end
+    world_ended_out[w] = end
+    world_reset_out[w] = end * auto_reset
     world_truncated_out[w] = trunc
     if end != 0:
-        step[w] = init_step
         episode_count[w] = episode_count[w] + 1
+    if end != 0 and auto_reset != 0:
+        step[w] = init_step
     else:
         step[w] = t
+        if end != 0:
+            world_done[w] = 1
 
 
 @wp.kernel
@@ -129,6 +141,7 @@ def reset_agents_kernel(
     log_vel: wp.array2d(dtype=wp.vec2),
     log_valid: wp.array2d(dtype=wp.int32),
     goal: wp.array(dtype=wp.vec2),
+    world_ended: wp.array(dtype=wp.int32),
     world_reset: wp.array(dtype=wp.int32),
     world_truncated: wp.array(dtype=wp.int32),
     alive: wp.array(dtype=wp.int32),
@@ -159,12 +172,12 @@ def reset_agents_kernel(
     final_min_dist: wp.array(dtype=float),
     final_steps: wp.array(dtype=wp.int32),
 ):
+    """force: 0 = after a step (copy outcomes where the episode ended, reset where
+    world_reset), 1 = reset every world, 2 = reset the worlds flagged in world_reset."""
     i = wp.tid()
     w = i / agents_per_world
     truncated_out[i] = 0
-    if force == 0 and world_reset[w] == 0:
-        return
-    if force == 0:
+    if force == 0 and world_ended[w] != 0:
         if alive[i] != 0 and terminated[i] == 0 and world_truncated[w] != 0:
             truncated_out[i] = 1
         final_goal[i] = ep_goal[i]
@@ -174,6 +187,8 @@ def reset_agents_kernel(
         final_cost[i] = ep_cost[i]
         final_min_dist[i] = ep_min_dist[i]
         final_steps[i] = ep_steps[i]
+    if force != 1 and world_reset[w] == 0:
+        return
     agent_done[i] = 0
     removed[i] = 0
     ep_collided[i] = 0
@@ -202,7 +217,7 @@ def _reset_agents(model, state, force: int) -> None:
     wp.launch(reset_agents_kernel, dim=model.num_slots, device=model.device,
               inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.controlled,
                       model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.goal,
-                      state.world_reset, state.world_truncated, state.alive, state.terminated,
+                      state.world_ended, state.world_reset, state.world_truncated, state.alive, state.terminated,
                       state.pos, state.yaw, state.vel, state.speed, state.present, state.agent_done,
                       state.removed, state.goal_dist, state.ep_collided, state.ep_offroad, state.ep_goal,
                       state.ep_return, state.ep_cost, state.ep_min_dist, state.ep_steps],
@@ -219,11 +234,28 @@ def launch_respond_and_finish(model, state) -> None:
               outputs=[state.terminated])
     wp.launch(finish_world_kernel, dim=model.num_worlds, device=model.device,
               inputs=[model.max_agents, model.init_step, model.controlled, model.last_step, state.agent_done,
-                      state.step],
-              outputs=[state.world_reset, state.world_truncated, state.episode_count])
+                      model.auto_reset, state.step, state.world_done],
+              outputs=[state.world_ended, state.world_reset, state.world_truncated, state.episode_count])
     _reset_agents(model, state, force=0)
 
 
-def launch_force_reset(model, state) -> None:
-    state.step.fill_(model.init_step)
-    _reset_agents(model, state, force=1)
+@wp.kernel
+def mark_worlds_kernel(init_step: int, mask: wp.array(dtype=wp.int32), step: wp.array(dtype=wp.int32),
+                       world_done: wp.array(dtype=wp.int32), world_reset_out: wp.array(dtype=wp.int32)):
+    w = wp.tid()
+    world_reset_out[w] = mask[w]
+    if mask[w] != 0:
+        step[w] = init_step
+        world_done[w] = 0
+
+
+def launch_force_reset(model, state, mask=None) -> None:
+    """Reset every world, or those where `mask` (W,) int32 is non-zero (outcomes are not copied)."""
+    if mask is None:
+        state.step.fill_(model.init_step)
+        state.world_done.zero_()
+        _reset_agents(model, state, force=1)
+    else:
+        wp.launch(mark_worlds_kernel, dim=model.num_worlds, device=model.device,
+                  inputs=[model.init_step, mask, state.step, state.world_done], outputs=[state.world_reset])
+        _reset_agents(model, state, force=2)

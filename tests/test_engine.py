@@ -226,3 +226,30 @@ def test_cuda_graph_matches_cpu_and_allocates_nothing():
     for name in ("pos", "obs", "reward", "cost", "collided"):
         torch.testing.assert_close(getattr(sims["cuda:0"], name).cpu(), getattr(sims["cpu"], name),
                                    atol=1e-3, rtol=1e-4, msg=name)
+
+
+def test_without_auto_reset_worlds_wait_frozen_until_reset(device):
+    sc = head_on_scene()
+    cfg = EngineConfig(max_agents=4, init_steps=5, action_space="continuous", control="all_agents",
+                       auto_reset=False, road_k=8, partner_k=4)
+    sim = Simulator([sc, sc], cfg, device)
+    sim.reset()
+    start = sim.pos.clone()
+    zero = torch.zeros((2, 4, 2), device=device)
+    for _ in range(sim.episode_length):
+        sim.step(zero)
+    assert sim.world_ended.tolist() == [1, 1] and sim.world_reset.tolist() == [0, 0]
+    assert sim.world_done.tolist() == [1, 1] and sim.truncated[0, :3].tolist() == [1, 1, 1]
+    end = sim.pos.clone()
+    obs = sim.obs.clone()
+    assert sim.final_steps[0, :3].tolist() == [sim.episode_length] * 3
+    sim.step(zero)  # frozen: nothing moves, nothing is reported again
+    torch.testing.assert_close(sim.pos, end)
+    torch.testing.assert_close(sim.obs, obs)
+    assert sim.world_ended.sum() == 0 and sim.alive.sum() == 0 and sim.reward.abs().sum() == 0
+    sim.reset(torch.tensor([False, True]))  # only world 1 starts again
+    torch.testing.assert_close(sim.pos[1], start[1])
+    torch.testing.assert_close(sim.pos[0], end[0])
+    assert sim.world_done.tolist() == [1, 0] and int(sim.world_step[1]) == 5
+    sim.step(zero)
+    assert sim.alive[0].sum() == 0 and sim.alive[1].sum() == 3

@@ -66,6 +66,7 @@ class EngineConfig:
     road_cell_size: float = 10.0  # m, static road grid
     collision_cells: int = 128  # hashed buckets per world for the agent broad phase
     use_graph: bool = True  # capture the step as a CUDA graph on GPU
+    auto_reset: bool = True  # reset a world inside step() when its episode ends (else wait for reset())
     reward: RewardConfig = RewardConfig()
 
     def __post_init__(self):

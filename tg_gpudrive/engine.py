@@ -31,7 +31,7 @@ Model (fixed while a batch of scenes is loaded):
     cell_items          (S,)            int32   segment index
 
 State (changes every step): pos/vel (W*A,) vec2, yaw/speed (W*A,) f32,
-step (W,) int32, flags present/alive/active/agent_done/removed/collided/
+step (W,) int32, world_ended / world_reset / world_done (W,) int32, flags present/alive/active/agent_done/removed/collided/
 offroad/goal_event/terminated/truncated (W*A,) int32, episode accumulators
 ep_* and the outcomes of the last finished episode final_* (W*A,), world_reset
 and world_truncated (W,), reward (W*A,), reward_terms (W*A, NUM_TERMS),
@@ -175,6 +175,7 @@ class Model:
         self.collision_mode = int(parse_enum(CollisionMode, cfg.collision_mode, "collision_mode"))
         self.goal_behaviour = GOAL_BEHAVIOURS[cfg.goal_behaviour]
         self.collision_cells = cfg.collision_cells
+        self.auto_reset = int(cfg.auto_reset)
         self.obs_dim = obs_dim(cfg)
         self.road_cell_size = float(cfg.road_cell_size)
         self.scenes = scenes
@@ -304,6 +305,8 @@ class State:
         self.applied_action = wp.zeros(n, dtype=wp.vec3, device=dev)
         self.step = wp.zeros(W, dtype=wp.int32, device=dev)
         self.world_reset = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.world_ended = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.world_done = wp.zeros(W, dtype=wp.int32, device=dev)
         self.world_truncated = wp.zeros(W, dtype=wp.int32, device=dev)
         self.episode_count = wp.zeros(W, dtype=wp.int32, device=dev)
         self.reward_terms = wp.zeros((n, NUM_TERMS), dtype=float, device=dev)

@@ -84,7 +84,7 @@ class EpisodeStats:
         s = self.sim
         self.speed_sum += (s.speed * s.alive).sum()
         self.alive_steps += s.alive.sum()
-        rows = (s.world_reset[:, None] != 0) & (s.controlled != 0)
+        rows = (s.world_ended[:, None] != 0) & (s.controlled != 0)
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
                   s.final_return, s.final_steps)
 

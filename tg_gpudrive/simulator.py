@@ -10,9 +10,10 @@
 Every tensor attribute is a zero-copy torch view of an engine array on the
 engine's device, shaped (W, A, ...) or (W,). On CUDA the whole step is
 captured once as a CUDA graph; step() allocates nothing after the first call.
-Worlds whose episode ended are reset to their scene's `init_step` inside the
-step (`world_reset` says which); the outcomes of the finished episode are
-kept in the `final_*` tensors for that step.
+Worlds whose episode ended (`world_ended`) are reset to their scene's
+`init_step` inside the step (`world_reset` says which; with
+`auto_reset: false` they stay frozen, `world_done`, until `reset(worlds)`); the
+outcomes of the finished episode are kept in the `final_*` tensors.
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ _VIEWS_WA = ("present", "alive", "active", "agent_done", "removed", "collided", 
              "final_collided", "final_offroad", "final_steps", "yaw", "speed", "goal_dist", "edge_dist",
              "lane_dist", "nearest", "reward", "cost", "ep_return", "ep_cost", "ep_min_dist", "final_return",
              "final_cost", "final_min_dist")
-_VIEWS_W = ("world_reset", "world_truncated", "episode_count")
+_VIEWS_W = ("world_reset", "world_ended", "world_done", "world_truncated", "episode_count")
 
 
 def resolve_device(device: str | torch.device | None) -> str:
@@ -150,15 +151,22 @@ class Simulator:
         return self.model.num_steps - 1 - self.model.init_step
 
     # ---------------------------------------------------------------- stepping
-    def reset(self) -> None:
-        """Every world back to its scene's state at init_step; observations refreshed."""
+    def reset(self, worlds: torch.Tensor | None = None) -> None:
+        """Worlds back to their scene's state at init_step (all, or where the (W,) mask `worlds`
+        is true); observations refreshed. Needed after an episode ends when auto_reset is off."""
         m, s = self.model, self.state
         with wp.ScopedDevice(self.device):
             self._sync_in()
-            launch_force_reset(m, s)
-            launch_road_query(m, s, self.cfg)
+            if worlds is None:
+                launch_force_reset(m, s)
+                launch_road_query(m, s, self.cfg)
+            else:
+                mask = torch.as_tensor(worlds, device=self.device).reshape(self.num_worlds).to(torch.int32)
+                launch_force_reset(m, s, wp.from_torch(mask.contiguous()))
+                launch_road_query(m, s, self.cfg, only_reset_worlds=True)
             launch_observations(m, s, self.cfg)
             s.world_reset.zero_()
+            s.world_ended.zero_()
             self._sync_out()
 
     def _launch_step(self) -> None:
@@ -233,7 +241,7 @@ class Simulator:
     # --------------------------------------------------------------- read-outs
     def finished_episodes(self) -> dict[str, torch.Tensor]:
         """Outcomes of the controlled agents whose episode ended at the last step (1-D tensors)."""
-        rows = (self.world_reset[:, None] != 0) & (self.controlled != 0)
+        rows = (self.world_ended[:, None] != 0) & (self.controlled != 0)
         return {
             "goal": self.final_goal[rows], "collided": self.final_collided[rows],
             "offroad": self.final_offroad[rows], "return": self.final_return[rows],
