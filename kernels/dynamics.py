@@ -132,7 +132,7 @@ def expert_actions_kernel(
     gain_lat: float,
     # out
     action_out: wp.array2d(dtype=wp.vec3),  # (agent, step) action taking step -> step + 1
-    index_out: wp.array2d(dtype=wp.int32),  # (agent, step) discrete grid index (or -1)
+    index_out: wp.array2d(dtype=wp.int32),  # (agent, step) nearest grid index; -1: no expert action
     track_pos_out: wp.array2d(dtype=wp.vec2),  # (agent, step) state the expert actions produce
 ):
     """Closed-loop inverse dynamics: from `init_step` on, the action at step t
@@ -175,11 +175,10 @@ def expert_actions_kernel(
                 yaw_t, vel_t = tracking_target(pos, yaw, vel, log_pos[i, t + 1], log_yaw[i, t + 1],
                                                log_vel[i, t + 1], pos2, has2, dt, gain_long, gain_lat)
             a, k = bicycle_inverse(yaw, vel, yaw_t, vel_t, dt, max_accel, max_kappa)
-            idx = int(-1)
+            ia = nearest_bin(a, -max_accel, max_accel, n_accel)
+            ik = nearest_bin(k, -max_kappa, max_kappa, n_kappa)
+            idx = ia * n_kappa + ik
             if discrete != 0:
-                ia = nearest_bin(a, -max_accel, max_accel, n_accel)
-                ik = nearest_bin(k, -max_kappa, max_kappa, n_kappa)
-                idx = ia * n_kappa + ik
                 a = bin_value(ia, -max_accel, max_accel, n_accel)
                 k = bin_value(ik, -max_kappa, max_kappa, n_kappa)
             action_out[i, t] = wp.vec3(a, k, 0.0)
@@ -189,7 +188,7 @@ def expert_actions_kernel(
         else:
             d = delta_local_inverse(pos, yaw, log_pos[i, t + 1], log_yaw[i, t + 1])
             action_out[i, t] = d
-            index_out[i, t] = -1
+            index_out[i, t] = 0  # defined (delta-local has no grid)
             if t >= init_step:
                 pos, yaw, vel, speed = delta_local_forward(pos, yaw, d, dt)
 

@@ -48,6 +48,7 @@ def ego_partner_obs_kernel(
     last_step: wp.array(dtype=wp.int32),  # (world,)
     # state
     step: wp.array(dtype=wp.int32),
+    world_done: wp.array(dtype=wp.int32),  # (world,) ended without auto-reset: nobody acts
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
     vel: wp.array(dtype=wp.vec2),
@@ -66,13 +67,13 @@ def ego_partner_obs_kernel(
     active_out: wp.array(dtype=wp.int32),  # controlled and will act next step
 ):
     i = wp.tid()
+    w = i / agents_per_world
     act = int(0)
-    if controlled[i] != 0 and present[i] != 0 and agent_done[i] == 0:
+    if controlled[i] != 0 and present[i] != 0 and agent_done[i] == 0 and world_done[w] == 0:
         act = 1
     active_out[i] = act
     if controlled[i] == 0:
         return
-    w = i / agents_per_world
     base = w * agents_per_world
     p = pos[i]
     c = wp.cos(yaw[i])
@@ -277,7 +278,7 @@ def launch_observations(model, state, cfg) -> None:
     wp.launch(ego_partner_obs_kernel, dim=n, device=dev,
               inputs=[model.max_agents, cfg.partner_k, cfg.partner_radius, model.obs_dim, model.dt,
                       model.controlled, model.length, model.width, model.agent_type, model.goal,
-                      model.last_step, state.step, state.pos, state.yaw, state.vel, state.speed,
+                      model.last_step, state.step, state.world_done, state.pos, state.yaw, state.vel, state.speed,
                       state.present, state.agent_done, state.ep_collided, state.ep_offroad,
                       state.lane_dist, state.edge_dist, state.part_d, state.part_j],
               outputs=[state.obs, state.active])

@@ -247,6 +247,7 @@ def test_without_auto_reset_worlds_wait_frozen_until_reset(device):
     torch.testing.assert_close(sim.pos, end)
     torch.testing.assert_close(sim.obs, obs)
     assert sim.world_ended.sum() == 0 and sim.alive.sum() == 0 and sim.reward.abs().sum() == 0
+    assert sim.active.sum() == 0  # frozen worlds hold no agent that acts
     sim.reset(torch.tensor([False, True]))  # only world 1 starts again
     torch.testing.assert_close(sim.pos[1], start[1])
     torch.testing.assert_close(sim.pos[0], end[0])

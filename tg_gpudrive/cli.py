@@ -15,6 +15,7 @@ import dataclasses
 import json
 import logging
 import sys
+from pathlib import Path
 
 from tg_gpudrive.config import REPO_CONFIGS, ConfigError, EngineConfig, load_config
 
@@ -61,6 +62,46 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-graph", action="store_true", help="plain launches instead of a CUDA graph")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
+    p = sub.add_parser("train", help="CCE-MAPPO training (TrafficGamer)")
+    p.add_argument("--config", required=True, help="configs/train/<name>.yaml")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3")
+    p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR exactly")
+    p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
+    p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
+
+    p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
+    who = p.add_mutually_exclusive_group(required=True)
+    who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory)")
+    who.add_argument("--policy", choices=["expert", "random", "constant"])
+    _scene_args(p)
+    _engine_args(p)
+    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    p.add_argument("--episodes", type=int, default=64, help="scene episodes to run (worlds x rounds)")
+    p.add_argument("--worlds", type=int, default=None, help="parallel worlds (default: min(episodes, 256))")
+    p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
+    p.add_argument("--json", action="store_true")
+
+    p = sub.add_parser("render", help="draw one world of an episode: .gif / .mp4, or its last frame as .png")
+    _scene_args(p)
+    _engine_args(p)
+    p.add_argument("--policy", default="expert",
+                   help="expert | random | constant | a training checkpoint (checkpoint.pt or its run directory)")
+    p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
+    p.add_argument("--steps", type=int, default=None, help="at most this many steps (default and most: one episode)")
+    p.add_argument("--world", type=int, default=0, help="which world to draw")
+    p.add_argument("--worlds", type=int, default=None, help="worlds to simulate (default: world + 1)")
+    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    p.add_argument("--out", default="episode.gif", help="episode.gif | episode.mp4 | frame.png")
+    p.add_argument("--size", default="640", metavar="PX or WxH", help="picture size in pixels (default 640)")
+    p.add_argument("--center-agent", type=int, default=None, metavar="SLOT",
+                   help="follow this agent slot of the world instead of fitting the whole scene")
+    p.add_argument("--view-radius", type=float, default=None, metavar="METRES",
+                   help="half the shorter side of the view (default 40 m with --center-agent)")
+    p.add_argument("--fps", type=float, default=10.0)
+    p.add_argument("--highlight", choices=["controlled", "all", "none"], default="controlled",
+                   help="whose collisions / off-road events are outlined")
+
     p = sub.add_parser("convert", help="pack WOMD files (json / tfrecord) into a memory-mapped store")
     p.add_argument("inputs", nargs="+", help="files or directories")
     p.add_argument("--out", required=True)
@@ -100,13 +141,17 @@ def cmd_simulate(args) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        for k, v in out.items():
-            if k != "per_type":
-                print(f"{k:>22}: {v:.4g}" if isinstance(v, float) else f"{k:>22}: {v}")
-        for name, r in out.get("per_type", {}).items():
-            print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
-                  f"offroad {r['offroad_rate']:.3f}  ({r['episodes']} agent episodes)")
+        _print_rates(out)
     return 0
+
+
+def _print_rates(out: dict) -> None:
+    for k, v in out.items():
+        if k != "per_type":
+            print(f"{k:>22}: {v:.4g}" if isinstance(v, float) else f"{k:>22}: {v}")
+    for name, r in out.get("per_type", {}).items():
+        print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
+              f"offroad {r['offroad_rate']:.3f}  ({r['episodes']} agent episodes)")
 
 
 def cmd_benchmark(args) -> int:
@@ -115,6 +160,130 @@ def cmd_benchmark(args) -> int:
     args.engine_config = _engine_config(args)
     args.num_scenes = args.num_scenes or 36
     return main(args)
+
+
+def cmd_train(args) -> int:
+    from tg_gpudrive.config import TrainConfig, load_yaml, from_dict, apply_overrides
+    from tg_gpudrive.learn.train import train_main
+
+    if args.resume:  # the run's own config, then any new overrides
+        cfg_path = Path(args.resume) / "config.json"
+        data = json.loads(cfg_path.read_text()) if cfg_path.exists() else load_yaml(args.config)
+    else:
+        data = load_yaml(args.config)
+    cfg = from_dict(TrainConfig, apply_overrides(data, args.set), args.config)
+    out = train_main(cfg, out_dir=args.out or args.resume, resume=args.resume, progress=True)
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"run: {out['out_dir']}  goal {out.get('goal_rate', float('nan')):.3f}  "
+              f"collision {out.get('collision_rate', float('nan')):.3f}  "
+              f"offroad {out.get('offroad_rate', float('nan')):.3f}  lambda {out['lambda']:.3f}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    import torch
+
+    from tg_gpudrive.config import TrainConfig, from_dict
+    from tg_gpudrive.rollout import builtin_policy, run_rollout
+    from tg_gpudrive.simulator import Simulator
+
+    if args.checkpoint:
+        from tg_gpudrive.learn.train import load_policy
+
+        path = Path(args.checkpoint)
+        path = path / "checkpoint.pt" if path.is_dir() else path
+        if not path.exists():
+            raise FileNotFoundError(f"--checkpoint: no checkpoint at {path}")
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+        cfg = from_dict(TrainConfig, ck["config"], str(path)).env
+        if args.collision_mode:
+            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
+    else:
+        cfg = _engine_config(args)
+    worlds = args.worlds or min(args.episodes, 256)
+    scenes = _load_scenes(args, worlds)
+    sim = Simulator(scenes, cfg, args.device)
+    policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
+              else builtin_policy(args.policy, args.seed, sim.device))
+    rounds = -(-args.episodes // worlds)
+    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json)
+    out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": cfg.collision_mode,
+                "scenes": args.scenes})
+    if args.json:
+        print(json.dumps(out))
+    else:
+        _print_rates(out)
+    return 0
+
+
+def cmd_render(args) -> int:
+    import time
+
+    import torch
+
+    from tg_gpudrive.render import mp4_backend, render_episode
+    from tg_gpudrive.rollout import builtin_policy
+    from tg_gpudrive.simulator import Simulator
+
+    out = Path(args.out)
+    if out.suffix.lower() not in (".gif", ".mp4", ".png"):
+        raise ValueError(f"--out {out}: expected a .gif, .mp4 or .png file name")
+    if out.suffix.lower() == ".mp4" and mp4_backend() is None:
+        print("tg-gpudrive render: error: .mp4 needs ffmpeg (pip install imageio-ffmpeg, or put an ffmpeg on "
+              "PATH); use --out episode.gif instead", file=sys.stderr)
+        return 2
+    try:
+        size = tuple(int(v) for v in args.size.lower().split("x"))
+        size = size * 2 if len(size) == 1 else size
+        if len(size) != 2 or min(size) < 32:
+            raise ValueError
+    except ValueError:
+        raise ValueError(f"--size: expected PX or WxH of at least 32 pixels, got {args.size!r}") from None
+    if args.world < 0:
+        raise ValueError(f"--world must be >= 0, got {args.world}")
+    worlds = args.worlds or args.world + 1
+    if args.world >= worlds:
+        raise ValueError(f"--world {args.world} needs --worlds > {args.world}, got {worlds}")
+
+    checkpoint = None
+    if args.policy not in ("expert", "random", "constant"):
+        checkpoint = Path(args.policy)
+        checkpoint = checkpoint / "checkpoint.pt" if checkpoint.is_dir() else checkpoint
+        if not checkpoint.is_file():
+            raise FileNotFoundError(f"--policy: expected expert, random, constant or a checkpoint path; "
+                                    f"no file at {checkpoint}")
+        try:  # the learner is optional here: import it only for checkpoints
+            from tg_gpudrive.learn.train import load_policy
+        except ModuleNotFoundError as e:
+            if not (e.name or "").startswith("tg_gpudrive.learn"):
+                raise
+            print(f"tg-gpudrive render: error: checkpoint policies need tg_gpudrive.learn.train.load_policy "
+                  f"({e}); use --policy expert|random|constant", file=sys.stderr)
+            return 2
+        from tg_gpudrive.config import TrainConfig, from_dict
+
+        ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        cfg = from_dict(TrainConfig, ck["config"], str(checkpoint)).env  # the engine it was trained in
+        if args.collision_mode:
+            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
+    else:
+        cfg = _engine_config(args)
+
+    cfg = dataclasses.replace(cfg, auto_reset=False)  # keep the episode's final state for the last frame
+    sim = Simulator(_load_scenes(args, worlds), cfg, args.device)
+    policy = (load_policy(checkpoint, sim, args.deterministic) if checkpoint is not None
+              else builtin_policy(args.policy, args.seed, sim.device))
+    t0 = time.perf_counter()
+    frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
+                            size=size, center_agent=args.center_agent, view_radius=args.view_radius,
+                            highlight=args.highlight)
+    seconds = time.perf_counter() - t0
+    scene = sim.model.scenes[args.world]
+    print(f"wrote {out}: {len(frames)} frame(s) of {size[0]}x{size[1]}, scene {scene.scene_id}, "
+          f"policy {args.policy}, {seconds:.1f} s")
+    return 0
 
 
 def cmd_convert(args) -> int:
@@ -127,7 +296,8 @@ def cmd_convert(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": cmd_simulate, "benchmark": cmd_benchmark, "convert": cmd_convert}
+COMMANDS = {"simulate": cmd_simulate, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
+            "evaluate": cmd_evaluate, "render": cmd_render}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -91,6 +91,61 @@ class EngineConfig:
         return self.accel_bins * self.curvature_bins
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """CCE-MAPPO training run (tg-gpudrive train). YAML files live in configs/train/."""
+
+    env: EngineConfig = EngineConfig()
+    scenes: str = "procedural:all"  # scene spec (tg_gpudrive.data.sources)
+    num_scenes: int = 1000  # distinct scenes drawn from the source
+    num_worlds: int = 64
+    resample_every: int = 0  # updates between scene resamples (0: never)
+    control: str = "vehicles"  # vehicles | nearest_conflict | ids
+    control_k: int = 5  # nearest_conflict: how many
+    control_ids: list[int] = dataclasses.field(default_factory=list)
+    device: str = "cpu"
+    seed: int = 0
+    # PPO
+    updates: int = 100
+    rollout_steps: int = 32
+    epochs: int = 4
+    minibatches: int = 4
+    lr: float = 3e-4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    entropy_coef: float = 0.01
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    hidden: int = 128
+    heads: int = 1  # >1: per-slot actor heads
+    # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
+    eta1: float = 0.05
+    eta2: float = 20.0
+    alpha: float = 0.5  # CVaR level of the cost critic (lower: less risk-averse)
+    cost_limit: float = 2.0  # budget on CVaR_alpha of the discounted cost-to-go
+    lambda_init: float = 0.1
+    lambda_lr: float = 0.05
+    per_agent_lambda: bool = False  # one multiplier per controlled slot
+    quantiles: int = 64
+    prior: str = "expert"  # expert
+    prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
+    prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
+    # bookkeeping
+    checkpoint_every: int = 10
+    out_dir: str = "runs/train"
+
+    def __post_init__(self):
+        if self.control not in ("vehicles", "nearest_conflict", "ids"):
+            raise ConfigError(f"control: expected vehicles, nearest_conflict or ids, got {self.control!r}")
+        if not 0.0 <= self.alpha < 1.0:
+            raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
+        if self.prior not in ("expert",):
+            raise ConfigError(f"prior: expected expert, got {self.prior!r}")
+        if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:
+            raise ConfigError("rollout_steps, updates and num_worlds must be >= 1")
+
+
 def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
     origin = typing.get_origin(tp)
     if dataclasses.is_dataclass(tp):

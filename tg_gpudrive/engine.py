@@ -17,7 +17,7 @@ Model (fixed while a batch of scenes is loaded):
     log_vel             (W*A, T)        vec2    m/s
     log_valid           (W*A, T)        int32
     expert_action       (W*A, T)        vec3    action taking step t to t+1 (a, kappa, 0) or (dx, dy, dyaw)
-    expert_index        (W*A, T)        int32   discrete grid index of it, -1 when undefined
+    expert_index        (W*A, T)        int32   nearest grid index of it, -1 when there is no expert action
     expert_track        (W*A, T)        vec2    m, positions the expert actions produce from init_step
     last_step           (W,)            int32   last logged step of the world's scene
     collision_cell_size (W,)            f32     m, agent broad-phase cell
@@ -210,6 +210,9 @@ class Model:
                 skipped = 0
             else:
                 ctrl, skipped = default_controlled(sc, idx, cfg)
+            # controlled agents take the first slots, so a learner can view obs[:, :max_controlled]
+            order = np.argsort(~ctrl, kind="stable")
+            idx, ctrl = idx[order], ctrl[order]
             report.controlled.append(int(ctrl.sum()))
             report.skipped_at_goal.append(skipped)
             self.slot_agent[w, :n] = idx
@@ -239,6 +242,7 @@ class Model:
             report.segments.append(len(a))
         cell_start.append(np.array([n_seg], np.int32))
         self.report = report
+        self.max_controlled = max(report.controlled)
         self.world_seg_offset = np.asarray(seg_off, np.int64)
         all_a = np.concatenate(seg_a) if n_seg else np.zeros((1, 2), np.float32)
         all_b = np.concatenate(seg_b) if n_seg else np.zeros((1, 2), np.float32)

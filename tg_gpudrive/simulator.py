@@ -135,6 +135,11 @@ class Simulator:
         return self.model.max_agents
 
     @property
+    def max_controlled(self) -> int:
+        """C: controlled agents occupy slots [0, C) of every world (fewer in some worlds)."""
+        return self.model.max_controlled
+
+    @property
     def obs_dim(self) -> int:
         return self.model.obs_dim
 
@@ -256,3 +261,11 @@ class Simulator:
             if isinstance(arr, wp.array):
                 out[name] = arr.numpy().copy()
         return out
+
+    def restore(self, snapshot: dict[str, np.ndarray]) -> None:
+        """Load a State saved by `snapshot()` (same scenes and config): exact resume mid-episode."""
+        for name, arr in vars(self.state).items():
+            if isinstance(arr, wp.array):
+                if name not in snapshot or tuple(snapshot[name].shape) != tuple(arr.numpy().shape):
+                    raise ValueError(f"snapshot does not match this simulator's State at field '{name}'")
+                arr.assign(snapshot[name])

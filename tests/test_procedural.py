@@ -1,0 +1,283 @@
+"""Procedural generator: invariants of every scene type, determinism, parameters.
+
+The geometric checks here are written independently of the generator's own
+(procedural_checks): box corners against segment crossings rather than its
+separating-axis code, so a bug in one is not mirrored in the other.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene, generate_scenes
+from tg_gpudrive.types import AgentType, RoadType
+
+SEEDS = range(5)
+MARGIN = 0.15  # m added to each half extent: boxes stay 0.3 m apart
+MAX_CURV = 0.25
+MAX_ACC = 4.0
+
+_CACHE: dict = {}
+
+
+def scene(kind, seed):
+    if (kind, seed) not in _CACHE:
+        _CACHE[kind, seed] = generate_scene(kind, seed)
+    return _CACHE[kind, seed]
+
+
+# ----------------------------------------------------------------------------- reference geometry
+def corners(c, yaw, hl, hw):
+    """(..., 4, 2) box corners, counter-clockwise."""
+    u = np.stack([np.cos(yaw), np.sin(yaw)], -1)
+    v = np.stack([-u[..., 1], u[..., 0]], -1)
+    hl, hw = np.asarray(hl)[..., None], np.asarray(hw)[..., None]
+    return np.stack([c + hl * u + hw * v, c - hl * u + hw * v, c - hl * u - hw * v, c + hl * u - hw * v], -2)
+
+
+def _cross(o, a, b):
+    return (a[..., 0] - o[..., 0]) * (b[..., 1] - o[..., 1]) - (a[..., 1] - o[..., 1]) * (b[..., 0] - o[..., 0])
+
+
+def segments_cross(p1, p2, q1, q2):
+    """Closed segments p1-p2 and q1-q2 intersect (orientation test, collinear touching included)."""
+    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
+    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
+    proper = (d1 * d2 <= 0) & (d3 * d4 <= 0)
+    # exclude collinear-but-disjoint cases
+    col = (d1 == 0) & (d2 == 0)
+    if col.any():
+        lo = np.minimum(p1, p2)
+        hi = np.maximum(p1, p2)
+        lo2, hi2 = np.minimum(q1, q2), np.maximum(q1, q2)
+        overlap = ((lo <= hi2) & (lo2 <= hi)).all(-1)
+        proper = np.where(col, overlap, proper)
+    return proper
+
+
+def inside_convex(pt, quad):
+    """pt (..., 2) inside the ccw quad (..., 4, 2)."""
+    ok = np.ones(pt.shape[:-1], bool)
+    for k in range(4):
+        ok &= _cross(quad[..., k, :], quad[..., (k + 1) % 4, :], pt) >= 0
+    return ok
+
+
+def boxes_touch(ca, cb):
+    """Two convex quads intersect: an edge crossing or one containing the other's corner."""
+    hit = np.zeros(ca.shape[:-2], bool)
+    for k in range(4):
+        for m in range(4):
+            hit |= segments_cross(ca[..., k, :], ca[..., (k + 1) % 4, :], cb[..., m, :], cb[..., (m + 1) % 4, :])
+    hit |= inside_convex(ca[..., 0, :], cb) | inside_convex(cb[..., 0, :], ca)
+    return hit
+
+
+def vehicle_overlaps(sc, margin=MARGIN):
+    n, t = sc.log_valid.shape
+    cs = corners(sc.log_pos.astype(np.float64), sc.log_yaw.astype(np.float64),
+                 (sc.length / 2 + margin)[:, None], (sc.width / 2 + margin)[:, None])  # (N, T, 4, 2)
+    bad = []
+    for i in range(n):
+        for j in range(i + 1, n):
+            d = np.linalg.norm(sc.log_pos[i] - sc.log_pos[j], axis=-1)
+            near = d < (np.hypot(sc.length[i], sc.width[i]) + np.hypot(sc.length[j], sc.width[j])) / 2 + 2 * margin
+            if near.any():
+                ts = np.flatnonzero(near)
+                hit = boxes_touch(cs[i, ts], cs[j, ts])
+                bad += [(int(s), i, j) for s in ts[hit]]
+    return bad
+
+
+def edge_segments(sc):
+    segs = [np.stack([p[:-1], p[1:]], 1) for k, p in sc.polylines() if k == RoadType.ROAD_EDGE and len(p) > 1]
+    return np.concatenate(segs).astype(np.float64)
+
+
+def offroad_hits(sc):
+    segs = edge_segments(sc)
+    n, t = sc.log_valid.shape
+    cs = corners(sc.log_pos.astype(np.float64), sc.log_yaw.astype(np.float64),
+                 (sc.length / 2)[:, None], (sc.width / 2)[:, None]).reshape(-1, 4, 2)
+    ctr = sc.log_pos.reshape(-1, 2).astype(np.float64)
+    rad = np.repeat(np.hypot(sc.length, sc.width) / 2, t)
+    mid = segs.mean(1)
+    half = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=-1) / 2
+    hits = []
+    for start in range(0, len(ctr), 256):
+        sl = slice(start, start + 256)
+        d = np.linalg.norm(ctr[sl, None] - mid[None], axis=-1)
+        bi, si = np.nonzero(d < rad[sl, None] + half[None] + 0.01)
+        bi = bi + start
+        box = cs[bi]
+        p, q = segs[si, 0], segs[si, 1]
+        hit = inside_convex(p, box) | inside_convex(q, box)
+        for k in range(4):
+            hit |= segments_cross(box[:, k], box[:, (k + 1) % 4], p, q)
+        hits += [(int(b // t), int(b % t), int(s)) for b, s in zip(bi[hit], si[hit])]
+    return hits
+
+
+def point_polyline_distance(pt, poly):
+    a, b = poly[:-1].astype(np.float64), poly[1:].astype(np.float64)
+    ab = b - a
+    w = np.clip(((pt - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0, 1)
+    return float(np.linalg.norm(a + w[:, None] * ab - pt, axis=-1).min())
+
+
+# ----------------------------------------------------------------------------- scene checks
+def check_invariants(sc, tag=""):
+    sc.validate()
+    n, t = sc.log_valid.shape
+    p = sc.metadata["params"]
+    assert 2 <= n <= p["max_vehicles"], tag
+    assert t == p["num_steps"] and sc.dt == pytest.approx(p["dt"]), tag
+    assert sc.log_valid.all(), tag
+    assert (sc.agent_type == AgentType.VEHICLE).all()
+    assert ((sc.length >= 4.0) & (sc.length <= 5.5)).all() and ((sc.width >= 1.8) & (sc.width <= 2.2)).all()
+    for arr in (sc.log_pos, sc.log_yaw, sc.log_vel, sc.goal, sc.road_points):
+        assert np.isfinite(arr).all(), tag
+    md = sc.metadata
+    assert md["source"] == "procedural" and md["scenario_type"] in SCENARIO_TYPES
+    assert isinstance(md["params"], dict) and len(md["conflict_point"]) == 2
+    assert np.linalg.norm(md["conflict_point"]) < 5.0, "coordinates centred on the conflict point"
+    assert sc.is_sdc.sum() == 1, tag
+    assert vehicle_overlaps(sc) == [], tag
+    assert offroad_hits(sc) == [], tag
+
+
+def check_kinematics(sc, tag=""):
+    pos, yaw, vel = (x.astype(np.float64) for x in (sc.log_pos, sc.log_yaw, sc.log_vel))
+    speed = np.linalg.norm(vel, axis=-1)
+    # velocity along the heading
+    head = np.stack([np.cos(yaw), np.sin(yaw)], -1)
+    assert np.abs(vel - speed[..., None] * head).max() < 1e-3, tag
+    acc = np.diff(speed, axis=1) / sc.dt
+    assert np.abs(acc).max() <= MAX_ACC + 1e-3, tag
+    step = np.diff(pos, axis=1)
+    dist = np.linalg.norm(step, axis=-1)
+    # positions advance at the logged speed (trapezoid)
+    assert np.abs(dist / sc.dt - 0.5 * (speed[:, 1:] + speed[:, :-1])).max() < 0.05, tag
+    # heading is the direction of motion
+    moving = dist > 0.05
+    dyaw = (np.diff(yaw, axis=1) + np.pi) % (2 * np.pi) - np.pi
+    mid = yaw[:, :-1] + dyaw / 2
+    err = np.abs((np.arctan2(step[..., 1], step[..., 0]) - mid + np.pi) % (2 * np.pi) - np.pi)
+    assert err[moving].max() < 0.05, tag
+    # curvature of a kinematic bicycle
+    assert (np.abs(dyaw) <= MAX_CURV * dist + 1e-5).all(), tag
+    # everyone moves after the first second (scaled to the episode); most cover some ground
+    t = sc.num_steps
+    ref = min(10, t - 1)
+    assert (dist[:, ref:].sum(1) > 5.0 * (t - 1 - ref) / 80).all(), tag
+    if t == 91:
+        assert np.mean(dist.sum(1) > 15.0) >= 0.6, tag
+
+
+def check_routes_and_goals(sc, tag=""):
+    lanes = set(np.flatnonzero(sc.road_type == RoadType.LANE).tolist())
+    edges = set(map(tuple, sc.lane_edges.tolist()))
+    assert len(edges) and all(a in lanes and b in lanes for a, b in edges), tag
+    routes = sc.metadata["routes"]
+    assert len(routes) == sc.num_agents
+    for i, route in enumerate(routes):
+        assert all(k in lanes for k in route), tag
+        assert all((a, b) in edges for a, b in zip(route[:-1], route[1:])), f"{tag}: illegal route {route}"
+        assert np.allclose(sc.goal[i], sc.log_pos[i, -1])
+        assert point_polyline_distance(sc.goal[i].astype(np.float64), sc.polyline(route[-1])) < 0.05, tag
+        assert point_polyline_distance(sc.log_pos[i, 0].astype(np.float64), sc.polyline(route[0])) < 0.05, tag
+    kinds = set(np.unique(sc.road_type).tolist())
+    assert {RoadType.LANE, RoadType.ROAD_EDGE, RoadType.ROAD_LINE} <= kinds, tag
+    # polylines are dense enough for observation sampling
+    for k, p in sc.polylines():
+        if k in (RoadType.LANE, RoadType.ROAD_EDGE) and len(p) > 1:
+            assert np.linalg.norm(np.diff(p, axis=0), axis=-1).max() <= 2.0 + 1e-3, tag
+
+
+# ----------------------------------------------------------------------------- invariants per type
+@pytest.mark.parametrize("kind", SCENARIO_TYPES)
+def test_invariants(kind):
+    for seed in SEEDS:
+        sc = scene(kind, seed)
+        assert sc.metadata["scenario_type"] == kind and sc.metadata["seed"] == seed
+        assert sc.num_steps == 91 and sc.dt == pytest.approx(0.1) and sc.num_agents <= 32
+        check_invariants(sc, f"{kind} seed {seed}")
+
+
+@pytest.mark.parametrize("kind", SCENARIO_TYPES)
+def test_kinematics(kind):
+    for seed in SEEDS:
+        check_kinematics(scene(kind, seed), f"{kind} seed {seed}")
+
+
+@pytest.mark.parametrize("kind", SCENARIO_TYPES)
+def test_routes_and_goals(kind):
+    for seed in SEEDS:
+        check_routes_and_goals(scene(kind, seed), f"{kind} seed {seed}")
+
+
+@pytest.mark.parametrize("params", [
+    dict(lane_width=3.2, num_lanes=1), dict(lane_width=4.5, size_scale=1.6), dict(density=3.0, speed_mean=14.0),
+    dict(num_lanes=4, time_headway=0.8, min_gap=1.0, max_accel=2.5, comfort_decel=3.5), dict(num_steps=40, dt=0.2),
+], ids=lambda p: ",".join(f"{k}={v}" for k, v in p.items()))
+def test_invariants_other_params(params):
+    p = ProceduralParams(**params)
+    for kind in SCENARIO_TYPES:
+        sc = generate_scene(kind, 77, p)
+        tag = f"{kind} {params}"
+        check_invariants(sc, tag)
+        check_kinematics(sc, tag)
+        check_routes_and_goals(sc, tag)
+
+
+def test_deterministic_and_distinct():
+    for kind in SCENARIO_TYPES:
+        a, b = generate_scene(kind, 3), scene(kind, 3)
+        for f in dataclasses.fields(a):
+            x, y = getattr(a, f.name), getattr(b, f.name)
+            if isinstance(x, np.ndarray):
+                assert x.dtype == y.dtype and np.array_equal(x, y), f"{kind}: {f.name} differs between runs"
+        assert a.metadata == b.metadata
+        firsts = [scene(kind, s).log_pos[:, 0] for s in SEEDS]
+        roads = [scene(kind, s).road_points for s in SEEDS]
+        for i in range(len(firsts)):
+            for j in range(i + 1, len(firsts)):
+                assert firsts[i].shape != firsts[j].shape or not np.allclose(firsts[i], firsts[j]), kind
+                assert roads[i].shape != roads[j].shape or not np.allclose(roads[i], roads[j]), kind
+
+
+def test_generate_scenes_cycles_types():
+    scenes = generate_scenes("all", 7, seed=40)
+    assert [s.metadata["scenario_type"] for s in scenes] == list(SCENARIO_TYPES) + [SCENARIO_TYPES[0]]
+    assert [s.metadata["seed"] for s in scenes] == list(range(40, 47))
+    one = generate_scenes("roundabout", 2, seed=3)
+    assert np.array_equal(one[1].log_pos, scene("roundabout", 4).log_pos)
+
+
+def test_density_changes_vehicle_count():
+    sparse = [generate_scene("dual_lane_intersection", s, ProceduralParams(density=0.3)).num_agents for s in range(4)]
+    dense = [generate_scene("dual_lane_intersection", s, ProceduralParams(density=3.0)).num_agents for s in range(4)]
+    assert np.mean(dense) > np.mean(sparse) + 3, (sparse, dense)
+
+
+def test_params_change_geometry():
+    sc = generate_scene("t_junction", 1, ProceduralParams(num_lanes=2, lane_width=4.0, speed_mean=6.0))
+    assert sc.metadata["params"]["lane_width"] == 4.0
+    assert sc.metadata["geometry"]["lanes_per_direction"] == [2, 2]
+    assert sc.log_vel.shape[1] == 91
+    short = generate_scene("merge", 2, ProceduralParams(num_steps=40, dt=0.2))
+    assert short.num_steps == 40 and short.dt == pytest.approx(0.2)
+
+
+def test_unknown_type_and_bad_params():
+    with pytest.raises(ValueError, match="roundabout"):
+        generate_scene("spaghetti_junction", 0)
+    with pytest.raises(ValueError, match="merge"):
+        generate_scenes("nope", 2, 0)
+    with pytest.raises(ValueError):
+        ProceduralParams(lane_width=2.0)
+    with pytest.raises(ValueError):
+        ProceduralParams(density=0.0)

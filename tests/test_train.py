@@ -1,0 +1,136 @@
+"""CCE-MAPPO training: it learns, resumes exactly, stops cleanly on NaN; the prior, control
+selection and the evaluate CLI behave."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from tg_gpudrive import cli
+from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
+from tg_gpudrive.control import control_mask
+from tg_gpudrive.data.procedural import generate_scene
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.learn.train import Trainer, TrainingError
+from tg_gpudrive.simulator import Simulator
+
+SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
+
+
+def tiny(tmp_path, **kw) -> TrainConfig:
+    cfg = load_config(TrainConfig, SMALL)
+    base = dict(num_worlds=2, num_scenes=4, rollout_steps=8, epochs=1, minibatches=2, hidden=32, quantiles=8,
+                updates=4, checkpoint_every=2, out_dir=str(tmp_path))
+    base.update(kw)
+    return dataclasses.replace(cfg, **base)
+
+
+def rows(path):
+    return list(csv.DictReader((path / "metrics.csv").open()))
+
+
+def test_resume_continues_exactly(tmp_path):
+    """4 updates in one go == 2 updates, a kill, and a resume for 2 more (bit for bit on cpu)."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    Trainer(tiny(a), a, progress=False).train()
+    Trainer(tiny(b, updates=2), b, progress=False).train()
+    # the "kill": a later row that was logged after the last checkpoint must be dropped on resume
+    with (b / "metrics.csv").open("a") as f:
+        f.write(",".join(["999"] * len(rows(b)[0])) + "\n")
+    Trainer(tiny(b), b, resume=b, progress=False).train()
+    ra, rb = rows(a), rows(b)
+    assert len(ra) == len(rb) == 4
+    for x, y in zip(ra, rb):
+        for k in x:
+            if k not in ("wall_s", "agent_steps_per_s", "rollout_agent_steps_per_s"):
+                assert x[k] == y[k], (x["update"], k)
+    assert (a / "curves.png").stat().st_size > 10_000
+
+
+def test_nan_loss_stops_and_keeps_last_checkpoint(tmp_path):
+    tr = Trainer(tiny(tmp_path, updates=2, checkpoint_every=1), tmp_path, progress=False)
+    tr.train()
+    saved = (tmp_path / "checkpoint.pt").read_bytes()
+    tr.cfg = dataclasses.replace(tr.cfg, updates=3)
+    with torch.no_grad():
+        for p in tr.actor.parameters():
+            p.fill_(float("nan"))
+    with pytest.raises(TrainingError, match=r"non-finite policy output .* update 2.*last good checkpoint"):
+        tr.train()
+    assert (tmp_path / "checkpoint.pt").read_bytes() == saved
+
+
+def test_expert_prior_peaks_on_the_expert_action():
+    sc = generate_scene("merge", 3)
+    sim = Simulator([sc], EngineConfig(max_agents=32, road_k=8, partner_k=4), "cpu")
+    sim.reset()
+    prior = ExpertPrior(sim)
+    C = sim.max_controlled
+    logits = prior.distribution(prior.context(sim, C))
+    t = int(sim.world_step[0])
+    want = sim.expert_index[0, :C, t]
+    assert (logits[0].argmax(-1) == want).all()
+    # the magnet is a real distribution: KL of the expert-greedy policy to it is small, of uniform large
+    greedy = torch.full_like(logits, -20.0).scatter(-1, want.long()[None, :, None], 0.0)
+    assert L.categorical_kl(greedy, logits).max() < 0.2
+    assert L.categorical_kl(torch.zeros_like(logits), logits).min() > 2.0
+
+
+def test_nearest_conflict_control_picks_k_nearest():
+    sc = generate_scene("dense_intersection", 1)
+    cfg = EngineConfig()
+    mask = control_mask(sc, cfg, "nearest_conflict", k=3)
+    assert mask.sum() == 3
+    cp = np.asarray(sc.metadata["conflict_point"])
+    d = np.linalg.norm(sc.log_pos[:, cfg.init_steps] - cp, axis=1)
+    ok = control_mask(sc, cfg, "vehicles")
+    assert d[mask].max() <= d[ok & ~mask].min()
+    with pytest.raises(ValueError, match="not in the scene"):
+        control_mask(sc, cfg, "ids", ids=[123456789])
+
+
+def test_train_and_evaluate_cli(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", "--config", str(SMALL), "--out", str(run), "--set", "updates=1",
+                     "--set", "num_worlds=2", "--set", "rollout_steps=4", "--set", "hidden=16",
+                     "--set", "quantiles=4", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["checkpoint"].endswith("checkpoint.pt") and "lambda" in out
+    assert cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "2",
+                     "--collision-mode", "stop", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert ev["episodes"] > 0 and 0 <= ev["goal_rate"] <= 1 and ev["collision_mode"] == "stop"
+    for key in ("collision_rate", "offroad_rate", "mean_cost", "mean_min_distance", "mean_speed"):
+        assert key in ev
+    assert cli.main(["train", "--config", str(SMALL), "--set", "nope=1"]) == 2
+    assert "unknown key 'nope'" in capsys.readouterr().err
+
+
+def test_small_cpu_config_learns(tmp_path):
+    """The shipped small CPU config must lift the policy well above the untrained one.
+
+    Measured (2-core CPU, ~90 s): the first finished episodes (near-uniform sampled policy) reach the
+    goal 0.03-0.11 of the time and leave the road 0.94-0.98; after 30 updates goal 0.27-0.30,
+    off-road 0.19-0.24, collisions 0.25-0.32 -> 0.08-0.11. A broken or untrained learner stays at the
+    first figures; the thresholds sit halfway."""
+    cfg = dataclasses.replace(load_config(TrainConfig, SMALL), out_dir=str(tmp_path))
+    Trainer(cfg, tmp_path, progress=False).train()
+    r = [x for x in rows(tmp_path) if x["goal_rate"] not in ("", "nan")]
+    first, last = r[0], r[-1]
+    assert float(first["goal_rate"]) < 0.15 and float(first["offroad_rate"]) > 0.7
+    assert float(last["goal_rate"]) >= float(first["goal_rate"]) + 0.12, (first, last)
+    assert float(last["offroad_rate"]) <= 0.45, last
+
+
+def test_nan_in_the_loss_itself_is_caught(tmp_path):
+    tr = Trainer(tiny(tmp_path, updates=1, checkpoint_every=1), tmp_path, progress=False)
+    buf, _ = tr.rollout()
+    buf["reward"][0, 0, 0] = float("nan")
+    with pytest.raises(TrainingError, match=r"non-finite loss in update 0.*last good checkpoint"):
+        tr.learn(buf)

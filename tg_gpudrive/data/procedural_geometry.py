@@ -1,0 +1,646 @@
+"""Road geometry of the procedural scenario generator.
+
+Paths are chains of straight and circular pieces, evaluated exactly (position,
+heading, curvature) at any arc length; lanes, curbs and road lines are paths.
+The map builders here turn a few random draws into a `RoadMap` (lanes, lane
+graph, routes, curbs, road lines, crosswalks, spawn lanes) in a canonical frame
+whose origin is the conflict point. They check their own output: every lane is
+swept with the largest vehicle box against the curbs, and a builder that cannot
+meet that (or the minimum turn radius) raises `GeometryError` so the caller can
+draw again. Nothing here knows about vehicles' motion; see procedural_traffic.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tg_gpudrive.data.procedural_checks import box_segment_overlap, near_pairs
+
+R_MIN = 6.5  # m, smallest lane radius: curvature 0.154 < 0.25 leaves room for interpolation
+MAX_LEN, MAX_WID = 5.5, 2.2  # m, largest vehicle box the lanes must carry
+SWEEP_INFLATE = 0.15  # m added to each half extent when sweeping lanes against curbs
+POINT_SPACING = 1.0  # m between exported polyline points
+
+
+class GeometryError(RuntimeError):
+    """These random draws gave an unusable map; draw again."""
+
+
+def wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+# ----------------------------------------------------------------------------- paths
+@dataclass(frozen=True)
+class Piece:
+    """A straight (curv 0) or circular piece starting at (x, y) with heading h."""
+
+    x: float
+    y: float
+    h: float
+    length: float
+    curv: float = 0.0
+
+    def end(self) -> tuple[float, float, float]:
+        L, k = self.length, self.curv
+        if k == 0.0:
+            return self.x + L * math.cos(self.h), self.y + L * math.sin(self.h), self.h
+        h1 = self.h + k * L
+        return (self.x + (math.sin(h1) - math.sin(self.h)) / k,
+                self.y - (math.cos(h1) - math.cos(self.h)) / k, h1)
+
+
+class Path:
+    """G1 chain of pieces; s is arc length from the start."""
+
+    def __init__(self, pieces: list[Piece]):
+        self.pieces = [p for p in pieces if p.length > 1e-9]
+        if not self.pieces:
+            raise GeometryError("empty path")
+        self.starts = np.concatenate([[0.0], np.cumsum([p.length for p in self.pieces])])
+        self.length = float(self.starts[-1])
+
+    @classmethod
+    def chain(cls, x: float, y: float, h: float, spec: list[tuple[float, float]]) -> "Path":
+        """Pieces (length, curvature) laid one after another from pose (x, y, h)."""
+        pieces = []
+        for length, curv in spec:
+            if length <= 1e-9:
+                continue
+            p = Piece(x, y, h, float(length), float(curv))
+            pieces.append(p)
+            x, y, h = p.end()
+        return cls(pieces)
+
+    def __add__(self, other: "Path") -> "Path":
+        return Path(self.pieces + other.pieces)
+
+    @property
+    def start(self) -> tuple[float, float, float]:
+        p = self.pieces[0]
+        return p.x, p.y, p.h
+
+    @property
+    def end(self) -> tuple[float, float, float]:
+        return self.pieces[-1].end()
+
+    def eval(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(xy (K, 2), heading (K,), curvature (K,)) at arc lengths s (clipped to the path)."""
+        s = np.clip(np.asarray(s, np.float64), 0.0, self.length)
+        idx = np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.pieces) - 1)
+        xy = np.empty((len(s), 2))
+        h = np.empty(len(s))
+        k = np.empty(len(s))
+        for i, p in enumerate(self.pieces):
+            m = idx == i
+            if not m.any():
+                continue
+            u = s[m] - self.starts[i]
+            k[m] = p.curv
+            if p.curv == 0.0:
+                h[m] = p.h
+                xy[m, 0] = p.x + u * math.cos(p.h)
+                xy[m, 1] = p.y + u * math.sin(p.h)
+            else:
+                hh = p.h + p.curv * u
+                h[m] = hh
+                xy[m, 0] = p.x + (np.sin(hh) - math.sin(p.h)) / p.curv
+                xy[m, 1] = p.y - (np.cos(hh) - math.cos(p.h)) / p.curv
+        return xy, h, k
+
+    def sample(self, ds: float = POINT_SPACING):
+        """Evenly spaced samples (spacing <= ds) including both ends: (xy, heading, s)."""
+        n = max(2, int(math.ceil(self.length / ds)) + 1)
+        s = np.linspace(0.0, self.length, n)
+        xy, h, _ = self.eval(s)
+        return xy, h, s
+
+    def offset(self, d: float) -> "Path":
+        """The parallel path d metres to the left (negative: right)."""
+        out = []
+        for p in self.pieces:
+            scale = 1.0 - p.curv * d
+            if scale <= 1e-6:
+                raise GeometryError("offset beyond a piece's centre of curvature")
+            out.append(Piece(p.x - d * math.sin(p.h), p.y + d * math.cos(p.h), p.h,
+                             p.length * scale, p.curv / scale))
+        return Path(out)
+
+    def reversed(self) -> "Path":
+        out = []
+        for p in reversed(self.pieces):
+            x, y, h = p.end()
+            out.append(Piece(x, y, h + math.pi, p.length, -p.curv))
+        return Path(out)
+
+
+def line(x, y, h, length) -> Path:
+    return Path.chain(x, y, h, [(length, 0.0)])
+
+
+def fillet(p, h_in, q, h_out, r_cap=math.inf, r_min=R_MIN) -> Path | None:
+    """Line from p along h_in, circular arc, line into q along h_out (G1).
+
+    The arc has the largest radius (<= r_cap) whose tangent points stay between
+    p and q; None when that radius is below r_min or the lines meet behind p
+    or beyond q.
+    """
+    d1 = np.array([math.cos(h_in), math.sin(h_in)])
+    d2 = np.array([math.cos(h_out), math.sin(h_out)])
+    pq = np.asarray(q, float) - np.asarray(p, float)
+    phi = float(wrap(h_out - h_in))
+    if abs(phi) < 1e-6:
+        cross = d1[0] * pq[1] - d1[1] * pq[0]
+        if abs(cross) < 1e-6 and pq @ d1 > 0:
+            return line(p[0], p[1], h_in, float(pq @ d1))
+        return None
+    det = d1[0] * d2[1] - d1[1] * d2[0]
+    t1 = (pq[0] * d2[1] - pq[1] * d2[0]) / det
+    t2 = (d1[0] * pq[1] - d1[1] * pq[0]) / det
+    if t1 < 0 or t2 < 0:
+        return None
+    tan_half = math.tan(abs(phi) / 2)
+    r = min(min(t1, t2) / tan_half, r_cap)
+    if r < r_min:
+        return None
+    tl = r * tan_half
+    return Path.chain(p[0], p[1], h_in, [(t1 - tl, 0.0), (r * abs(phi), math.copysign(1.0 / r, phi)),
+                                          (t2 - tl, 0.0)])
+
+
+# ----------------------------------------------------------------------------- map
+@dataclass
+class Lane:
+    path: Path
+    prio: int = -1  # -1: approach lane; >= 0 junction lane, higher goes first at conflicts
+    conflict_range: tuple[float, float] | None = None  # s-range sampled for conflicts; None: all
+    arms: tuple[int, ...] = ()  # arms whose stop distance to grow if this lane fails a check
+
+
+@dataclass
+class RoadMap:
+    lanes: list[Lane] = field(default_factory=list)
+    edges: list[tuple[int, int]] = field(default_factory=list)
+    curbs: list[Path] = field(default_factory=list)
+    lines: list[Path] = field(default_factory=list)
+    crosswalks: list[np.ndarray] = field(default_factory=list)
+    routes: list[list[int]] = field(default_factory=list)
+    spawn: list[tuple[int, float, float]] = field(default_factory=list)  # (lane, s_ref, weight)
+    info: dict = field(default_factory=dict)
+
+    def add_lane(self, path: Path, **kw) -> int:
+        self.lanes.append(Lane(path, **kw))
+        return len(self.lanes) - 1
+
+    def curb_segments(self) -> np.ndarray:
+        """(S, 2, 2) curb segments at the exported point spacing."""
+        segs = []
+        for c in self.curbs:
+            xy = c.sample()[0]
+            segs.append(np.stack([xy[:-1], xy[1:]], 1))
+        return np.concatenate(segs) if segs else np.zeros((0, 2, 2))
+
+    def offroad_lanes(self) -> list[int]:
+        """Lanes along which the largest vehicle box (inflated) would touch a curb."""
+        segs = self.curb_segments()
+        if not len(segs):
+            return []
+        pts, hs, lane_of = [], [], []
+        for i, lane in enumerate(self.lanes):
+            path = lane.path
+            if len(path.pieces) == 1 and path.pieces[0].curv == 0.0 and path.length > 40.0:
+                # straight approach lanes run parallel to their curbs: check only the ends
+                s = np.concatenate([np.arange(0.0, 15.0, 0.5), path.length - np.arange(0.0, 15.0, 0.5)])
+                xy, h, _ = path.eval(s)
+            else:
+                xy, h, _ = path.sample(0.5)
+            pts.append(xy)
+            hs.append(h)
+            lane_of.append(np.full(len(xy), i))
+        pts, hs, lane_of = np.concatenate(pts), np.concatenate(hs), np.concatenate(lane_of)
+        hl, hw = MAX_LEN / 2 + SWEEP_INFLATE, MAX_WID / 2 + SWEEP_INFLATE
+        mids = segs.mean(1)
+        seg_half = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1).max() / 2
+        ib, js = near_pairs(pts, mids, math.hypot(hl, hw) + seg_half + 1e-3)
+        if not len(ib):
+            return []
+        hit = box_segment_overlap(pts[ib], hs[ib], hl, hw, segs[js, 0], segs[js, 1])
+        return sorted(set(lane_of[ib[hit]].tolist()))
+
+
+# ----------------------------------------------------------------------------- junctions
+@dataclass
+class Arm:
+    theta: float  # outward direction
+    n_in: int  # lanes towards the centre (left of the outward direction... on +normal side)
+    n_out: int  # lanes away from the centre (on -normal side)
+    length: float  # m from the centre to the far end
+    major: bool = False  # on the priority road
+    r_stop: float = 0.0  # m from the centre to the stop line (junction box boundary)
+
+    @property
+    def u(self):
+        return np.array([math.cos(self.theta), math.sin(self.theta)])
+
+    @property
+    def n(self):
+        return np.array([-math.sin(self.theta), math.cos(self.theta)])
+
+    def point(self, t, off):
+        return t * self.u + off * self.n
+
+
+def _line_t(arm_a: Arm, off_a: float, arm_b: Arm, off_b: float) -> tuple[float, float] | None:
+    """Where the lines (off_a on arm a) and (off_b on arm b) cross: (t_a, t_b)."""
+    ua, ub = arm_a.u, arm_b.u
+    det = ua[0] * ub[1] - ua[1] * ub[0]
+    if abs(det) < 1e-9:
+        return None
+    rhs = off_b * arm_b.n - off_a * arm_a.n  # t_a ua - t_b ub = rhs
+    ta = (rhs[0] * (-ub[1]) - rhs[1] * (-ub[0])) / -det
+    tb = (ua[0] * rhs[1] - ua[1] * rhs[0]) / -det
+    return ta, tb
+
+
+def _classify(defl: float) -> str:
+    if abs(defl) < math.radians(35):
+        return "S"
+    return "L" if defl > 0 else "R"
+
+
+def build_junction(arms: list[Arm], w: float, allowed, rng, crosswalks: bool) -> RoadMap:
+    """A junction of straight arms meeting at the origin.
+
+    `allowed(a, b)` says whether traffic may go from arm a to arm b. Inbound
+    lane k of an arm sits at normal offset +(k + 1/2) w, outbound lane k at
+    -(k + 1/2) w (right-hand traffic); k = 0 is next to the centre line.
+    """
+    order = np.argsort([wrap(a.theta) for a in arms])
+    arms = [arms[i] for i in order]
+    na = len(arms)
+    # initial stop distances: room for a right-turn radius r_target at every corner
+    r_target = float(rng.uniform(8.0, 12.0))
+    for a in arms:
+        a.r_stop = 0.0
+    for i in range(na):
+        a, b = arms[i], arms[(i + 1) % na]
+        alpha = float(wrap(b.theta - a.theta)) % (2 * math.pi)
+        if alpha >= math.pi - 1e-6:
+            continue
+        tt = _line_t(a, (a.n_in - 0.5) * w, b, -(b.n_out - 0.5) * w)
+        need = r_target / math.tan(alpha / 2)
+        a.r_stop = max(a.r_stop, tt[0] + need, a.n_in * w + 2)
+        b.r_stop = max(b.r_stop, tt[1] + need, b.n_out * w + 2)
+    for a in arms:
+        a.r_stop = max(a.r_stop, (a.n_in + a.n_out) * w * 0.5 + 4.0) + float(rng.uniform(0.0, 3.0))
+    for _ in range(12):
+        try:
+            m = _junction_try(arms, w, allowed, crosswalks)
+        except _Grow as g:
+            for i in g.arms:
+                arms[i].r_stop += 2.0
+            continue
+        bad = m.offroad_lanes()
+        if not bad:
+            m.info["r_stop"] = [a.r_stop for a in arms]
+            m.info["arm_angles"] = [float(a.theta) for a in arms]
+            return m
+        grow = {i for lane in bad for i in m.lanes[lane].arms}
+        if not grow:
+            raise GeometryError(f"approach lanes {bad} off the road")
+        for i in grow:
+            arms[i].r_stop += 2.0
+    raise GeometryError("junction did not converge")
+
+
+class _Grow(Exception):
+    def __init__(self, arms):
+        self.arms = arms
+
+
+def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadMap:
+    na = len(arms)
+    m = RoadMap()
+    lane_in, lane_out = {}, {}
+    for i, a in enumerate(arms):
+        for k in range(a.n_in):
+            p = a.point(a.length, (k + 0.5) * w)
+            ln = a.length - a.r_stop
+            lane_in[i, k] = m.add_lane(line(p[0], p[1], a.theta + math.pi, ln),
+                                       conflict_range=(ln - 12.0, ln))
+            m.spawn.append((lane_in[i, k], ln, 1.0))
+        for k in range(a.n_out):
+            p = a.point(a.r_stop, -(k + 0.5) * w)
+            lane_out[i, k] = m.add_lane(line(p[0], p[1], a.theta, a.length - a.r_stop),
+                                        conflict_range=(0.0, 12.0))
+    # movements
+    for i, a in enumerate(arms):
+        dests = []
+        for j, b in enumerate(arms):
+            if j == i or not allowed(a, b):
+                continue
+            defl = float(wrap(b.theta - (a.theta + math.pi)))
+            dests.append((defl, j))
+        dests.sort(reverse=True)  # leftmost first
+        s_dests = [d for d in dests if _classify(d[0]) == "S"]
+        for defl, j in dests:
+            b = arms[j]
+            cls = _classify(defl)
+            if cls == "L":
+                pairs = [(0, 0)]
+            elif cls == "R":
+                pairs = [(a.n_in - 1, b.n_out - 1)]
+            elif len(s_dests) == 1:
+                pairs = [(k, min(k, b.n_out - 1)) for k in range(a.n_in)]
+            else:  # two straight-ish destinations (Y): split the lanes
+                half = a.n_in / 2
+                ks = range(0, max(1, math.ceil(half))) if (defl, j) == s_dests[0] else \
+                    range(min(a.n_in - 1, math.floor(half)), a.n_in)
+                ks = list(ks) if a.n_in > 1 else [0]
+                pairs = [(k, min(k, b.n_out - 1) if (defl, j) == s_dests[0] else
+                          max(0, b.n_out - a.n_in + k)) for k in ks]
+            prio = _movement_prio(cls, a.major, any(x.major for x in arms))
+            for k, kk in pairs:
+                p = a.point(a.r_stop, (k + 0.5) * w)
+                q = b.point(b.r_stop, -(kk + 0.5) * w)
+                path = fillet(p, a.theta + math.pi, q, b.theta)
+                if path is None:
+                    raise _Grow([i, j])
+                c = m.add_lane(path, prio=prio, arms=(i, j))
+                m.edges += [(lane_in[i, k], c), (c, lane_out[j, kk])]
+                m.routes.append([lane_in[i, k], c, lane_out[j, kk]])
+    # curbs: one per corner between consecutive arms
+    for i in range(na):
+        a, b = arms[i], arms[(i + 1) % na]
+        alpha = float(wrap(b.theta - a.theta)) % (2 * math.pi)
+        ea = a.point(a.length, a.n_in * w)
+        if abs(alpha - math.pi) < 1e-6:
+            eb = b.point(b.length, -b.n_out * w)
+            m.curbs.append(line(ea[0], ea[1], a.theta + math.pi, float(np.linalg.norm(eb - ea))))
+            continue
+        if alpha > math.pi:
+            raise GeometryError("reflex corner between arms")
+        p = a.point(a.r_stop, (a.n_in - 0.5) * w)
+        q = b.point(b.r_stop, -(b.n_out - 0.5) * w)
+        turn = fillet(p, a.theta + math.pi, q, b.theta)
+        if turn is None:
+            raise _Grow([i, (i + 1) % na])
+        curb = turn.offset(-w / 2)
+        sx, sy, _ = curb.start
+        ex, ey, _ = curb.end
+        head = line(ea[0], ea[1], a.theta + math.pi, float(np.linalg.norm(np.array([sx, sy]) - ea)))
+        eb = b.point(b.length, -b.n_out * w)
+        tail = line(ex, ey, b.theta, float(np.linalg.norm(eb - np.array([ex, ey]))))
+        m.curbs.append(head + curb + tail)
+    # road lines along the arms, crosswalks at the stop lines
+    for a in arms:
+        ln = a.length - a.r_stop
+        offs = ([0.0] if a.n_in and a.n_out else []) + [k * w for k in range(1, a.n_in)] + \
+            [-k * w for k in range(1, a.n_out)]
+        for off in offs:
+            p = a.point(a.r_stop, off)
+            m.lines.append(line(p[0], p[1], a.theta, ln))
+        if crosswalks:
+            t0, t1 = a.r_stop + 1.0, a.r_stop + 4.0
+            lo, hi = -a.n_out * w, a.n_in * w
+            m.crosswalks.append(np.array([a.point(t0, lo), a.point(t0, hi), a.point(t1, hi),
+                                          a.point(t1, lo), a.point(t0, lo)]))
+    return m
+
+
+def _movement_prio(cls: str, from_major: bool, has_major: bool) -> int:
+    """Who goes first at a conflict: the priority road (its left turns after its
+    straight and right movements), then the minor road; a junction without a
+    priority road is all-way first come first served."""
+    if from_major:
+        return 2 if cls in "SR" else 1
+    return 0 if has_major else 1
+
+
+# ----------------------------------------------------------------------------- the six maps
+def _rot(rng) -> float:
+    return float(rng.uniform(-math.pi, math.pi))
+
+
+def map_dual_lane(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    rho = _rot(rng)
+    phi = float(rng.uniform(math.radians(70), math.radians(110)))
+    n = 2
+    arms = [Arm(rho + d, n, n, scale * float(rng.uniform(100, 140))) for d in (0, phi, math.pi, phi + math.pi)]
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m.info.update(lanes_per_direction=n, crossing_angle_deg=math.degrees(phi))
+    return m
+
+
+def map_dense(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    rho = _rot(rng)
+    phi = float(rng.uniform(math.radians(75), math.radians(105)))
+    na = lanes if lanes else int(rng.integers(3, 5))
+    nb = lanes if lanes else int(rng.integers(3, 5))
+    arms = [Arm(rho + d, n, n, scale * float(rng.uniform(100, 140)))
+            for d, n in ((0, na), (phi, nb), (math.pi, na), (phi + math.pi, nb))]
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m.info.update(lanes_per_direction=[na, nb], crossing_angle_deg=math.degrees(phi))
+    return m
+
+
+def map_t_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    rho = _rot(rng)
+    nm = lanes if lanes else int(rng.integers(1, 3))
+    ns = lanes if lanes else int(rng.integers(1, 3))
+    psi = float(rng.uniform(math.radians(65), math.radians(115)))
+    arms = [Arm(rho, nm, nm, scale * float(rng.uniform(100, 140)), major=True),
+            Arm(rho + math.pi, nm, nm, scale * float(rng.uniform(100, 140)), major=True),
+            Arm(rho + math.pi + psi, ns, ns, scale * float(rng.uniform(100, 140)))]
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m.info.update(lanes_per_direction=[nm, ns], stem_angle_deg=math.degrees(psi))
+    return m
+
+
+def map_y_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    rho = _rot(rng)
+    n = lanes if lanes else int(rng.integers(1, 3))
+    bl = float(rng.uniform(math.radians(22), math.radians(40)))
+    br = float(rng.uniform(math.radians(22), math.radians(40)))
+    arms = [Arm(rho - math.pi / 2, n, n, scale * float(rng.uniform(100, 140)), major=True),
+            Arm(rho + math.pi / 2 + bl, n, n, scale * float(rng.uniform(100, 140))),
+            Arm(rho + math.pi / 2 - br, n, n, scale * float(rng.uniform(100, 140)))]
+    stem = arms[0]
+    # no branch-to-branch movements
+    m = build_junction(arms, w, lambda a, b: a is stem or b is stem, rng, crosswalks)
+    m.info.update(lanes_per_direction=n, branch_angles_deg=[math.degrees(bl), math.degrees(br)])
+    return m
+
+
+def map_roundabout(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    rho = _rot(rng)
+    na = int(rng.choice([3, 4, 4, 5]))
+    rc = float(rng.uniform(16.0, 20.0) if na == 5 else rng.uniform(12.5, 19.0))
+    jitter = {3: 12.0, 4: 9.0, 5: 5.0}[na]
+    thetas = [rho + 2 * math.pi * k / na + math.radians(float(rng.uniform(-jitter, jitter)))
+              for k in range(na)]
+    lengths = [scale * float(rng.uniform(100, 140)) for _ in range(na)]
+    re0 = float(rng.uniform(10.0, 16.0))
+    for attempt in range(6):
+        re = max(R_MIN + 3.0, re0 - 1.5 * attempt)
+        try:
+            m = _roundabout_try(thetas, lengths, rc, re, re, w)
+        except GeometryError:
+            continue
+        bad = m.offroad_lanes()
+        if not bad:
+            m.info.update(num_arms=na, ring_radius=rc, entry_radius=re, arm_angles=thetas)
+            return m
+        re0 += 3.0  # tight entries cut the island: try wider ones
+    raise GeometryError("roundabout did not fit")
+
+
+def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
+    m = RoadMap()
+    na = len(thetas)
+    nodes = []  # (angle, kind, arm)
+    arm_data = []
+    for i, th in enumerate(thetas):
+        u = np.array([math.cos(th), math.sin(th)])
+        n = np.array([-math.sin(th), math.cos(th)])
+        te = math.sqrt((rc + re) ** 2 - (w / 2 + re) ** 2)
+        tx = math.sqrt((rc + rx) ** 2 - (w / 2 + rx) ** 2)
+        ce = (w / 2 + re) * n + te * u
+        cx = -(w / 2 + rx) * n + tx * u
+        psi_e = math.atan2(ce[1], ce[0])
+        psi_x = math.atan2(cx[1], cx[0])
+        arm_data.append((u, n, te, tx, ce, cx, psi_e, psi_x))
+        nodes += [(psi_x, "x", i), (psi_e, "e", i)]
+    # order nodes ccw starting at the first exit
+    base = nodes[0][0]
+    nodes.sort(key=lambda t: (t[0] - base) % (2 * math.pi))
+    ang = np.array([(t[0] - base) % (2 * math.pi) for t in nodes])
+    gaps = np.diff(np.concatenate([ang, [2 * math.pi]]))
+    if (gaps * rc < 4.0).any() or [t[1] for t in nodes] != ["x", "e"] * na:
+        raise GeometryError("roundabout arms too close")
+    # ring segments between consecutive nodes
+    seg_of_start, seg_of_end = {}, {}
+    for k, (psi, kind, arm) in enumerate(nodes):
+        x0, y0 = rc * math.cos(psi), rc * math.sin(psi)
+        lid = m.add_lane(Path.chain(x0, y0, psi + math.pi / 2, [(rc * gaps[k], 1.0 / rc)]), prio=2)
+        seg_of_start[kind, arm] = lid
+        nxt = nodes[(k + 1) % len(nodes)]
+        seg_of_end[nxt[1], nxt[2]] = lid
+    ring = [seg_of_start[t[1], t[2]] for t in nodes]
+    for k in range(len(ring)):
+        m.edges.append((ring[k], ring[(k + 1) % len(ring)]))
+    lane_in, lane_out, conn_e, conn_x = {}, {}, {}, {}
+    for i, th in enumerate(thetas):
+        u, n, te, tx, ce, cx, psi_e, psi_x = arm_data[i]
+        L = lengths[i]
+        p = L * u + (w / 2) * n
+        lane_in[i] = m.add_lane(line(p[0], p[1], th + math.pi, L - te), conflict_range=(L - te - 12, L - te))
+        m.spawn.append((lane_in[i], L - te, 1.0))
+        dh_e = float(wrap(psi_e + math.pi / 2 - (th + math.pi)))
+        pe = te * u + (w / 2) * n
+        conn_e[i] = m.add_lane(Path.chain(pe[0], pe[1], th + math.pi, [(re * abs(dh_e), -1.0 / re)]), prio=0)
+        jx = rc * np.array([math.cos(psi_x), math.sin(psi_x)])
+        dh_x = float(wrap(th - (psi_x + math.pi / 2)))
+        conn_x[i] = m.add_lane(Path.chain(jx[0], jx[1], psi_x + math.pi / 2, [(rx * abs(dh_x), -1.0 / rx)]),
+                               prio=2)
+        px = tx * u - (w / 2) * n
+        lane_out[i] = m.add_lane(line(px[0], px[1], th, L - tx), conflict_range=(0.0, 12.0))
+        if dh_e > 0 or dh_x > 0:
+            raise GeometryError("roundabout entry not a right turn")
+        m.edges += [(lane_in[i], conn_e[i]), (conn_e[i], seg_of_start["e", i]),
+                    (seg_of_end["x", i], conn_x[i]), (conn_x[i], lane_out[i])]
+    # routes: every arm to every other arm, counter-clockwise around the ring
+    k_of = {(t[1], t[2]): k for k, t in enumerate(nodes)}
+    for i in range(na):
+        for j in range(na):
+            if i == j:
+                continue
+            k = k_of["e", i]
+            segs = []
+            while True:
+                segs.append(ring[k])
+                k = (k + 1) % len(ring)
+                if nodes[k][1] == "x" and nodes[k][2] == j:
+                    break
+            m.routes.append([lane_in[i], conn_e[i]] + segs + [conn_x[j], lane_out[j]])
+    for lid in ring:
+        m.spawn.append((lid, m.lanes[lid].path.length, 0.35))
+    # curbs: the island, and one outer curb per corner between consecutive arms
+    ri, ro = rc - w / 2, rc + w / 2
+    m.curbs.append(Path.chain(ri, 0.0, math.pi / 2, [(2 * math.pi * ri, 1.0 / ri)]))
+    for i in range(na):
+        j = (i + 1) % na
+        u, n, te, _, ce, _, psi_e, _ = arm_data[i]
+        uj, nj, _, txj, _, cxj, _, psi_xj = arm_data[j]
+        p = lengths[i] * u + w * n
+        dh_e = float(wrap(psi_e + math.pi / 2 - (thetas[i] + math.pi)))
+        dh_x = float(wrap(thetas[j] - (psi_xj + math.pi / 2)))
+        sweep = (psi_xj - psi_e) % (2 * math.pi)
+        rcurb_e, rcurb_x = re - w / 2, rx - w / 2
+        m.curbs.append(Path.chain(p[0], p[1], thetas[i] + math.pi, [
+            (lengths[i] - te, 0.0), (rcurb_e * abs(dh_e), -1.0 / rcurb_e), (ro * sweep, 1.0 / ro),
+            (rcurb_x * abs(dh_x), -1.0 / rcurb_x), (lengths[j] - txj, 0.0)]))
+    for i, th in enumerate(thetas):
+        u, n, te, tx = arm_data[i][:4]
+        t0 = max(te, tx)
+        m.lines.append(line(t0 * u[0], t0 * u[1], th, lengths[i] - t0))
+    return m
+
+
+def map_merge(rng, w, scale, lanes, crosswalks) -> RoadMap:
+    n = lanes if lanes else int(rng.integers(1, 4))
+    gamma = float(rng.uniform(math.radians(8), math.radians(18)))
+    r_ramp = float(rng.uniform(60, 120))
+    l_acc = float(rng.uniform(20, 50))
+    l_tap = float(rng.uniform(30, 50))
+    l_up = scale * float(rng.uniform(130, 170))
+    l_down = scale * float(rng.uniform(120, 160))
+    l_rs = scale * float(rng.uniform(70, 100))
+    # canonical frame: traffic along +x, left curb y = 0; conflict point at the taper middle
+    x_tip = -(l_acc + l_tap / 2)
+    y_a = -(n + 0.5) * w
+    x_m = x_tip + l_acc + l_tap
+    x_end = x_m + l_down
+    x0 = x_tip - l_up
+    m = RoadMap()
+    main = []
+    for k in range(n - 1):
+        y = -(k + 0.5) * w
+        main.append(m.add_lane(line(x0, y, 0.0, x_end - x0), prio=2,
+                               conflict_range=(x_tip - x0, x_m - x0 + 12)))
+        m.routes.append([main[-1]])
+        m.spawn.append((main[-1], -x0 - 20.0, 0.6))
+    yr = -(n - 0.5) * w
+    right_up = m.add_lane(line(x0, yr, 0.0, x_m - x0), prio=2, conflict_range=(x_tip - x0, x_m - x0))
+    right_down = m.add_lane(line(x_m, yr, 0.0, l_down), prio=2, conflict_range=(0.0, 12.0))
+    cx, cy = x_tip, y_a - r_ramp
+    sx, sy = cx - r_ramp * math.sin(gamma), cy + r_ramp * math.cos(gamma)
+    ramp_path = Path.chain(sx - l_rs * math.cos(gamma), sy - l_rs * math.sin(gamma), gamma,
+                           [(l_rs, 0.0), (r_ramp * gamma, -1.0 / r_ramp), (l_acc, 0.0)])
+    ramp = m.add_lane(ramp_path, conflict_range=(ramp_path.length - 12.0, ramp_path.length))
+    phi = 2 * math.atan(w / l_tap)
+    r_s = l_tap / (2 * math.sin(phi))
+    taper = m.add_lane(Path.chain(x_tip + l_acc, y_a, 0.0, [(r_s * phi, 1.0 / r_s), (r_s * phi, -1.0 / r_s)]),
+                       prio=0)
+    m.edges += [(right_up, right_down), (ramp, taper), (taper, right_down)]
+    m.routes += [[right_up, right_down], [ramp, taper, right_down]]
+    m.spawn += [(right_up, x_tip + l_acc - x0, 1.0), (ramp, ramp_path.length, 1.2)]
+    # curbs: left edge, the gore (main right edge then back down the ramp's left edge), ramp right edge
+    m.curbs.append(line(x0, 0.0, 0.0, x_end - x0))
+    ramp_in = Path(ramp_path.pieces[:2])
+    m.curbs.append(line(x0, -n * w, 0.0, x_tip - x0) + ramp_in.offset(w / 2).reversed())
+    m.curbs.append(ramp_path.offset(-w / 2) + m.lanes[taper].path.offset(-w / 2)
+                   + line(x_m, -n * w, 0.0, l_down))
+    for k in range(1, n):
+        m.lines.append(line(x0, -k * w, 0.0, x_end - x0))
+    m.lines.append(line(x_tip, -n * w, 0.0, l_acc))
+    bad = m.offroad_lanes()
+    if bad:
+        raise GeometryError(f"merge lanes {bad} off the road")
+    m.info.update(main_lanes=n, ramp_angle_deg=math.degrees(gamma), accel_lane=l_acc, taper=l_tap)
+    m.info["frame_offset"] = [0.0, -n * w]  # the conflict point, subtracted at export
+    m.info["frame_rotation"] = _rot(rng)
+    return m

@@ -1,0 +1,506 @@
+"""Traffic of the procedural generator: vehicles spawned on a RoadMap's approach
+lanes and a human-like rollout that becomes the scene's "log".
+
+Each vehicle drives along its route's centreline in 1-D (arc length s), so
+heading, velocity and curvature follow the lanes exactly. Longitudinal control
+is IDM (desired speed, time headway, minimum gap) against:
+  * the vehicle ahead on the same lanes (routes sharing lanes, merges included
+    once the leader is on the shared lane),
+  * conflict zones: for every pair of routes the set of arc-length pairs where
+    the two (inflated) largest vehicle boxes would touch is precomputed and
+    split into clusters; each cluster orders its two vehicles (in the zone or
+    past the stop line first, then the priority road with gap acceptance for
+    the minor road, then first come first served by a per-vehicle ticket, see
+    `_decide`) and the second holds back behind the "frontier" that the first
+    one's current position still leaves free (reservation of the zone),
+  * the curve speed limit (lateral acceleration LAT_ACC) and the route end.
+After the rollout every box pair is checked exactly (separating axes with a
+safety margin); an overlapping later-spawned vehicle, or one that barely moves,
+is dropped and the rollout repeated, so the invariants hold by construction.
+Nothing here draws random numbers after spawning: the rollout is deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from tg_gpudrive.data.procedural_checks import box_box_overlap, box_box_overlap_cs, self_near_pairs
+from tg_gpudrive.data.procedural_geometry import MAX_LEN, MAX_WID, Path, RoadMap
+
+DS = 0.5  # m, route grid spacing for pose look-up and conflict tables
+DS_ZONE = 1.5  # m, lane sample spacing for conflict zones
+ZONE_INFLATE = 0.35  # m added to each half extent of the boxes that define conflict zones
+CHECK_MARGIN = 0.15  # m added to each half extent in the final overlap check (0.3 m between boxes)
+A_MIN, A_MAX_HARD = -4.0, 2.5  # m/s^2, hard acceleration bounds of the rollout
+B_HARD = 3.5  # m/s^2, braking a yielding vehicle may need
+LAT_ACC = 2.5  # m/s^2, lateral acceleration that sets the curve speed
+B_CURVE = 1.5  # m/s^2, deceleration ahead of curves
+GAP_ACCEPT = 1.0  # s, time a minor-road vehicle wants between clearing and the major's arrival
+# Holding a yielding vehicle at its stop line (instead of at the conflict zone inside the junction)
+# avoids some waiting in the junction box but roughly halves throughput and interactions: off.
+HOLD_AT_STOP_LINE = False
+MIN_MOVE_AFTER_10 = 5.5  # m, a vehicle must travel this far after step 10 or be dropped
+
+
+@dataclass
+class Route:
+    lanes: tuple[int, ...]
+    path: Path
+    starts: np.ndarray  # (K + 1,) lane start offsets along the route
+    prio: np.ndarray  # (K,) lane priority
+    grid_xy: np.ndarray  # (G, 2) at s = DS * i
+    grid_yaw: np.ndarray  # (G,) unwrapped
+    vcap: np.ndarray  # (G,) curve speed limit with braking ahead
+
+    @property
+    def length(self) -> float:
+        return self.path.length
+
+    def prio_at(self, s: float) -> int:
+        k = int(np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.lanes) - 1))
+        later = self.prio[k:]
+        ok = later[later >= 0]
+        return int(ok[0]) if len(ok) else 0
+
+
+class TrafficModel:
+    """Routes, lane-pair overlaps and route-pair conflict tables of one map (cached)."""
+
+    def __init__(self, m: RoadMap):
+        self.map = m
+        self.routes: dict[tuple[int, ...], Route] = {}
+        self._pairs: dict[tuple, dict | None] = {}
+        self._lane_overlaps = None
+
+    # -- routes
+    def route(self, lanes: tuple[int, ...]) -> Route:
+        r = self.routes.get(lanes)
+        if r is None:
+            path = Path([p for lane in lanes for p in self.map.lanes[lane].path.pieces])
+            starts = np.concatenate([[0.0], np.cumsum([self.map.lanes[lane].path.length for lane in lanes])])
+            g = np.arange(0.0, path.length + DS, DS)
+            xy, yaw, curv = path.eval(g)
+            yaw = np.unwrap(yaw)
+            vc = np.sqrt(LAT_ACC / np.maximum(np.abs(curv), 1e-4))
+            # v(s)^2 = min over s' >= s of vc(s')^2 + 2 b (s' - s)
+            key = vc ** 2 + 2 * B_CURVE * g
+            vcap = np.sqrt(np.minimum.accumulate(key[::-1])[::-1] - 2 * B_CURVE * g)
+            prio = np.array([self.map.lanes[lane].prio for lane in lanes])
+            r = Route(lanes, path, starts, prio, xy, yaw, vcap)
+            self.routes[lanes] = r
+        return r
+
+    # -- conflicts
+    def lane_overlaps(self) -> dict:
+        """{(lane_a, lane_b): (s_a, s_b)} where inflated largest boxes on the two lanes touch."""
+        if self._lane_overlaps is not None:
+            return self._lane_overlaps
+        pts, yaw, curv, lane_of, s_of = [], [], [], [], []
+        for i, lane in enumerate(self.map.lanes):
+            lo, hi = lane.conflict_range or (0.0, lane.path.length)
+            lo, hi = max(0.0, lo), min(lane.path.length, hi)
+            s = np.linspace(lo, hi, max(2, int(math.ceil((hi - lo) / DS_ZONE)) + 1))
+            xy, h, k = lane.path.eval(s)
+            pts.append(xy)
+            yaw.append(h)
+            curv.append(np.abs(k))
+            lane_of.append(np.full(len(s), i))
+            s_of.append(s)
+        pts, yaw, curv, lane_of, s_of = (np.concatenate(x) for x in (pts, yaw, curv, lane_of, s_of))
+        # each sample stands for the poses within DS_ZONE / 2 of it: grow its box to cover them
+        h = DS_ZONE / 2  # turning by h * curv swings the box ends sideways; the centre moves h^2 curv / 2
+        hl = MAX_LEN / 2 + ZONE_INFLATE + h
+        hw = MAX_WID / 2 + ZONE_INFLATE + (hl * h + h * h / 2) * curv
+        i, j = self_near_pairs(pts, 2 * math.hypot(hl, hw.max()))
+        keep = lane_of[i] != lane_of[j]
+        i, j = i[keep], j[keep]
+        cos, sin = np.cos(yaw), np.sin(yaw)
+        d = pts[j] - pts[i]
+        hit = box_box_overlap_cs(d[:, 0], d[:, 1], cos[i], sin[i], hl, hw[i], cos[j], sin[j], hl, hw[j])
+        i, j = i[hit], j[hit]
+        la, lb = lane_of[i], lane_of[j]
+        out: dict = {}
+        key = la * len(self.map.lanes) + lb
+        order = np.argsort(key, kind="stable")
+        key, i, j, la, lb = key[order], i[order], j[order], la[order], lb[order]
+        cuts = np.flatnonzero(np.diff(key)) + 1
+        for seg in np.split(np.arange(len(key)), cuts):
+            if not len(seg):
+                continue
+            a, b = int(la[seg[0]]), int(lb[seg[0]])
+            out[a, b] = (s_of[i[seg]], s_of[j[seg]])
+            out[b, a] = (s_of[j[seg]], s_of[i[seg]])
+        self._lane_overlaps = out
+        return out
+
+    def pair(self, ka: tuple[int, ...], kb: tuple[int, ...]) -> list[dict]:
+        """Conflict zones of routes a and b (one per cluster), each with its frontier tables."""
+        if (ka, kb) in self._pairs:
+            return self._pairs[ka, kb]
+        ra, rb = self.route(ka), self.route(kb)
+        ov = self.lane_overlaps()
+        pos_a = {lane: k for k, lane in enumerate(ka)}
+        pos_b = {lane: k for k, lane in enumerate(kb)}
+        sa, sb = [], []
+        for ia, la in enumerate(ka):
+            for ib, lb in enumerate(kb):
+                if la == lb:
+                    continue
+                if la in pos_b and pos_b[la] > ib:  # b follows a along b's route
+                    continue
+                if lb in pos_a and pos_a[lb] > ia:  # a follows b
+                    continue
+                o = ov.get((la, lb))
+                if o is None:
+                    continue
+                sa.append(ra.starts[ia] + o[0])
+                sb.append(rb.starts[ib] + o[1])
+        res = []
+        if sa:
+            sa, sb = np.concatenate(sa), np.concatenate(sb)
+            h = DS_ZONE / 2
+            for g in _components(sa, sb, 3.0):
+                ga, gb = sa[g], sb[g]
+                res.append(dict(
+                    za=(float(ga.min()) - h, float(ga.max()) + h), zb=(float(gb.min()) - h, float(gb.max()) + h),
+                    b_given_a=_frontier(ga, gb, len(ra.grid_yaw)), a_given_b=_frontier(gb, ga, len(rb.grid_yaw)),
+                    prio_a=ra.prio_at(ga.min()), prio_b=rb.prio_at(gb.min())))
+        self._pairs[ka, kb] = res
+        self._pairs[kb, ka] = [dict(za=c["zb"], zb=c["za"], b_given_a=c["a_given_b"], a_given_b=c["b_given_a"],
+                                    prio_a=c["prio_b"], prio_b=c["prio_a"]) for c in res]
+        return res
+
+
+def _components(sa: np.ndarray, sb: np.ndarray, gap: float) -> list[np.ndarray]:
+    """Split conflict samples into clusters separated by more than `gap` along s_a or s_b."""
+    groups = [np.arange(len(sa))]
+    for _ in range(2):
+        for key in (sa, sb):
+            out = []
+            for g in groups:
+                o = g[np.argsort(key[g], kind="stable")]
+                out += np.split(o, np.flatnonzero(np.diff(key[o]) > gap) + 1)
+            groups = out
+    return groups
+
+
+def _frontier(s_win: np.ndarray, s_lose: np.ndarray, n: int) -> np.ndarray:
+    """f[i]: smallest loser position that may conflict with a winner at or beyond i * DS.
+
+    Zone samples stand for DS_ZONE / 2 either side: a winner sample counts from
+    the row where its reach ends, and a loser sample starts that much earlier.
+    """
+    h = DS_ZONE / 2
+    best = np.full(n, np.inf)
+    np.minimum.at(best, np.clip(np.floor((s_win + h) / DS).astype(np.int64), 0, n - 1), s_lose - h)
+    return np.minimum.accumulate(best[::-1])[::-1]
+
+
+# ----------------------------------------------------------------------------- vehicles
+@dataclass
+class Vehicles:
+    """Per-vehicle arrays, in spawn order (nearest to the conflict first)."""
+
+    routes: list[tuple[int, ...]]
+    s0: np.ndarray  # m, initial arc length on the route
+    v0: np.ndarray  # m/s, initial speed
+    v_des: np.ndarray  # m/s, desired speed
+    length: np.ndarray
+    width: np.ndarray
+    height: np.ndarray
+    headway: np.ndarray  # s
+    min_gap: np.ndarray  # m
+    a_max: np.ndarray  # m/s^2
+    b_comf: np.ndarray  # m/s^2
+
+    def __len__(self):
+        return len(self.routes)
+
+    def subset(self, keep: np.ndarray) -> "Vehicles":
+        idx = np.flatnonzero(keep)
+        return Vehicles([self.routes[i] for i in idx], *(getattr(self, f)[idx] for f in (
+            "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf")))
+
+
+def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_mean: float,
+          speed_std: float, spawn_range: float, headway: float, min_gap: float, a_max: float,
+          b_comf: float, max_vehicles: int) -> Vehicles:
+    """Queue vehicles upstream of each spawn lane's reference point."""
+    m = tm.map
+    by_lane: dict[int, list[list[int]]] = {}
+    for r in m.routes:
+        for k, lane in enumerate(r):
+            by_lane.setdefault(lane, []).append(r[k:])
+    rows = []
+    for lane, s_ref, weight in m.spawn:
+        cands = by_lane.get(lane, [])
+        if not cands:
+            continue
+        d_front = float(rng.uniform(1.0, 15.0))
+        lane_len = m.lanes[lane].path.length
+        ahead_speed, ahead_rear = None, None
+        while True:
+            L = float(rng.uniform(4.0, 5.5))
+            s_c = s_ref - d_front - L / 2
+            if d_front > spawn_range or s_c < L / 2 + 1.0 or s_c > lane_len:
+                break
+            route = tuple(cands[int(rng.integers(len(cands)))])
+            v_des = float(np.clip(rng.normal(speed_mean, speed_std), 0.4 * speed_mean, 1.6 * speed_mean + 1))
+            v = v_des * float(rng.uniform(0.6, 1.0))
+            r = tm.route(route)
+            v = min(v, float(np.interp(s_c, np.arange(len(r.vcap)) * DS, r.vcap)))
+            if m.lanes[lane].prio < 0:  # approaching a junction: able to stop comfortably
+                v = min(v, math.sqrt(2 * 2.5 * max(d_front - 1.0, 0.0)) + 1.0)
+            if ahead_rear is not None:
+                gap = ahead_rear - (s_c + L / 2)
+                v = min(v, max(0.0, (gap - min_gap) / headway), ahead_speed + 1.0)
+            rows.append((d_front, lane, route, s_c, v, v_des, L, float(rng.uniform(1.8, 2.2)),
+                         float(rng.uniform(1.4, 1.9)), headway * float(rng.uniform(0.8, 1.25)),
+                         min_gap * float(rng.uniform(0.8, 1.25)), a_max * float(rng.uniform(0.8, 1.2)),
+                         b_comf * float(rng.uniform(0.8, 1.2))))
+            ahead_speed, ahead_rear = v, s_c - L / 2
+            gap = min_gap + headway * v + float(rng.exponential(25.0 / max(density * weight, 1e-3)))
+            d_front += L + gap
+    rows.sort(key=lambda r: (r[0], r[1]))
+    rows = rows[:max_vehicles]
+    if not rows:
+        return Vehicles([], *(np.zeros(0) for _ in range(10)))
+    cols = list(zip(*rows))
+    return Vehicles(list(cols[2]), *(np.array(c, np.float64) for c in cols[3:]))
+
+
+# ----------------------------------------------------------------------------- rollout
+@dataclass
+class Rollout:
+    s: np.ndarray  # (N, T) m along the route
+    v: np.ndarray  # (N, T) m/s
+    xy: np.ndarray  # (N, T, 2)
+    yaw: np.ndarray  # (N, T)
+
+
+def _decide(state, lock, t, live, da, db, sa, sb, va, vb, za1, zb1, pra, prb, room_a, room_b, acc4, vdes4,
+            blk_a, blk_b, com_a, com_b, tk_a, tk_b):
+    """Order the live conflict pairs: who goes first (1: a, 2: b).
+
+    A vehicle in its zone goes first, then one past its stop line (for a zone
+    of that junction). Otherwise the priority road
+    goes first unless the minor vehicle clears the zone GAP_ACCEPT seconds
+    before the major one arrives; equal priorities go first come first served
+    by ticket (the time each vehicle expected to reach its stop line when it
+    first came near): one order for all pairs, so no waiting cycles.
+    A first-mover that has crawled for 2 s (held up elsewhere) loses its claim,
+    which breaks waiting cycles. A decision changes only while neither vehicle
+    is in its zone, and only if the new second can still stop comfortably
+    (undecided pairs: with hard braking).
+    """
+    m = len(da)
+    dist = np.maximum(np.concatenate([da, db, za1 - sa, zb1 - sb]), 0.0)
+    ea, eb, ca, cb = _travel_time(dist, np.concatenate([va, vb, va, vb]), acc4, vdes4).reshape(4, m)
+    held_a, held_b = (state == 1) & blk_a, (state == 2) & blk_b
+    pa_eff = np.where(held_a, -1, pra)
+    pb_eff = np.where(held_b, -1, prb)
+    ea = ea + 10.0 * held_a
+    eb = eb + 10.0 * held_b
+    fcfs = tk_a + 10.0 * held_a <= tk_b + 10.0 * held_b
+    a_first = np.where(pa_eff > pb_eff, ~(cb + GAP_ACCEPT < ea),
+                       np.where(pa_eff < pb_eff, ca + GAP_ACCEPT < eb, fcfs))
+    # physically in the zone beats committed (past the stop line) beats the rules above
+    in_a, in_b = da <= 0, db <= 0
+    a_first = np.where(com_a & ~com_b, True, np.where(com_b & ~com_a, False, a_first))
+    a_first = np.where(in_a & ~in_b, True, np.where(in_b & ~in_a, False, np.where(in_a & in_b, da <= db, a_first)))
+    want = np.where(a_first, 1, 2).astype(np.int8)
+    new = state.copy()
+    und = live & (state == 0)
+    if und.any():
+        can_b = vb ** 2 <= 2 * B_HARD * np.maximum(room_b - 1.0, 0.0)
+        can_a = va ** 2 <= 2 * B_HARD * np.maximum(room_a - 1.0, 0.0)
+        w = np.where((want == 1) & ~can_b & can_a, 2, np.where((want == 2) & ~can_a & can_b, 1, want))
+        new[und] = w[und]
+    flip = live & (state > 0) & (state < 3) & (want != state) & ~com_a & ~com_b & (lock <= t)
+    if flip.any():
+        comf_b = vb ** 2 <= 2 * 2.5 * np.maximum(room_b - 1.0, 0.0)
+        comf_a = va ** 2 <= 2 * 2.5 * np.maximum(room_a - 1.0, 0.0)
+        flip &= np.where(want == 1, comf_b, comf_a)
+        new[flip] = want[flip]
+        lock[flip & (held_a | held_b)] = t + 30  # a broken cycle stays broken for 3 s
+    return new
+
+
+def _travel_time(d, v, a, vmax):
+    """s to cover d metres from speed v accelerating at a up to vmax."""
+    vmax = np.maximum(vmax, v)
+    t_acc = (vmax - v) / a
+    d_acc = 0.5 * (v + vmax) * t_acc
+    t1 = (np.sqrt(v * v + 2 * a * d) - v) / a
+    t2 = t_acc + (d - d_acc) / np.maximum(vmax, 0.1)
+    return np.where(d <= d_acc, t1, t2)
+
+
+def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollout:
+    """Integrate every vehicle along its route; see the module docstring for the rules."""
+    n = len(veh)
+    routes = [tm.route(k) for k in veh.routes]
+    n_lanes = len(tm.map.lanes)
+    kmax = max(len(r.lanes) for r in routes)
+    bounds = np.full((n, kmax + 1), np.inf)
+    lane_ids = np.zeros((n, kmax), np.int64)
+    off_tab = np.full((n, n_lanes), np.nan)
+    for i, r in enumerate(routes):
+        k = len(r.lanes)
+        bounds[i, : k + 1] = r.starts
+        lane_ids[i, :k] = r.lanes
+        lane_ids[i, k:] = r.lanes[-1]
+        off_tab[i, list(r.lanes)] = r.starts[:-1]
+    ends = bounds[:, 1:]
+    rlen = np.array([r.length for r in routes])
+    vcap_all = np.concatenate([r.vcap for r in routes])
+    vcap_off = np.concatenate([[0], np.cumsum([len(r.vcap) for r in routes])])[:-1]
+    vcap_last = vcap_off + np.array([len(r.vcap) for r in routes]) - 1
+    half = veh.length / 2
+    # junction entry (stop line) of each vehicle and the end of its first junction lane: a vehicle that
+    # must give way in a zone before that end waits at the stop line rather than inside the junction
+    stop_s = np.full(n, -np.inf)
+    lim_s = np.full(n, -np.inf)
+    for i, r in enumerate(routes):
+        jl = np.flatnonzero(r.prio >= 0)
+        if len(jl) and jl[0] > 0:
+            stop_s[i], lim_s[i] = r.starts[jl[0]], r.starts[jl[0] + 1]
+    halfsum = half[:, None] + half[None, :]
+    v_des, a_max, headway, min_gap = veh.v_des, veh.a_max, veh.headway, veh.min_gap
+    sqrt_ab = 2 * np.sqrt(veh.a_max * veh.b_comf)
+
+    # one entry per conflict zone of each vehicle pair
+    pa, pb, tabs, meta = [], [], [], []
+    for i in range(n):
+        for j in range(i + 1, n):
+            if veh.routes[i] == veh.routes[j]:
+                continue
+            for c in tm.pair(veh.routes[i], veh.routes[j]):
+                pa.append(i)
+                pb.append(j)
+                tabs.append((c["b_given_a"], c["a_given_b"]))
+                meta.append((*c["za"], *c["zb"], c["prio_a"], c["prio_b"]))
+    pa, pb = np.array(pa, np.int64), np.array(pb, np.int64)
+    npair = len(pa)
+    if npair:
+        flat = np.concatenate([x for t in tabs for x in t])
+        sizes = np.array([len(x) for t in tabs for x in t])
+        offs = np.concatenate([[0], np.cumsum(sizes)])[:-1]
+        tb_off, ta_off = offs[0::2], offs[1::2]
+        tb_last, ta_last = tb_off + sizes[0::2] - 1, ta_off + sizes[1::2] - 1
+        za0, za1, zb0, zb1, pra, prb = np.array(meta).T
+        acc4 = np.concatenate([a_max[pa], a_max[pb], a_max[pa], a_max[pb]])
+        vdes4 = np.concatenate([v_des[pa], v_des[pb], v_des[pa], v_des[pb]])
+        jz_a, jz_b = za0 < lim_s[pa], zb0 < lim_s[pb]
+        stop_a, stop_b = stop_s[pa], stop_s[pb]
+    state = np.zeros(npair, np.int8)  # 0 undecided, 1 a first, 2 b first, 3 done
+    lock = np.zeros(npair, np.int64)  # no re-evaluation before this step
+
+    s = np.empty((n, num_steps))
+    v = np.empty((n, num_steps))
+    s[:, 0], v[:, 0] = veh.s0, veh.v0
+    a_prev = np.zeros(n)
+    slow = np.zeros(n)  # s spent below 1 m/s
+    ticket = np.full(n, np.inf)
+    ar = np.arange(n)
+    for t in range(num_steps - 1):
+        st, vt = s[:, t], v[:, t]
+        # leader: nearest vehicle ahead whose lane lies on my route
+        k = np.minimum((st[:, None] >= ends).sum(1), kmax - 1)
+        ls = st - bounds[ar, k]
+        pos = off_tab[:, lane_ids[ar, k]] + ls[None, :]
+        with np.errstate(invalid="ignore"):
+            gap = np.where(pos > st[:, None], pos - st[:, None] - halfsum, np.inf)
+        j = np.argmin(gap, 1)
+        g_lead = gap[ar, j]
+        dv = vt - vt[j]
+        g_obs = rlen - st - half + 2.0  # the route end stands in the way
+        to_stop = np.maximum(stop_s - st, 0.0)
+        near = np.isinf(ticket) & (to_stop < 30.0 + 3.0 * vt)
+        if near.any():
+            ticket[near] = t * dt + _travel_time(to_stop[near], vt[near], a_max[near], v_des[near])
+        if npair:
+            sa, sb, va, vb = st[pa], st[pb], vt[pa], vt[pb]
+            room_b = flat[np.minimum(tb_off + (sa / DS).astype(np.int64), tb_last)] - sb  # if a goes first
+            room_a = flat[np.minimum(ta_off + (sb / DS).astype(np.int64), ta_last)] - sa
+            state[(sa > za1) | (sb > zb1)] = 3
+            da, db = za0 - sa, zb0 - sb
+            live = (state < 3) & ((da < 30 + 3 * va) | (db < 30 + 3 * vb))
+            if t % 2 == 0 and live.any():  # drivers re-assess every 0.2 s
+                state = _decide(state, lock, t, live, da, db, sa, sb, va, vb, za1, zb1, pra, prb, room_a, room_b,
+                                acc4, vdes4, slow[pa] > 2.0, slow[pb] > 2.0,
+                                (da <= 0) | (jz_a & (sa > stop_a + 0.5)), (db <= 0) | (jz_b & (sb > stop_b + 0.5)),
+                                ticket[pa] + 1e-6 * pa, ticket[pb] + 1e-6 * pb)
+            lose_b, lose_a = state == 1, state == 2
+            gb, ga = room_b - 0.3, room_a - 0.3
+            if HOLD_AT_STOP_LINE:
+                hold_b, hold_a = stop_b - sb - half[pb], stop_a - sa - half[pa]
+                ok_b = jz_b & (vb * vb <= 2 * B_HARD * np.maximum(hold_b - 1.0, 0.0))
+                ok_a = jz_a & (va * va <= 2 * B_HARD * np.maximum(hold_a - 1.0, 0.0))
+                gb = np.where(ok_b, np.minimum(gb, hold_b), gb)
+                ga = np.where(ok_a, np.minimum(ga, hold_a), ga)
+            np.minimum.at(g_obs, pb[lose_b], gb[lose_b])
+            np.minimum.at(g_obs, pa[lose_a], ga[lose_a])
+        # IDM against the leader and the nearest standing obstacle, curve speed, jerk limits
+        ss_lead = min_gap + np.maximum(0.0, vt * headway + vt * dv / sqrt_ab)
+        ss_obs = 1.0 + np.maximum(0.0, 0.5 * vt * headway + vt * vt / sqrt_ab)
+        inter = np.maximum((ss_lead / np.maximum(g_lead, 0.05)) ** 2, (ss_obs / np.maximum(g_obs, 0.05)) ** 2)
+        a_idm = a_max * (1.0 - (vt / v_des) ** 4 - inter)
+        a_curve = 1.5 * (vcap_all[np.minimum(vcap_off + (st / DS).astype(np.int64), vcap_last)] - vt)
+        a_t = np.minimum(a_idm, a_curve)
+        a = np.minimum(a_t, a_prev + 0.4)  # jerk limit when speeding up
+        a = np.where(a_t > -2.0, np.maximum(a, a_prev - 1.0), a)  # soften mild braking onsets
+        a = np.minimum(np.maximum(a, A_MIN), A_MAX_HARD)
+        vn = np.maximum(vt + a * dt, 0.0)
+        a_prev = (vn - vt) / dt
+        v[:, t + 1] = vn
+        s[:, t + 1] = np.minimum(st + 0.5 * (vt + vn) * dt, rlen)
+        slow = np.where(vn < 1.0, slow + dt, 0.0)
+    xy = np.empty((n, num_steps, 2))
+    yaw = np.empty((n, num_steps))
+    for i, r in enumerate(routes):
+        g = np.arange(len(r.grid_yaw)) * DS
+        xy[i, :, 0] = np.interp(s[i], g, r.grid_xy[:, 0])
+        xy[i, :, 1] = np.interp(s[i], g, r.grid_xy[:, 1])
+        yaw[i] = np.interp(s[i], g, r.grid_yaw)
+    return Rollout(s, v, xy, yaw)
+
+
+def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN) -> list[tuple[int, int, int]]:
+    """(step, i, j) with i < j for every pair of boxes that touch (inflated by margin)."""
+    n, t = yaw.shape
+    if n < 2:
+        return []
+    i, j = np.triu_indices(n, 1)
+    rad = np.hypot(length / 2 + margin, width / 2 + margin)
+    d = np.linalg.norm(xy[i] - xy[j], axis=-1)  # (P, T)
+    pi, ti = np.nonzero(d < (rad[i] + rad[j])[:, None])
+    if not len(pi):
+        return []
+    ii, jj = i[pi], j[pi]
+    hit = box_box_overlap(xy[ii, ti], yaw[ii, ti], length[ii] / 2 + margin, width[ii] / 2 + margin,
+                          xy[jj, ti], yaw[jj, ti], length[jj] / 2 + margin, width[jj] / 2 + margin)
+    return sorted(zip(ti[hit].tolist(), ii[hit].tolist(), jj[hit].tolist()))
+
+
+def settle(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, min_keep: int = 2):
+    """Roll out, drop offending vehicles, repeat until no box overlap and everyone moves."""
+    dropped = []
+    while True:
+        ro = rollout(tm, veh, num_steps, dt)
+        bad = np.zeros(len(veh), bool)
+        for _, i, j in overlapping_pairs(ro.xy, ro.yaw, veh.length, veh.width):
+            if not bad[i] and not bad[j]:
+                bad[j] = True  # the later-spawned of the pair
+        if not bad.any():
+            ref = min(10, num_steps - 1)
+            bad = ro.s[:, -1] - ro.s[:, ref] < MIN_MOVE_AFTER_10 * (num_steps - 1 - ref) / 80.0
+        if not bad.any():
+            return veh, ro, dropped
+        if len(veh) - bad.sum() < min_keep:
+            return None, None, dropped
+        dropped.extend(np.flatnonzero(bad).tolist())
+        veh = veh.subset(~bad)

@@ -1,0 +1,54 @@
+"""Gymnasium and PettingZoo front ends of the engine, and their gymnasium ids.
+
+    import tg_gpudrive.envs  # registers the ids below
+    env = gymnasium.make("tg_gpudrive/SingleAgent-v0", scenes="procedural:merge")
+    vec = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=64, scenes="procedural:all", device="cuda")
+
+(or ``gymnasium.make("tg_gpudrive.envs:tg_gpudrive/SingleAgent-v0", ...)``, which imports this module.)
+
+    id                                      class / entry point                 actions
+    tg_gpudrive/SingleAgent-v0              single.TGSingleAgentEnv             Discrete(accel x curvature grid)
+    tg_gpudrive/SingleAgentContinuous-v0    single.TGSingleAgentEnv             Box (accel, curvature)
+    tg_gpudrive/Vector-v0                   vector.make_vector_env (make_vec)   MultiDiscrete over rows
+    tg_gpudrive/VectorContinuous-v0         vector.make_vector_env (make_vec)   Box (rows, 2)
+
+For make_vec, `num_envs` is the number of worlds; the env's own `num_envs`
+is worlds x max_agents rows. The PettingZoo env (parallel.TGParallelEnv) has
+no gymnasium id. The env classes (and torch) load on first use.
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+__all__ = ["TGParallelEnv", "TGSingleAgentEnv", "TGVectorEnv", "make_vector_env"]
+
+_IDS = {
+    "tg_gpudrive/SingleAgent-v0": dict(entry_point="tg_gpudrive.envs.single:TGSingleAgentEnv"),
+    "tg_gpudrive/SingleAgentContinuous-v0": dict(entry_point="tg_gpudrive.envs.single:TGSingleAgentEnv",
+                                                 kwargs={"continuous": True}),
+    "tg_gpudrive/Vector-v0": dict(vector_entry_point="tg_gpudrive.envs.vector:make_vector_env"),
+    "tg_gpudrive/VectorContinuous-v0": dict(vector_entry_point="tg_gpudrive.envs.vector:make_vector_env",
+                                            kwargs={"continuous": True}),
+}
+
+for _id, _spec in _IDS.items():
+    if _id not in gymnasium.registry:
+        gymnasium.register(id=_id, **_spec)
+
+
+def __getattr__(name: str):
+    # the env classes import torch and Warp: load them on first use only
+    if name in ("TGVectorEnv", "make_vector_env"):
+        from tg_gpudrive.envs import vector
+
+        return getattr(vector, name)
+    if name == "TGSingleAgentEnv":
+        from tg_gpudrive.envs.single import TGSingleAgentEnv
+
+        return TGSingleAgentEnv
+    if name == "TGParallelEnv":
+        from tg_gpudrive.envs.parallel import TGParallelEnv
+
+        return TGParallelEnv
+    raise AttributeError(f"module 'tg_gpudrive.envs' has no attribute {name!r}")

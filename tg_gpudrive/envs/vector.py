@@ -1,0 +1,391 @@
+"""`TGVectorEnv`: the batched engine as a torch-native gymnasium vector env.
+
+One row per agent slot: ``num_envs = num_worlds * max_agents`` and row
+``w * max_agents + a`` is slot ``a`` of world ``w``. Rows whose slot is not
+controlled (empty, or replayed from the log) are always masked out
+(``info["active"]`` False, reward 0, never terminated or truncated).
+
+Everything returned is a torch tensor on the engine's device and, apart from
+a few bool buffers allocated once (terminations, truncations, masks), a view
+of an engine array: nothing is copied to the host and step() allocates no
+tensor of its own (numpy actions are copied to the device). The tensors are
+overwritten by the next step(); clone what you keep.
+
+    step() returns        shape              dtype    meaning
+    obs                   (N, obs_dim)       float32  already the next episode's first obs on reset worlds
+    reward                (N,)               float32  weighted sum of the named terms
+    terminated            (N,)               bool     the agent's episode ended this step (goal/collision/off-road)
+    truncated             (N,)               bool     ... by the time limit
+    info["reward_terms"]  {name: (N,)}       float32  names: sim.reward_term_names
+    info["cost"]          (N,)               float32  distance cost (1 when a partner is closer than beta)
+    info["active"]        (N,)               bool     the row acts on the next step (the action mask)
+    info["alive"]         (N,)               bool     the row acted on this step
+    info["world_ended"]   (N,)               bool     controlled row of a world whose episode ended this step
+    info["world_reset"]   (N,)               bool     ... and that was reset in it (auto_reset)
+    info["final_goal"], ["final_collided"], ["final_offroad"]   (N,) int32 0/1
+    info["final_return"], ["final_cost"]                        (N,) float32
+    info["final_steps"]   (N,)               int32    outcomes of the finished episode, valid where world_ended
+
+Auto-reset is the engine's (``EngineConfig.auto_reset``, default on),
+declared as gymnasium's SAME_STEP mode: a world resets inside the step in
+which its episode ended, so the obs returned with terminated/truncated is
+already the new episode's first obs. Unlike gymnasium's SAME_STEP vector envs
+there is no ``info["final_obs"]`` (the engine keeps no second obs buffer); the
+terminal *outcomes* are in the ``final_*`` entries. With ``auto_reset=False``
+the env declares the DISABLED mode: a world whose episode ended stays frozen
+(its rows inactive, the returned obs its terminal one) until
+``reset(options={"reset_mask": rows})`` resets the worlds holding any of
+those rows (or ``{"worlds": (W,) bool}``).
+
+Actions: discrete, an integer tensor/array (N,) of grid indices in
+[0, num_actions); continuous, a float (N, 2) bicycle (accel m/s^2, curvature
+1/m) or (N, 3) delta-local action (values outside the box are clipped by the
+engine). Actions of rows that are not active are ignored; with
+``strict=True`` they must equal `noop_action` or step() raises
+``ValueError("action for finished agent row ...")``.
+
+This module must not copy observations to the host nor allocate per step.
+The helpers here (`make_config`, `scene_source`, `load_scenes`, the space builders) serve the other envs too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import gymnasium
+import numpy as np
+import torch
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
+from tg_gpudrive.scene import Scene
+from tg_gpudrive.simulator import Simulator
+
+ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
+OverridesLike = Sequence[str] | Mapping[str, Any] | None
+
+
+# ----------------------------------------------------------- shared helpers
+def make_config(config: ConfigLike = None, overrides: OverridesLike = None,
+                continuous: bool | None = None) -> EngineConfig:
+    """An `EngineConfig` from a config, a mapping of its fields, or a YAML path, plus overrides.
+
+    `overrides`: ``["collision_mode=remove", "reward.goal_reached=2"]`` or
+    ``{"collision_mode": "remove", "reward.goal_reached": 2}``; unknown keys are
+    errors naming the key. `continuous` (when not None) sets ``action_space``.
+    """
+    if isinstance(config, (str, Path)):
+        data = to_dict(load_config(EngineConfig, config))
+    elif isinstance(config, EngineConfig):
+        data = to_dict(config)
+    elif config is None:
+        data = to_dict(EngineConfig())
+    elif isinstance(config, Mapping):
+        data = to_dict(from_dict(EngineConfig, dict(config), "config"))
+    else:
+        raise TypeError(f"config: expected EngineConfig, a mapping or a YAML path, got {type(config).__name__}")
+    if isinstance(overrides, Mapping):
+        for key, value in overrides.items():
+            node = data
+            *path, last = str(key).split(".")
+            for p in path:
+                node[p] = dict(node.get(p) or {})
+                node = node[p]
+            node[last] = value
+    elif overrides:
+        if isinstance(overrides, str):
+            overrides = [overrides]
+        data = apply_overrides(data, list(overrides))
+    if continuous is not None:
+        data["action_space"] = "continuous" if continuous else "discrete"
+    return from_dict(EngineConfig, data, "config")
+
+
+def scene_source(scenes, seed: int = 0):
+    """A `SceneSource` over a Scene, a list of Scenes, a SceneSource or a scene spec string.
+
+    Specs (tg_gpudrive.data.sources): ``"procedural:<type>"``, ``"procedural:all"``,
+    a GPUDrive .json file, a WOMD TFRecord, a packed store or a directory;
+    procedural seeds are offset by `seed`. An unknown spec is a ValueError
+    listing the accepted forms.
+    """
+    from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scenes
+
+    if isinstance(scenes, (str, Path)):
+        return resolve_scenes(str(scenes), seed=seed)
+    if isinstance(scenes, SceneSource):
+        return scenes
+    if isinstance(scenes, Scene):
+        return SceneListSource([scenes])
+    if isinstance(scenes, Sequence) and scenes and all(isinstance(s, Scene) for s in scenes):
+        return SceneListSource(scenes)
+    raise TypeError("scenes: expected a Scene, a non-empty list of Scenes, a SceneSource or a scene spec "
+                    f"string such as 'procedural:merge', got {type(scenes).__name__}")
+
+
+def load_scenes(scenes, num_worlds: int | None = None, seed: int = 0) -> list[Scene]:
+    """Scenes 0..W-1 of `scene_source(scenes, seed)`, cycled when the source is shorter.
+
+    W defaults to the number of scenes given as a Scene list, else to 1.
+    """
+    from tg_gpudrive.data.sources import SceneListSource
+
+    if num_worlds is not None and int(num_worlds) <= 0:
+        raise ValueError(f"num_worlds must be positive, got {num_worlds}")
+    src = scene_source(scenes, seed)
+    n = int(num_worlds) if num_worlds is not None else (len(src) if isinstance(src, SceneListSource) else 1)
+    return [src.get(i % len(src)) for i in range(n)]
+
+
+def single_action_space(cfg: EngineConfig) -> gymnasium.spaces.Space:
+    """Discrete(num_actions), Box(2) for the continuous bicycle, Box(3) for delta-local."""
+    if cfg.action_space == "discrete":
+        return gymnasium.spaces.Discrete(cfg.num_actions)
+    if cfg.dynamics == "bicycle":
+        hi = np.array([cfg.max_accel, cfg.max_curvature], np.float32)
+    else:
+        hi = np.array(cfg.delta_max, np.float32)
+    return gymnasium.spaces.Box(-hi, hi, dtype=np.float32)
+
+
+def single_observation_space(obs_dim: int) -> gymnasium.spaces.Box:
+    # positions and distances in the agent's frame are unbounded; masks and flags are 0/1 within that
+    return gymnasium.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
+
+
+def noop_index(cfg: EngineConfig) -> int:
+    """Grid index of zero acceleration and zero curvature."""
+    return (cfg.accel_bins // 2) * cfg.curvature_bins + cfg.curvature_bins // 2
+
+
+def render_world(sim: Simulator, world: int = 0, **kwargs) -> np.ndarray:
+    """`tg_gpudrive.render.render_frame`, imported on first use."""
+    try:
+        from tg_gpudrive.render import render_frame
+    except ImportError as e:
+        raise RuntimeError(f"rendering needs tg_gpudrive.render and its extras (pip install -e '.[render]'): {e}"
+                           ) from e
+    return render_frame(sim, world=world, **kwargs)
+
+
+# ---------------------------------------------------------------- the env
+class TGVectorEnv(gymnasium.vector.VectorEnv):
+    """Every agent slot of W worlds as one row of a torch-native vector env (see module docstring).
+
+    Args:
+        scenes: Scene, list of Scenes, SceneSource or spec string ("procedural:all", a .json, a store).
+        num_worlds: worlds W (default: len(scenes), or 1 for a spec).
+        config: EngineConfig, a mapping of its fields, or a YAML path; `overrides` on top of it.
+        continuous: set the config's action_space (None: keep it).
+        device: "cpu", "cuda" or "cuda:N".
+        seed: offset of procedural scene seeds (the engine itself is deterministic).
+        controlled: optional per-scene bool masks over the scene's agents (Simulator's `controlled`).
+        strict: actions of inactive rows must be `noop_action`.
+        render_mode: None or "rgb_array" (frames of `render_worlds`).
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+
+    def __init__(self, scenes="procedural:all", num_worlds: int | None = None, config: ConfigLike = None,
+                 overrides: OverridesLike = None, continuous: bool | None = None, device: str = "cpu",
+                 seed: int = 0, controlled: Sequence[np.ndarray] | None = None, strict: bool = False,
+                 render_mode: str | None = None, render_worlds: Sequence[int] = (0,)):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        self.cfg = make_config(config, overrides, continuous)
+        self.metadata = dict(self.metadata, autoreset_mode=AutoresetMode.SAME_STEP if self.cfg.auto_reset
+                             else AutoresetMode.DISABLED)
+        self.sim = Simulator(load_scenes(scenes, num_worlds, seed), self.cfg, device, controlled)
+        self.device = torch.device(self.sim.device)
+        self.strict = bool(strict)
+        self.render_mode = render_mode
+        self.render_worlds = tuple(int(w) for w in render_worlds)
+        self._seed = seed
+        self._setup()
+
+    def _setup(self) -> None:
+        sim, cfg = self.sim, self.cfg
+        W, A = sim.num_worlds, sim.max_agents
+        self.num_worlds, self.max_agents = W, A
+        self.num_envs = N = W * A
+        self.single_observation_space = single_observation_space(sim.obs_dim)
+        self.single_action_space = single_action_space(cfg)
+        self.observation_space = batch_space(self.single_observation_space, N)
+        self.action_space = batch_space(self.single_action_space, N)
+        self.discrete = cfg.action_space == "discrete"
+        self.action_dim = 0 if self.discrete else self.single_action_space.shape[0]
+        # views of the engine arrays, made once
+        self._obs = sim.obs.view(N, sim.obs_dim)
+        self._reward = sim.reward.view(N)
+        self._cost = sim.cost.view(N)
+        K = len(sim.reward_term_names)
+        terms = sim.reward_terms.view(N, K)
+        self._terms = {name: terms[:, k] for k, name in enumerate(sim.reward_term_names)}
+        self._final = {name: getattr(sim, name).view(N) for name in
+                       ("final_goal", "final_collided", "final_offroad", "final_return", "final_cost",
+                        "final_steps")}
+        # the few bool buffers gymnasium's types need, filled in place
+        dev = self.device
+        self._term = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._trunc = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._active = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._alive = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._reset_rows = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._ended_rows = torch.zeros(N, dtype=torch.bool, device=dev)
+        self._flag_w = torch.zeros(W, dtype=torch.bool, device=dev)
+        self._ctrl = (sim.controlled != 0)
+        if self.discrete:
+            self.noop_action = noop_index(cfg)
+            self._action_view = sim.actions_index.view(N)
+        else:
+            self.noop_action = 0.0
+            self._action_view = sim.actions[..., : self.action_dim].reshape(N, self.action_dim)
+        self._needs_reset = True
+
+    # -------------------------------------------------------------- properties
+    @property
+    def actions(self) -> torch.Tensor:
+        """The engine's action buffer as rows ((N,) int32 or (N, k) float32; writable in place)."""
+        return self._action_view
+
+    @property
+    def reward_term_names(self) -> tuple[str, ...]:
+        return self.sim.reward_term_names
+
+    @property
+    def controlled(self) -> torch.Tensor:
+        """(N,) bool: rows driven by the policy (all other rows are always masked)."""
+        return self._ctrl.view(self.num_envs)
+
+    # ---------------------------------------------------------------- the API
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Worlds back to their start: all of them, or (options) those holding a row of
+        ``reset_mask`` (N,) bool or flagged in ``worlds`` (W,) bool; ``scenes`` (with an
+        optional ``controlled``) loads new scenes for the same number of worlds."""
+        if seed is not None:
+            self._np_random, self._np_random_seed = seeding.np_random(seed)
+        options = dict(options or {})
+        worlds = None
+        if "reset_mask" in options:
+            m = _as_tensor(options.pop("reset_mask"), self.device)
+            if tuple(m.shape) != (self.num_envs,) or m.dtype != torch.bool:
+                raise ValueError(f"reset options: reset_mask must be a bool array of shape ({self.num_envs},), "
+                                 f"got {m.dtype} {tuple(m.shape)}")
+            worlds = m.view(self.num_worlds, self.max_agents).any(1)
+        if "worlds" in options:
+            w = _as_tensor(options.pop("worlds"), self.device)
+            if tuple(w.shape) != (self.num_worlds,) or w.dtype != torch.bool:
+                raise ValueError(f"reset options: worlds must be a bool array of shape ({self.num_worlds},), "
+                                 f"got {w.dtype} {tuple(w.shape)}")
+            worlds = w if worlds is None else worlds | w
+        if "scenes" in options:
+            new = load_scenes(options.pop("scenes"), self.num_worlds, self._seed if seed is None else seed)
+            self.sim.set_scenes(new, options.pop("controlled", None))
+            self._setup()
+            worlds = None
+        if options:
+            raise ValueError(f"reset options: unknown keys {sorted(options)} "
+                             "(known: reset_mask, worlds, scenes, controlled)")
+        if worlds is not None and self._needs_reset:
+            raise RuntimeError("TGVectorEnv: the first reset() resets every world (no reset_mask / worlds)")
+        self.sim.reset(worlds)
+        self._needs_reset = False
+        self._fill_flags()
+        self._ended_rows.zero_()
+        if worlds is None:
+            self._reset_rows.zero_()
+        else:
+            torch.logical_and(worlds[:, None], self._ctrl, out=self._reset_rows.view(self.num_worlds, -1))
+        return self._obs, self._info()
+
+    def step(self, actions):
+        if self._needs_reset:
+            raise RuntimeError("TGVectorEnv: call reset() before step()")
+        a = self._check_actions(actions)
+        if self.strict:
+            self._check_inactive(a)
+        W, A = self.num_worlds, self.max_agents
+        self.sim.step(a.view(W, A) if self.discrete else a.view(W, A, self.action_dim))
+        self._fill_flags()
+        for flags, rows in ((self.sim.world_reset, self._reset_rows), (self.sim.world_ended, self._ended_rows)):
+            torch.ne(flags, 0, out=self._flag_w)
+            torch.logical_and(self._flag_w[:, None], self._ctrl, out=rows.view(W, A))
+        torch.ne(self.sim.terminated.view(-1), 0, out=self._term)
+        torch.ne(self.sim.truncated.view(-1), 0, out=self._trunc)
+        return self._obs, self._reward, self._term, self._trunc, self._info()
+
+    def _fill_flags(self) -> None:
+        torch.ne(self.sim.active.view(-1), 0, out=self._active)
+        torch.ne(self.sim.alive.view(-1), 0, out=self._alive)
+        if not self.cfg.auto_reset:
+            # the engine's `active` still says 1 for agents truncated in a frozen (world_done) world
+            torch.eq(self.sim.world_done, 0, out=self._flag_w)
+            self._active.view(self.num_worlds, self.max_agents).logical_and_(self._flag_w[:, None])
+
+    def _info(self) -> dict:
+        info = {"reward_terms": self._terms, "cost": self._cost, "active": self._active, "alive": self._alive,
+                "world_ended": self._ended_rows, "world_reset": self._reset_rows}
+        info.update(self._final)
+        return info
+
+    def _check_actions(self, actions) -> torch.Tensor:
+        N = self.num_envs
+        a = actions if isinstance(actions, torch.Tensor) else torch.as_tensor(np.asarray(actions))
+        if self.discrete:
+            if tuple(a.shape) != (N,):
+                raise ValueError(f"actions: expected shape ({N},) (num_envs = {self.num_worlds} worlds x "
+                                 f"{self.max_agents} slots) of discrete indices, got shape {tuple(a.shape)}")
+            if a.dtype.is_floating_point or a.dtype.is_complex or a.dtype == torch.bool:
+                raise ValueError(f"actions: discrete actions must be an integer dtype, got {a.dtype}")
+        else:
+            k = self.action_dim
+            if tuple(a.shape) != (N, k):
+                raise ValueError(f"actions: expected shape ({N}, {k}) (num_envs = {self.num_worlds} worlds x "
+                                 f"{self.max_agents} slots, {k} action values), got shape {tuple(a.shape)}")
+            if not a.dtype.is_floating_point:
+                raise ValueError(f"actions: continuous actions must be a float dtype, got {a.dtype}")
+        if a.device != self.device:
+            a = a.to(self.device)
+        return a.contiguous()
+
+    def _check_inactive(self, a: torch.Tensor) -> None:
+        idle = ~self._active
+        diff = (a != self.noop_action) if self.discrete else (a != 0).any(-1)
+        bad = torch.nonzero(idle & diff)
+        if len(bad):
+            rows = bad[:5, 0].tolist()
+            raise ValueError(f"action for finished agent row(s) {rows}{' ...' if len(bad) > 5 else ''}: "
+                             f"these rows are not active (uncontrolled slot or agent done); with strict=True "
+                             f"they must hold the no-op action {self.noop_action}")
+
+    def render(self):
+        if self.render_mode is None:
+            return None
+        return tuple(render_world(self.sim, w) for w in self.render_worlds)
+
+    def close_extras(self, **kwargs) -> None:
+        self.sim = None
+
+
+def _as_tensor(x, device) -> torch.Tensor:
+    return x.to(device) if isinstance(x, torch.Tensor) else torch.as_tensor(np.asarray(x), device=device)
+
+
+def make_vector_env(num_envs: int = 1, num_worlds: int | None = None, **kwargs) -> TGVectorEnv:
+    """`gymnasium.make_vec` entry point: `num_envs` is the number of worlds when `num_worlds` is not given.
+
+    The env's own ``num_envs`` is then ``num_worlds * max_agents`` rows. With a
+    list of scenes and make_vec's default ``num_envs=1`` every scene gets a world.
+    """
+    if num_worlds is None and num_envs != 1:
+        num_worlds = num_envs
+    elif num_worlds is not None and num_envs not in (1, num_worlds):
+        raise ValueError(f"make_vec: num_envs={num_envs} and num_worlds={num_worlds} disagree "
+                         "(num_envs counts worlds here; give one of them)")
+    if kwargs.pop("max_episode_steps", None) is not None:
+        raise ValueError("max_episode_steps is not supported: episodes end with the scene's log "
+                         "(its length after EngineConfig.init_steps)")
+    return TGVectorEnv(num_worlds=num_worlds, **kwargs)

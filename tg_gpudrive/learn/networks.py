@@ -1,0 +1,127 @@
+"""Networks of CCE-MAPPO: a decentralised actor, a centralised reward critic and a
+distributional (quantile) cost critic
+(two heads of one centralised trunk).
+
+All three read the engine's observation rows (kernels/observation.py layout):
+the ego block, `partner_k` partner rows and `road_k` road rows, each row led by
+a 0/1 mask. `ObsEncoder` embeds partner and road rows with shared MLPs and
+max-pools them over their masks (permutation invariant, cheap), then fuses
+with the ego features. Inputs are scaled by fixed constants (metres / 50,
+speeds / 20), so no running statistics have to be synchronised.
+
+The actor sees only its own row. The critics see every controlled agent of
+the world: each agent's embedding attends over the embeddings of the others
+(masked multi-head attention), which is the centralised part.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+
+# per-feature scales of the observation blocks (see kernels/observation.py)
+_EGO_SCALE = [20.0, 5.0, 2.0, 50.0, 50.0, 1.0, 1.0, 5.0, 5.0, 8.0]
+_PARTNER_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 20.0, 20.0, 5.0, 2.0, 4.0]
+_ROAD_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 5.0, 7.0]
+
+
+def mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        if i < len(sizes) - 2 or last_act:
+            layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class ObsEncoder(nn.Module):
+    """(..., obs_dim) -> (..., hidden)."""
+
+    def __init__(self, partner_k: int, road_k: int, hidden: int = 128, embed: int = 64):
+        super().__init__()
+        self.partner_k, self.road_k = partner_k, road_k
+        self.register_buffer("ego_scale", torch.tensor(_EGO_SCALE))
+        self.register_buffer("partner_scale", torch.tensor(_PARTNER_SCALE))
+        self.register_buffer("road_scale", torch.tensor(_ROAD_SCALE))
+        self.ego = mlp([EGO_DIM, embed])
+        self.partner = mlp([PARTNER_DIM, embed, embed])
+        self.road = mlp([ROAD_DIM, embed, embed])
+        self.fuse = mlp([3 * embed, hidden, hidden])
+
+    @staticmethod
+    def _pool(feat: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        # masked max-pool; rows with no entries give zeros
+        feat = feat.masked_fill(~mask[..., None], float("-inf")).amax(dim=-2)
+        return torch.nan_to_num(feat, neginf=0.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        lead = obs.shape[:-1]
+        k, kr = self.partner_k, self.road_k
+        ego = obs[..., :EGO_DIM] / self.ego_scale
+        part = obs[..., EGO_DIM:EGO_DIM + k * PARTNER_DIM].reshape(*lead, k, PARTNER_DIM)
+        road = obs[..., EGO_DIM + k * PARTNER_DIM:].reshape(*lead, kr, ROAD_DIM)
+        p = self._pool(self.partner(part / self.partner_scale), part[..., 0] > 0.5)
+        r = self._pool(self.road(road / self.road_scale), road[..., 0] > 0.5)
+        return self.fuse(torch.cat([self.ego(ego), p, r], dim=-1))
+
+
+class Actor(nn.Module):
+    """Policy over the engine's action space.
+
+    discrete: `forward` returns logits (..., num_actions);
+    continuous: returns (mean, log_std), each (..., act_dim), actions in the engine's units.
+    `heads > 1` gives per-slot heads (slot index modulo heads), for few-agent studies."""
+
+    def __init__(self, partner_k: int, road_k: int, *, discrete: bool, num_actions: int = 91,
+                 act_dim: int = 2, act_scale: list[float] | None = None, hidden: int = 128, heads: int = 1):
+        super().__init__()
+        self.discrete, self.heads = discrete, heads
+        self.encoder = ObsEncoder(partner_k, road_k, hidden, embed=max(hidden // 2, 16))
+        out = num_actions if discrete else act_dim
+        self.head_w = nn.Parameter(torch.randn(heads, hidden, out) * (0.01 / hidden**0.5))
+        self.head_b = nn.Parameter(torch.zeros(heads, out))
+        if not discrete:
+            self.log_std = nn.Parameter(torch.full((act_dim,), -0.5))
+            self.register_buffer("act_scale", torch.tensor(act_scale or [1.0] * act_dim))
+
+    def forward(self, obs: torch.Tensor, slot: torch.Tensor | None = None):
+        h = self.encoder(obs)
+        if self.heads == 1:
+            out = h @ self.head_w[0] + self.head_b[0]
+        else:
+            idx = (slot % self.heads).expand(h.shape[:-1])
+            out = torch.einsum("...h,...ho->...o", h, self.head_w[idx]) + self.head_b[idx]
+        if self.discrete:
+            return out
+        return torch.tanh(out) * self.act_scale, self.log_std.expand_as(out)
+
+
+class CentralCritic(nn.Module):
+    """Centralised critic with two heads on one trunk: reward value and cost quantiles.
+
+    (W, C, obs_dim) + mask (W, C) -> value (W, C) and cost quantiles (W, C, N). Each
+    agent's embedding attends over the embeddings of the world's controlled agents."""
+
+    def __init__(self, partner_k: int, road_k: int, quantiles: int = 64, hidden: int = 128, heads: int = 4):
+        super().__init__()
+        self.encoder = ObsEncoder(partner_k, road_k, hidden, embed=max(hidden // 2, 16))
+        self.attn = nn.MultiheadAttention(hidden, heads, batch_first=True)
+        self.value_head = mlp([2 * hidden, hidden, 1], last_act=False)
+        self.cost_head = mlp([2 * hidden, hidden, quantiles], last_act=False)
+
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        lead = obs.shape[:-2]
+        C = obs.shape[-2]
+        h = self.encoder(obs).reshape(-1, C, self.attn.embed_dim)
+        m = mask.reshape(-1, C)
+        # a world with no valid agent still needs one key to attend to
+        key_pad = ~m & m.any(dim=1, keepdim=True)
+        pooled, _ = self.attn(h, h, h, key_padding_mask=key_pad, need_weights=False)
+        z = torch.cat([h, pooled], dim=-1)
+        value = self.value_head(z).reshape(*lead, C)
+        quant = self.cost_head(z)
+        # sorted quantiles: a monotone quantile function, so CVaR reads the right tail
+        quant = torch.sort(quant, dim=-1).values.reshape(*lead, C, -1)
+        return value, quant

@@ -1,0 +1,71 @@
+"""Behaviour priors: the "magnet" of CCE-MAPPO's magnetic mirror descent.
+
+A prior gives, for every controlled agent and step, a distribution over the
+engine's actions that stands for human driving. It works in two phases so the
+rollout buffer stays small: `context(sim)` returns a compact per-step tensor
+that the learner stores (here the logged expert action), and
+`distribution(context, obs)` rebuilds the distribution from it at update time:
+logits (..., num_actions) for discrete actions, (mean, log_std) for continuous.
+
+`ExpertPrior` centres the distribution on the inverse-dynamics expert action
+of the log at the current step (kernels/dynamics.py), so the magnet is real
+without a learned model. Where no expert action exists (the log is invalid at
+the next step) the prior is uniform (discrete) or wide (continuous). The
+learned world model plugs in by implementing the same two methods.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from tg_gpudrive.simulator import Simulator
+
+
+class BehaviourPrior:
+    def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
+        """Per-step data for the first `num_controlled` slots of every world: (W, C, ctx)."""
+        raise NotImplementedError
+
+    def distribution(self, context: torch.Tensor, obs: torch.Tensor):
+        raise NotImplementedError
+
+
+class ExpertPrior(BehaviourPrior):
+    """Discretised Gaussian around the logged action (discrete), or a Gaussian on it (continuous).
+
+    sigma_accel [m/s^2] and sigma_curvature [1/m] set how tightly the magnet
+    holds; with the default 7 x 13 grid one bin is 2 m/s^2 and 0.05 1/m."""
+
+    def __init__(self, sim: Simulator, sigma_accel: float = 0.7, sigma_curvature: float = 0.01):
+        cfg = sim.cfg
+        self.discrete = cfg.action_space == "discrete"
+        self.bicycle = cfg.dynamics == "bicycle"
+        dev = sim.reward.device
+        if self.discrete:
+            a = torch.linspace(-cfg.max_accel, cfg.max_accel, cfg.accel_bins, device=dev)
+            k = torch.linspace(-cfg.max_curvature, cfg.max_curvature, cfg.curvature_bins, device=dev)
+            # grid index i = ia * n_kappa + ik, as in the engine
+            self.grid = torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
+        sig = [sigma_accel, sigma_curvature] if self.bicycle else [0.5, 0.2, 0.1]
+        self.sigma = torch.tensor(sig, device=dev)
+        self._arange: torch.Tensor | None = None
+
+    def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
+        """(W, C, 4): expert action (3 values) and a validity flag, at each world's current step."""
+        W, C = sim.num_worlds, num_controlled
+        t = sim.world_step.long().view(W, 1, 1, 1).expand(W, C, 1, 3)
+        act = torch.gather(sim.expert_action[:, :C], 2, t)[:, :, 0]
+        ti = sim.world_step.long().view(W, 1, 1).expand(W, C, 1)
+        valid = (torch.gather(sim.expert_index[:, :C], 2, ti)[:, :, 0] >= 0).float()
+        return torch.cat([act, valid[..., None]], dim=-1)
+
+    def distribution(self, context: torch.Tensor, obs: torch.Tensor | None = None):
+        act, valid = context[..., :3], context[..., 3:4]
+        if self.discrete:
+            z = (self.grid - act[..., None, :2]) / self.sigma[:2]
+            logits = -0.5 * (z**2).sum(-1)
+            return logits * valid  # invalid: all zeros = uniform
+        k = 2 if self.bicycle else 3
+        mean = act[..., :k]
+        log_std = torch.log(self.sigma[:k]).expand_as(mean) + (1 - valid) * 3.0
+        return mean, log_std

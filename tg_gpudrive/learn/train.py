@@ -1,0 +1,452 @@
+"""CCE-MAPPO (TrafficGamer) on the engine's tensors: `tg-gpudrive train`.
+
+One update = a rollout of `rollout_steps` steps in all W worlds, then PPO
+epochs. The loop reads and writes the simulator's tensors in place; the only
+Python loops are over steps, epochs and minibatches. Controlled agents sit in
+slots [0, C) of every world (the engine puts them first), so the learner works
+on (T, W, C, ...) blocks. Per agent i the actor minimises
+
+    PPO-clip(A_reward - lambda A_cost) - entropy_coef H
+        + eta1 KL(pi || pi_prior) + (1 / eta2) KL(pi || pi_previous)
+
+(losses.cce_mappo_actor_loss); the centralised critic regresses the reward
+lambda-returns; the quantile critic learns the distribution of the discounted
+cost-to-go; lambda >= 0 rises while CVaR_alpha of that distribution, averaged
+over the agents' states, exceeds `cost_limit`.
+
+Checkpoints are atomic (write, then rename) and hold everything a resume needs
+to continue exactly: weights, optimisers, lambda, RNG states, counters, the
+sampler position and the engine State mid-episode.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import random
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tg_gpudrive.config import TrainConfig, to_dict
+from tg_gpudrive.control import control_masks
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.networks import Actor, CentralCritic
+from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.simulator import Simulator
+
+
+class TrainingError(RuntimeError):
+    pass
+
+
+# ---------------------------------------------------------------- policy I/O
+class PolicyHead:
+    """Sampling, log-probs, entropy and KLs for the engine's action space."""
+
+    def __init__(self, discrete: bool):
+        self.discrete = discrete
+
+    def dist(self, out):
+        if self.discrete:
+            return torch.distributions.Categorical(logits=out)
+        mean, log_std = out
+        return torch.distributions.Independent(torch.distributions.Normal(mean, log_std.exp()), 1)
+
+    def kl(self, out_p, out_q) -> torch.Tensor:
+        if self.discrete:
+            return L.categorical_kl(out_p, out_q)
+        return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
+
+
+def build_models(cfg: TrainConfig, sim: Simulator, device: str):
+    e = cfg.env
+    discrete = e.action_space == "discrete"
+    act_dim = 2 if e.dynamics == "bicycle" else 3
+    scale = [e.max_accel, e.max_curvature] if e.dynamics == "bicycle" else list(e.delta_max)
+    actor = Actor(e.partner_k, e.road_k, discrete=discrete, num_actions=sim.num_actions, act_dim=act_dim,
+                  act_scale=scale, hidden=cfg.hidden, heads=cfg.heads).to(device)
+    critic = CentralCritic(e.partner_k, e.road_k, quantiles=cfg.quantiles, hidden=cfg.hidden).to(device)
+    return actor, critic
+
+
+def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
+    """A `policy(sim)` callable from a training checkpoint (used by evaluate and render)."""
+    ck = torch.load(Path(path), map_location=sim.device, weights_only=False)
+    from tg_gpudrive.config import from_dict
+
+    cfg = from_dict(TrainConfig, ck["config"], str(path))
+    e, s = cfg.env, sim.cfg
+    if (e.action_space, e.dynamics, e.partner_k, e.road_k) != (s.action_space, s.dynamics, s.partner_k, s.road_k):
+        raise ValueError(f"{path}: checkpoint expects action_space={e.action_space}, dynamics={e.dynamics}, "
+                         f"partner_k={e.partner_k}, road_k={e.road_k}; the simulator differs")
+    actor, _ = build_models(cfg, sim, sim.device)
+    actor.load_state_dict(ck["actor"])
+    actor.eval()
+    head = PolicyHead(e.action_space == "discrete")
+    slots = torch.arange(sim.max_agents, device=sim.device)
+
+    @torch.no_grad()
+    def policy(sim_: Simulator) -> None:
+        out = actor(sim_.obs, slots)
+        if head.discrete:
+            a = out.argmax(-1) if deterministic else head.dist(out).sample()
+            sim_.actions_index.copy_(a.to(torch.int32))
+        else:
+            a = out[0] if deterministic else head.dist(out).sample()
+            sim_.actions[..., : a.shape[-1]].copy_(a)
+
+    return policy
+
+
+# ------------------------------------------------------------------- trainer
+class Trainer:
+    def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
+                 progress: bool = True):
+        from tg_gpudrive.data.sampler import SceneSampler
+        from tg_gpudrive.data.sources import resolve_scenes
+
+        self.cfg = cfg
+        self.out = Path(out_dir or cfg.out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.progress = progress
+        self.device = "cuda:0" if cfg.device == "cuda" else cfg.device
+        ck = None
+        if resume is not None:
+            path = Path(resume)
+            path = path / "checkpoint.pt" if path.is_dir() else path
+            if not path.exists():
+                raise FileNotFoundError(f"--resume: no checkpoint at {path}")
+            ck = torch.load(path, map_location="cpu", weights_only=False)
+        self._seed(cfg.seed)
+        self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
+        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed)
+        if ck is not None:
+            self.sampler.load_state_dict(ck["sampler"])
+            self.sampler.last_indices = np.asarray(ck["scene_indices"], np.int64)
+            scenes = [self.source.get(int(i)) for i in self.sampler.last_indices]
+        else:
+            scenes = self.sampler.sample()
+        self.sim = Simulator(scenes, cfg.env, self.device, controlled=self._control(scenes))
+        self.actor, self.critic = build_models(cfg, self.sim, self.device)
+        self.head = PolicyHead(cfg.env.action_space == "discrete")
+        self.prior = ExpertPrior(self.sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature)
+        self.params = [*self.actor.parameters(), *self.critic.parameters()]
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
+        shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
+        self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.update = 0
+        self.agent_steps = 0
+        self.wall = 0.0
+        self.sim.reset()
+        if ck is not None:
+            self._load(ck)
+        self.csv_path = self.out / "metrics.csv"
+
+    # ------------------------------------------------------------ setup bits
+    @staticmethod
+    def _seed(seed: int) -> None:
+        random.seed(seed)
+        np.random.seed(seed)
+        torch.manual_seed(seed)
+
+    def _control(self, scenes):
+        c = self.cfg
+        return control_masks(scenes, c.env, c.control, c.control_k, c.control_ids)
+
+    def _resample(self) -> None:
+        scenes = self.sampler.sample()
+        self.sim.set_scenes(scenes, controlled=self._control(scenes))
+        self.prior = ExpertPrior(self.sim, self.cfg.prior_sigma_accel, self.cfg.prior_sigma_curvature)
+
+    # ------------------------------------------------------------- rollout
+    def _policy_out(self, obs, slots):
+        return self.actor(obs, slots)
+
+    @torch.no_grad()
+    def rollout(self) -> dict:
+        cfg, sim = self.cfg, self.sim
+        T, W, C = cfg.rollout_steps, sim.num_worlds, max(sim.max_controlled, 1)
+        dev = self.device
+        slots = torch.arange(C, device=dev)
+        buf = {
+            "obs": torch.zeros((T, W, C, sim.obs_dim), device=dev),
+            "act": torch.zeros((T, W, C) if self.head.discrete else (T, W, C, self._act_dim()), device=dev),
+            "logp": torch.zeros((T, W, C), device=dev),
+            "mask": torch.zeros((T, W, C), dtype=torch.bool, device=dev),
+            "reward": torch.zeros((T, W, C), device=dev),
+            "cost": torch.zeros((T, W, C), device=dev),
+            "done": torch.zeros((T, W, C), device=dev),
+            "value": torch.zeros((T + 1, W, C), device=dev),
+            "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
+            "prior": torch.zeros((T, W, C, 4), device=dev),
+        }
+        buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
+                      else (torch.zeros((T, W, C, self._act_dim()), device=dev),
+                            torch.zeros((T, W, C, self._act_dim()), device=dev)))
+        stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev), "alive": torch.zeros((), device=dev),
+                 "episodes": torch.zeros((), device=dev), "goal": torch.zeros((), device=dev),
+                 "collided": torch.zeros((), device=dev), "offroad": torch.zeros((), device=dev),
+                 "min_dist": torch.zeros((), device=dev)}
+        bad = torch.zeros((), dtype=torch.bool, device=dev)  # non-finite policy output, checked once per rollout
+        for t in range(T):
+            obs = sim.obs[:, :C]
+            mask = sim.active[:, :C] != 0
+            out = self._policy_out(obs, slots)
+            if self.head.discrete:
+                bad |= ~torch.isfinite(out).all()
+                out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+            else:
+                bad |= ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
+                out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
+            d = self.head.dist(out)
+            # sampled with our own generator, so a resumed run replays the same actions
+            if self.head.discrete:
+                a = torch.multinomial(torch.softmax(out, -1).reshape(-1, out.shape[-1]), 1,
+                                      generator=self.gen).reshape(out.shape[:-1])
+            else:
+                a = out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=dev)
+            buf["obs"][t].copy_(obs)
+            buf["mask"][t] = mask
+            buf["act"][t] = a
+            buf["logp"][t] = d.log_prob(a)
+            if self.head.discrete:
+                buf["old"][t] = out
+            else:
+                buf["old"][0][t], buf["old"][1][t] = out
+            buf["value"][t], buf["quant"][t] = self.critic(obs, mask)
+            buf["prior"][t] = self.prior.context(sim, C)
+            if self.head.discrete:
+                sim.actions_index[:, :C] = a.to(torch.int32)
+            else:
+                sim.actions[:, :C, : a.shape[-1]] = a
+            sim.step()
+            alive = sim.alive[:, :C].float()
+            buf["reward"][t] = sim.reward[:, :C]
+            buf["cost"][t] = sim.cost[:, :C]
+            buf["done"][t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
+            stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
+            stats["alive"] += alive.sum()
+            ended = (sim.world_ended[:, None] != 0) & (sim.controlled[:, :C] != 0)
+            stats["episodes"] += ended.sum()
+            stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
+            stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
+            stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
+            stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
+        obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
+        buf["value"][T], buf["quant"][T] = self.critic(obs, mask)
+        if bool(bad):
+            raise TrainingError(f"non-finite policy output during the rollout of update {self.update}; stopped "
+                                f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
+        return buf, stats
+
+    def _act_dim(self) -> int:
+        return 2 if self.cfg.env.dynamics == "bicycle" else 3
+
+    # --------------------------------------------------------------- update
+    def learn(self, buf: dict) -> dict:
+        cfg = self.cfg
+        T, W, C = buf["reward"].shape
+        adv_r, ret_r = L.gae(buf["reward"], buf["value"], buf["done"], cfg.gamma, cfg.gae_lambda)
+        cost_v = buf["quant"].mean(-1)
+        adv_c, ret_c = L.gae(buf["cost"], cost_v, buf["done"], cfg.gamma, cfg.gae_lambda)
+        # quantile targets: the cost lambda-return for the location, the next state's quantile
+        # spread for the shape (a distributional TD(lambda) heuristic, see the module docstring)
+        spread = buf["quant"][1:] - cost_v[1:, ..., None]
+        q_target = ret_c[..., None] + cfg.gamma * (1 - buf["done"][..., None]) * spread
+        mask = buf["mask"]
+        cvar = L.cvar_from_quantiles(buf["quant"][:-1], cfg.alpha)
+        if cfg.per_agent_lambda:
+            cnt = mask.sum((0, 1)).clamp(min=1)
+            jc = torch.zeros(cfg.env.max_agents, device=self.device)
+            jc[:C] = (cvar * mask).sum((0, 1)) / cnt
+        else:
+            jc = L.masked_mean(cvar, mask)
+        lam_before = self.lagrange.value.detach().clone()
+        self.lagrange.update(jc, cfg.cost_limit)
+        lam = lam_before[:C] if cfg.per_agent_lambda else lam_before
+
+        n_groups = T * W
+        flat = lambda x: x.reshape(n_groups, *x.shape[2:])  # noqa: E731
+        obs, act, logp_old, m = flat(buf["obs"]), flat(buf["act"]), flat(buf["logp"]), flat(mask)
+        ar, ac, rr, qt = flat(adv_r), flat(adv_c), flat(ret_r), flat(q_target)
+        prior_ctx = flat(buf["prior"])
+        old = flat(buf["old"]) if self.head.discrete else (flat(buf["old"][0]), flat(buf["old"][1]))
+        slots = torch.arange(C, device=self.device)
+        mb = max(1, n_groups // cfg.minibatches)
+        acc: dict[str, float] = {}
+        n_mb = 0
+        for _ in range(cfg.epochs):
+            perm = torch.randperm(n_groups, generator=self.gen, device=self.device)
+            for s in range(0, n_groups, mb):
+                idx = perm[s:s + mb]
+                mi = m[idx]
+                if not mi.any():
+                    continue
+                out = self.actor(obs[idx], slots)
+                d = self.head.dist(out)
+                logp = d.log_prob(act[idx])
+                ent = d.entropy()
+                prior_out = self.prior.distribution(prior_ctx[idx], obs[idx])
+                old_out = old[idx] if self.head.discrete else (old[0][idx], old[1][idx])
+                kl_prior = self.head.kl(out, prior_out)
+                kl_prev = self.head.kl(out, old_out)
+                loss_pi, st = L.cce_mappo_actor_loss(
+                    logp, logp_old[idx], ar[idx], ac[idx], lam, ent, kl_prior, kl_prev, clip_eps=cfg.clip,
+                    entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2, mask=mi)
+                v, q = self.critic(obs[idx], mi)
+                loss_v = L.masked_mean((v - rr[idx]) ** 2, mi)
+                loss_q = L.quantile_huber_loss(q, qt[idx], kappa=1.0, mask=mi)
+                loss = loss_pi + cfg.value_coef * (loss_v + loss_q)
+                if not torch.isfinite(loss):
+                    raise TrainingError(
+                        f"non-finite loss in update {self.update} (policy {float(loss_pi):.4g}, value "
+                        f"{float(loss_v):.4g}, cost quantiles {float(loss_q):.4g}); stopped without saving, the "
+                        f"last good checkpoint is {self.out / 'checkpoint.pt'}")
+                self.opt.zero_grad(set_to_none=True)
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+                self.opt.step()
+                for k, val in {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
+                               "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
+                               "clip_frac": st["clip_frac"]}.items():
+                    acc[k] = acc.get(k, 0.0) + float(val.detach())
+                n_mb += 1
+        out = {k: v / max(n_mb, 1) for k, v in acc.items()}
+        out["cvar"] = float(jc.mean())
+        out["lambda"] = float(self.lagrange.value.mean())
+        out["cost_return"] = float(L.masked_mean(ret_c, mask))
+        return out
+
+    # ----------------------------------------------------------------- loop
+    def train(self) -> dict:
+        cfg = self.cfg
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=cfg.updates, initial=self.update, desc="train", unit="update")
+        last = {}
+        while self.update < cfg.updates:
+            if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
+                self._resample()
+            t0 = time.perf_counter()
+            buf, stats = self.rollout()
+            if self.sim.is_cuda:
+                torch.cuda.synchronize(self.device)
+            t_roll = time.perf_counter() - t0
+            row = self.learn(buf)
+            if self.sim.is_cuda:
+                torch.cuda.synchronize(self.device)
+            dt = time.perf_counter() - t0
+            self.wall += dt
+            steps = int(stats["alive"])
+            self.agent_steps += steps
+            self.update += 1
+            n_ep = float(stats["episodes"])
+            row.update({
+                "update": self.update, "agent_steps": self.agent_steps, "wall_s": self.wall,
+                "agent_steps_per_s": steps / dt, "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
+                "episodes": n_ep,
+                "goal_rate": float(stats["goal"]) / n_ep if n_ep else float("nan"),
+                "collision_rate": float(stats["collided"]) / n_ep if n_ep else float("nan"),
+                "offroad_rate": float(stats["offroad"]) / n_ep if n_ep else float("nan"),
+                "mean_min_distance": float(stats["min_dist"]) / n_ep if n_ep else float("nan"),
+                "cost": float(buf["cost"].sum() / max(steps, 1)),
+                "scenes_visited": self.sampler.visited,
+            })
+            per_term = stats["terms"] / max(steps, 1)
+            for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
+                row[f"reward/{name}"] = v
+            row["reward"] = float(buf["reward"].sum() / max(steps, 1))
+            self._log(row)
+            last = row
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=f"{row['goal_rate']:.2f}",
+                                coll=f"{row['collision_rate']:.2f}", off=f"{row['offroad_rate']:.2f}",
+                                lam=f"{row['lambda']:.2f}")
+            if self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates:
+                self.save()
+        if bar is not None:
+            bar.close()
+        self.plot()
+        return last
+
+    # ------------------------------------------------------------ logging
+    def _log(self, row: dict) -> None:
+        new = not self.csv_path.exists()
+        with self.csv_path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(row.keys()))
+            if new:
+                w.writeheader()
+            w.writerow(row)
+
+    def plot(self) -> Path | None:
+        """PNG of the training curves (metrics.csv -> curves.png)."""
+        if not self.csv_path.exists():
+            return None
+        from tg_gpudrive.learn.plots import plot_curves
+
+        return plot_curves(self.csv_path, self.out / "curves.png")
+
+    # -------------------------------------------------------- checkpoints
+    def state_dict(self) -> dict:
+        rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+               "gen": self.gen.get_state()}
+        if torch.cuda.is_available():
+            rng["cuda"] = torch.cuda.get_rng_state_all()
+        return {
+            "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "opt": self.opt.state_dict(),
+            "lagrange": self.lagrange.state_dict(), "lagrange_opt": self.lagrange.optimizer.state_dict(),
+            "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "rng": rng,
+            "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
+            "engine": self.sim.snapshot(),
+        }
+
+    def save(self) -> Path:
+        path = self.out / "checkpoint.pt"
+        tmp = path.with_suffix(".pt.tmp")
+        torch.save(self.state_dict(), tmp)
+        os.replace(tmp, path)
+        (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
+        return path
+
+    def _load(self, ck: dict) -> None:
+        self.actor.load_state_dict(ck["actor"])
+        self.critic.load_state_dict(ck["critic"])
+        self.opt.load_state_dict(ck["opt"])
+        self.lagrange.load_state_dict(ck["lagrange"])
+        self.lagrange.optimizer.load_state_dict(ck["lagrange_opt"])
+        self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
+        rng = ck["rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.gen.set_state(rng["gen"])
+        if "cuda" in rng and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(rng["cuda"])
+        self.sim.restore(ck["engine"])
+        # metrics.csv may hold rows written after this checkpoint: keep only those up to it
+        if (self.out / "metrics.csv").exists():
+            rows = list(csv.DictReader((self.out / "metrics.csv").open()))
+            keep = [r for r in rows if int(r["update"]) <= self.update]
+            if len(keep) != len(rows):
+                with (self.out / "metrics.csv").open("w", newline="") as f:
+                    w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+                    w.writeheader()
+                    w.writerows(keep)
+
+
+def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> dict:
+    trainer = Trainer(cfg, out_dir, resume, progress)
+    last = trainer.train()
+    return {k: v for k, v in last.items() if not (isinstance(v, float) and math.isnan(v))} | {
+        "out_dir": str(trainer.out), "checkpoint": str(trainer.out / "checkpoint.pt")}
+

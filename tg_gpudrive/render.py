@@ -1,0 +1,649 @@
+"""Top-down pictures and videos of one world of a `Simulator` (matplotlib Agg, no display).
+
+    frame = render_frame(sim, world=0)                  # (H, W, 3) uint8 of the current state
+    rec = EpisodeRecorder(sim, world=0)                 # one figure reused for every frame
+    rec.capture()                                       # after reset and after each step
+    rec.save("episode.gif")                             # .gif, .mp4 or .png (last frame)
+    frames = render_episode(sim, policy, steps, out="episode.gif")
+
+What is drawn: road edges (dark), lane centrelines (light, dashed), road lines,
+crosswalks and speed bumps (hatched polygons), driveways (faint polygons),
+stop signs (red octagons), traffic-signal states at their stop points;
+agents present and not removed as oriented boxes with a heading arrow
+(controlled vehicles blue, replayed vehicles grey, pedestrians green, cyclists
+purple, others brown; controlled non-vehicles get a blue outline); agents that
+collided this episode outlined red, off-road orange; goals of controlled agents
+(star plus a thin line to the agent); trails of past positions.
+
+This module only reads the simulator's torch views (one world's host copy per
+frame) and its Model's scenes; it never writes engine state. It is for looking
+at single worlds (~0.1 s a frame), not for logging thousands of them.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+# Figure + the Agg canvas directly, never pyplot: no display, no global figure state, the user's backend untouched
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection, PolyCollection
+from matplotlib.colors import to_rgba
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+
+# ------------------------------------------------------------------ palette
+BACKGROUND = "#f4f3ef"
+ROAD_EDGE = "#2e2e2e"
+LANE = "#b4b4b4"
+ROAD_LINE = "#c9a227"
+CROSSWALK = "#6f6f6f"
+SPEED_BUMP = "#d98c1f"
+DRIVEWAY = "#e4e1d8"
+STOP_SIGN = "#c8102e"
+CONTROLLED = "#1f6fd1"
+REPLAYED = "#9a9a9a"
+PEDESTRIAN = "#2ca02c"
+CYCLIST = "#9b59b6"
+OTHER = "#8c564b"
+COLLIDED = "#e8000b"  # outline of agents that collided this episode
+OFFROAD = "#ff8c00"  # outline of agents that left the road this episode
+GOAL = "#1f6fd1"
+TYPE_COLOUR = {int(AgentType.PEDESTRIAN): PEDESTRIAN, int(AgentType.CYCLIST): CYCLIST,
+               int(AgentType.OTHER): OTHER}
+SIGNAL_COLOUR = {  # TrafficLightState -> colour; UNKNOWN signals are not drawn
+    TrafficLightState.ARROW_STOP: "#e8000b", TrafficLightState.STOP: "#e8000b",
+    TrafficLightState.FLASHING_STOP: "#e8000b", TrafficLightState.ARROW_CAUTION: "#f2c500",
+    TrafficLightState.CAUTION: "#f2c500", TrafficLightState.FLASHING_CAUTION: "#f2c500",
+    TrafficLightState.ARROW_GO: "#17b31a", TrafficLightState.GO: "#17b31a",
+}
+
+HIGHLIGHT = ("controlled", "all", "none")  # whose collisions / off-road events get outlined
+DEFAULT_VIEW_RADIUS = 40.0  # m, half the shorter side of an agent-centred view
+_DPI = 100
+
+
+def _rgba(colour: str, alpha: float = 1.0) -> np.ndarray:
+    return np.array(to_rgba(colour, alpha))
+
+
+def _darker(rgba: np.ndarray, f: float = 0.6) -> np.ndarray:
+    out = rgba.copy()
+    out[..., :3] *= f
+    return out
+
+
+def _box_corners(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """(n, 4, 2) corners of oriented boxes."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    hl, hw = length / 2, width / 2
+    local = np.array([[1, 1], [1, -1], [-1, -1], [-1, 1]], np.float64)  # (4, 2) signs
+    lx = local[None, :, 0] * hl[:, None]
+    ly = local[None, :, 1] * hw[:, None]
+    x = pos[:, None, 0] + c[:, None] * lx - s[:, None] * ly
+    y = pos[:, None, 1] + s[:, None] * lx + c[:, None] * ly
+    return np.stack([x, y], -1)
+
+
+def _arrow_heads(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """(n, 3, 2) triangles inside the front of each box, pointing along the heading."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    tip = length / 2
+    back = tip - np.minimum(0.45 * length, 1.8)
+    half = 0.32 * width
+    lx = np.stack([tip, back, back], 1)
+    ly = np.stack([np.zeros_like(half), half, -half], 1)
+    x = pos[:, None, 0] + c[:, None] * lx - s[:, None] * ly
+    y = pos[:, None, 1] + s[:, None] * lx + c[:, None] * ly
+    return np.stack([x, y], -1)
+
+
+def _nice_length(span: float) -> float:
+    """A round scale-bar length near a fifth of `span` metres."""
+    target = span / 5
+    for v in (1, 2, 5, 10, 20, 25, 50, 100, 200, 500, 1000):
+        if v >= target * 0.7:
+            return float(v)
+    return 1000.0
+
+
+def _np(t) -> np.ndarray:
+    return t.detach().cpu().numpy()
+
+
+class FrameRenderer:
+    """One figure for one world of `sim`: static road artists built once, agents redrawn per frame.
+
+    `draw(trails)` returns an (H, W, 3) uint8 frame of the simulator's current
+    state. A fixed view (the default: all the scene's agents and controlled
+    goals with a margin) caches the road layer as a bitmap and only blits the
+    moving artists over it; an agent-centred view redraws everything.
+    """
+
+    def __init__(self, sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640),
+                 center_agent: int | None = None, view_radius: float | None = None, show_goals: bool = True,
+                 title: str | None = None, legend: bool | None = None, highlight: str = "controlled"):
+        if highlight not in HIGHLIGHT:
+            raise ValueError(f"highlight: expected one of {', '.join(HIGHLIGHT)}, got {highlight!r}")
+        if not 0 <= int(world) < sim.num_worlds:
+            raise ValueError(f"world {world} out of range [0, {sim.num_worlds})")
+        if isinstance(size, (int, np.integer)):
+            size = (int(size), int(size))
+        w_px, h_px = (int(v) for v in size)
+        if w_px < 32 or h_px < 32:
+            raise ValueError(f"size: need at least 32x32 pixels, got {w_px}x{h_px}")
+        if center_agent is not None and not 0 <= int(center_agent) < sim.max_agents:
+            raise ValueError(f"center_agent {center_agent} out of range [0, {sim.max_agents})")
+        if view_radius is not None and not view_radius > 0:
+            raise ValueError(f"view_radius must be positive, got {view_radius}")
+        self.sim, self.world, self.size = sim, int(world), (w_px, h_px)
+        self.center_agent = None if center_agent is None else int(center_agent)
+        self.view_radius = view_radius
+        self.show_goals, self.title, self.highlight = show_goals, title, highlight
+        self.model = sim.model
+        self.scene = sim.model.scenes[self.world]
+        self.scale = min(w_px, h_px) / 640.0  # fonts and line widths follow the picture size
+        legend = (w_px >= 400 and h_px >= 300) if legend is None else bool(legend)
+
+        # fixed per loaded batch: host copies once
+        w = self.world
+        self.slot_valid = _np(sim.slot_valid[w]).astype(bool)
+        self.controlled = _np(sim.controlled[w]).astype(bool)
+        self.agent_type = _np(sim.agent_type[w]).astype(np.int64)
+        self.length = _np(sim.length[w]).astype(np.float64)
+        self.width = _np(sim.width[w]).astype(np.float64)
+        self.goal = _np(sim.goal[w]).astype(np.float64)
+        face = np.tile(_rgba(REPLAYED), (sim.max_agents, 1))
+        face[self.controlled] = _rgba(CONTROLLED)
+        for t, col in TYPE_COLOUR.items():
+            face[self.agent_type == t] = _rgba(col)
+        self.face = face
+        self.edge = _darker(face)
+        ctrl_other = self.controlled & (self.agent_type != int(AgentType.VEHICLE))
+        self.edge[ctrl_other] = _rgba(CONTROLLED)
+
+        self.fig = Figure(figsize=(w_px / _DPI, h_px / _DPI), dpi=_DPI, facecolor=BACKGROUND)
+        self.canvas = FigureCanvasAgg(self.fig)
+        self._legend_ncol = 6 if w_px >= 560 else 4
+        self._legend_fs = 7.2 * max(self.scale, 0.8)
+        rows = -(-12 // self._legend_ncol)  # 12 legend entries
+        strip = int(round(rows * self._legend_fs * _DPI / 72 * 1.5 + 8)) if legend else 0
+        self.ax = self.fig.add_axes((0, strip / h_px, 1, 1 - strip / h_px))
+        self.ax.set_facecolor(BACKGROUND)
+        self.ax.set_axis_off()
+        self.ax_px = (w_px, h_px - strip)
+        self.fixed = self.center_agent is None
+        if self.fixed:
+            xlim, ylim = self._fit_view()
+            self.ax.set_xlim(*xlim)
+            self.ax.set_ylim(*ylim)
+        self._add_roads()
+        self._add_dynamic()
+        if legend:
+            self._add_legend(strip / h_px)
+        self._background = None
+
+    # ------------------------------------------------------------ geometry
+    def _limits(self, cx: float, cy: float, half_short: float):
+        aw, ah = self.ax_px
+        if aw >= ah:
+            hy, hx = half_short, half_short * aw / ah
+        else:
+            hx, hy = half_short, half_short * ah / aw
+        return (cx - hx, cx + hx), (cy - hy, cy + hy)
+
+    def _fit_view(self):
+        """Limits around every logged position of the slotted agents, controlled goals and current positions."""
+        sc, w = self.scene, self.world
+        idx = self.model.slot_agent[w]
+        idx = idx[idx >= 0]
+        init = min(self.model.init_step, sc.num_steps - 1)
+        valid = sc.log_valid[idx, init:]
+        pts = [sc.log_pos[idx, init:][valid].reshape(-1, 2)]
+        pts.append(self.goal[self.controlled & self.slot_valid])
+        present = _np(self.sim.present[w]).astype(bool)
+        pts.append(_np(self.sim.pos[w])[present])
+        pts = np.concatenate([p.astype(np.float64).reshape(-1, 2) for p in pts])
+        pts = pts[np.isfinite(pts).all(1)]
+        if len(pts) == 0:
+            pts = sc.road_points.astype(np.float64) if len(sc.road_points) else np.zeros((1, 2))
+        lo, hi = pts.min(0), pts.max(0)
+        centre = (lo + hi) / 2
+        if self.view_radius is not None:
+            return self._limits(centre[0], centre[1], self.view_radius)
+        half = (hi - lo) / 2 * 1.08 + 12.0  # margin: a car length or two beyond the outermost agent
+        aw, ah = self.ax_px
+        half_short = max(half[0] * min(1.0, ah / aw), half[1] * min(1.0, aw / ah), 15.0)
+        return self._limits(centre[0], centre[1], half_short)
+
+    # --------------------------------------------------------------- roads
+    def _add_roads(self) -> None:
+        ax, sc, k = self.ax, self.scene, max(self.scale, 0.5)
+        lines = {t: [] for t in (RoadType.LANE, RoadType.ROAD_LINE, RoadType.ROAD_EDGE)}
+        polys = {t: [] for t in (RoadType.CROSSWALK, RoadType.SPEED_BUMP, RoadType.DRIVEWAY)}
+        stops = []
+        if self.fixed:  # skip what lies far outside the picture (WOMD maps reach well beyond the agents)
+            (x0, x1), (y0, y1) = ax.get_xlim(), ax.get_ylim()
+            pad = 0.1 * max(x1 - x0, y1 - y0)
+            box = (x0 - pad, x1 + pad, y0 - pad, y1 + pad)
+        for t, pts in sc.polylines():
+            if self.fixed:
+                if (pts[:, 0].max() < box[0] or pts[:, 0].min() > box[1] or pts[:, 1].max() < box[2]
+                        or pts[:, 1].min() > box[3]):
+                    continue
+            if t in lines and len(pts) >= 2:
+                lines[t].append(pts)
+            elif t in polys and len(pts) >= 3:
+                polys[t].append(pts)
+            elif t == RoadType.STOP_SIGN:
+                stops.append(pts.mean(0))
+            elif len(pts) >= 2:  # polygons with too few points, unknown kinds: plain thin lines
+                lines[RoadType.ROAD_LINE].append(pts)
+        if polys[RoadType.DRIVEWAY]:
+            ax.add_collection(PolyCollection(polys[RoadType.DRIVEWAY], facecolors=DRIVEWAY, edgecolors="none",
+                                             zorder=0.5))
+        ax.add_collection(LineCollection(lines[RoadType.LANE], colors=LANE, linewidths=0.9 * k,
+                                         linestyles=(0, (5, 4)), zorder=1))
+        ax.add_collection(LineCollection(lines[RoadType.ROAD_LINE], colors=ROAD_LINE, linewidths=0.9 * k,
+                                         zorder=1.2))
+        ax.add_collection(LineCollection(lines[RoadType.ROAD_EDGE], colors=ROAD_EDGE, linewidths=1.6 * k,
+                                         capstyle="round", zorder=1.5))
+        for kind, col in ((RoadType.CROSSWALK, CROSSWALK), (RoadType.SPEED_BUMP, SPEED_BUMP)):
+            if polys[kind]:
+                pc = PolyCollection(polys[kind], facecolors="none", edgecolors=col, linewidths=0.7 * k,
+                                    hatch="////", zorder=1.3)
+                ax.add_collection(pc)
+        if stops:
+            s = np.array(stops)
+            ax.plot(s[:, 0], s[:, 1], linestyle="none", marker="8", markersize=7 * k, markerfacecolor=STOP_SIGN,
+                    markeredgecolor="white", markeredgewidth=0.8 * k, zorder=2)
+
+    # -------------------------------------------------------------- agents
+    def _add_dynamic(self) -> None:
+        ax, k = self.ax, max(self.scale, 0.5)
+        self.trail_lc = LineCollection([], linewidths=1.4 * k, alpha=0.55, capstyle="round", zorder=3)
+        self.goal_lc = LineCollection([], colors=GOAL, linewidths=0.7 * k, linestyles=(0, (2, 2)), alpha=0.6,
+                                      zorder=3.5)
+        self.goal_pts = Line2D([], [], linestyle="none", marker="*", markersize=9 * k, markerfacecolor=GOAL,
+                               markeredgecolor="white", markeredgewidth=0.6 * k, zorder=4)
+        self.signals = ax.scatter([], [], s=(6 * k) ** 2, edgecolors="white", linewidths=0.6 * k, zorder=2.5)
+        self.boxes = PolyCollection([], zorder=5)
+        self.heads = PolyCollection([], facecolors=(1, 1, 1, 0.85), edgecolors="none", zorder=6)
+        self.text = ax.text(0.012, 0.988, "", transform=ax.transAxes, ha="left", va="top",
+                            fontsize=8.5 * max(k, 0.8),
+                            family="monospace", zorder=10,
+                            bbox=dict(boxstyle="round,pad=0.3", facecolor="white", edgecolor="#cccccc", alpha=0.85))
+        for a in (self.trail_lc, self.goal_lc, self.boxes, self.heads):
+            ax.add_collection(a)
+        ax.add_line(self.goal_pts)
+        self.dynamic = [self.signals, self.trail_lc, self.goal_lc, self.goal_pts, self.boxes, self.heads, self.text]
+        self._add_scale_bar()
+
+    def _add_scale_bar(self) -> None:
+        # the view's width in metres is fixed (a centred view moves but keeps its radius)
+        if self.fixed:
+            x0, x1 = self.ax.get_xlim()
+        else:
+            x0, x1 = self._limits(0.0, 0.0, self.view_radius or DEFAULT_VIEW_RADIUS)[0]
+        L = _nice_length(x1 - x0)
+        bar = AnchoredSizeBar(self.ax.transData, L, f"{L:g} m", "lower left", pad=0.4, borderpad=0.6, sep=3,
+                              color="#333333", frameon=True, size_vertical=0,
+                              fontproperties={"size": 7.5 * max(self.scale, 0.8)})
+        bar.patch.set(facecolor="white", edgecolor="#cccccc", alpha=0.85, linewidth=0.6)
+        bar.size_bar.get_children()[0].set_linewidth(2.2 * max(self.scale, 0.5))
+        bar.set_zorder(9)
+        self.ax.add_artist(bar)
+
+    def _add_legend(self, strip_frac: float) -> None:
+        k = self.scale
+        box = lambda face, edge, lw=0.6: Patch(facecolor=face, edgecolor=edge, linewidth=lw)  # noqa: E731
+        handles = [
+            (box(CONTROLLED, _darker(_rgba(CONTROLLED))), "controlled"),
+            (box(REPLAYED, _darker(_rgba(REPLAYED))), "log replay"),
+            (box(PEDESTRIAN, _darker(_rgba(PEDESTRIAN))), "pedestrian"),
+            (box(CYCLIST, _darker(_rgba(CYCLIST))), "cyclist"),
+            (box("white", COLLIDED, 2.0), "collided"),
+            (box("white", OFFROAD, 2.0), "off-road"),
+            (Line2D([], [], color=GOAL, marker="*", markersize=8, linestyle=(0, (2, 2)), lw=0.8), "goal"),
+            (Line2D([], [], color=CONTROLLED, alpha=0.55, lw=1.6), "trail"),
+            (Line2D([], [], color=ROAD_EDGE, lw=1.6), "road edge"),
+            (Line2D([], [], color=LANE, lw=1.0, linestyle=(0, (5, 4))), "lane centre"),
+            (Line2D([], [], color=ROAD_LINE, lw=1.0), "road line"),
+            (Patch(facecolor="none", edgecolor=CROSSWALK, hatch="////", linewidth=0.7), "crosswalk"),
+        ]
+        self.fig.legend([h for h, _ in handles], [n for _, n in handles], loc="center",
+                        bbox_to_anchor=(0.5, strip_frac / 2), ncol=self._legend_ncol, fontsize=self._legend_fs,
+                        frameon=False, handlelength=2.0, handleheight=0.9, columnspacing=1.1, labelspacing=0.3,
+                        borderaxespad=0.0, handletextpad=0.5)
+
+    # --------------------------------------------------------------- frame
+    def _update(self, trails: dict | None) -> None:
+        sim, w, k = self.sim, self.world, self.scale
+        pos = _np(sim.pos[w]).astype(np.float64)
+        yaw = _np(sim.yaw[w]).astype(np.float64)
+        shown = _np(sim.present[w]).astype(bool) & ~_np(sim.removed[w]).astype(bool) & self.slot_valid
+        hit = (_np(sim.ep_collided[w]) != 0) | (_np(sim.collided[w]) != 0)
+        off = (_np(sim.ep_offroad[w]) != 0) | (_np(sim.offroad[w]) != 0)
+        marked = {"controlled": self.controlled, "all": self.slot_valid, "none": np.zeros_like(shown)}[self.highlight]
+        step = int(sim.world_step[w])
+
+        if self.center_agent is not None:
+            c = pos[self.center_agent]
+            (x0, x1), (y0, y1) = self._limits(c[0], c[1], self.view_radius or DEFAULT_VIEW_RADIUS)
+            self.ax.set_xlim(x0, x1)
+            self.ax.set_ylim(y0, y1)
+
+        ids = np.nonzero(shown)[0]
+        # draw highlighted agents last so their outlines are not hidden by neighbours
+        ids = ids[np.argsort(((hit | off) & marked)[ids], kind="stable")]
+        edge, lw = self.edge[ids].copy(), np.full(len(ids), 0.6 * k)
+        hl_off, hl_hit = (off & marked)[ids], (hit & marked)[ids]
+        edge[hl_off] = _rgba(OFFROAD)
+        edge[hl_hit] = _rgba(COLLIDED)  # a collision outranks off-road
+        lw[hl_off | hl_hit] = 2.2 * max(k, 0.8)  # stays visible in small pictures
+        self.boxes.set_verts(_box_corners(pos[ids], yaw[ids], self.length[ids], self.width[ids]))
+        self.boxes.set_facecolors(self.face[ids])
+        self.boxes.set_edgecolors(edge)
+        self.boxes.set_linewidths(lw)
+        self.heads.set_verts(_arrow_heads(pos[ids], yaw[ids], self.length[ids], self.width[ids]))
+
+        if self.show_goals:
+            g = ids[self.controlled[ids]]
+            self.goal_pts.set_data(self.goal[g, 0], self.goal[g, 1])
+            self.goal_lc.set_segments(np.stack([pos[g], self.goal[g]], 1) if len(g) else [])
+        else:
+            self.goal_pts.set_data([], [])
+            self.goal_lc.set_segments([])
+
+        segs, cols = [], []
+        for a, tr in (trails or {}).items():
+            tr = np.asarray(tr, np.float64).reshape(-1, 2)
+            if len(tr) >= 2 and 0 <= int(a) < len(self.face):
+                segs.append(tr)
+                cols.append(self.face[int(a)])
+        self.trail_lc.set_segments(segs)
+        self.trail_lc.set_color(cols if cols else "none")
+
+        sc = self.scene
+        if len(sc.tl_lane) and sc.tl_state is not None and 0 <= step < len(sc.tl_state):
+            st = sc.tl_state[step]
+            keep = np.array([int(s) in SIGNAL_COLOUR for s in st], bool)
+            self.signals.set_offsets(sc.tl_stop_point[keep] if keep.any() else np.zeros((0, 2)))
+            self.signals.set_facecolors([SIGNAL_COLOUR[TrafficLightState(int(s))] for s in st[keep]])
+        else:
+            self.signals.set_offsets(np.zeros((0, 2)))
+
+        if self.title is not None:
+            self.text.set_text(self.title)
+        else:
+            kind = sc.metadata.get("scenario_type")
+            n = max(int(46 * self.size[0] / 640), 16)
+            name = sc.scene_id if len(sc.scene_id) <= n else sc.scene_id[: n - 3] + "..."
+            ctrl = self.controlled & self.slot_valid
+            head = f"{name}" + (f" ({kind})" if kind and kind not in sc.scene_id else "")
+            self.text.set_text(
+                f"{head}\nworld {w}  step {step:>2}  t={step * sc.dt:4.1f}s\n"
+                f"controlled {int(ctrl.sum())}: collided {int((hit & ctrl).sum())}  "
+                f"off-road {int((off & ctrl).sum())}  goal {int((_np(sim.ep_goal[w]) != 0)[ctrl].sum())}")
+
+    def draw(self, trails: dict | None = None) -> np.ndarray:
+        """(H, W, 3) uint8 picture of the current state; `trails`: {agent slot: (k, 2) past positions}."""
+        self._update(trails)
+        canvas = self.canvas
+        if self.fixed:
+            if self._background is None:
+                for a in self.dynamic:
+                    a.set_visible(False)
+                canvas.draw()
+                self._background = canvas.copy_from_bbox(self.fig.bbox)
+                for a in self.dynamic:
+                    a.set_visible(True)
+            canvas.restore_region(self._background)
+            for a in self.dynamic:
+                self.ax.draw_artist(a)
+        else:
+            canvas.draw()
+        img = np.asarray(canvas.buffer_rgba())[..., :3]
+        w_px, h_px = self.size
+        if img.shape[:2] != (h_px, w_px):  # figure size rounding: pad / crop to the exact request
+            out = np.empty((h_px, w_px, 3), np.uint8)
+            out[:] = np.array(_rgba(BACKGROUND)[:3] * 255, np.uint8)
+            hh, ww = min(h_px, img.shape[0]), min(w_px, img.shape[1])
+            out[:hh, :ww] = img[:hh, :ww]
+            return out
+        return img.copy()
+
+    def close(self) -> None:
+        self.fig.clear()
+        self._background = None
+
+
+def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640), center_agent: int | None = None,
+                 view_radius: float | None = None, trails: dict | None = None, show_goals: bool = True,
+                 title: str | None = None, legend: bool | None = None,
+                 highlight: str = "controlled") -> np.ndarray:
+    """Top-down picture of world `world`'s current state: (H, W, 3) uint8, `size` = (width, height) pixels.
+
+    `center_agent` (a slot index of that world) centres the view on that agent
+    with half-side `view_radius` (default 40 m); otherwise the view fits the
+    scene's agents and controlled goals with a margin (or, with only
+    `view_radius`, their centre). `trails` maps agent slots to (k, 2) past
+    positions. `legend` (default: when the picture is at least 400x300) adds a
+    colour key below the map. `highlight` says whose collisions and off-road
+    events are outlined: "controlled" (default; logged parked cars are often
+    "off-road" in WOMD), "all" or "none". Builds a figure per call;
+    `EpisodeRecorder` reuses one.
+    """
+    r = FrameRenderer(sim, world, size=size, center_agent=center_agent, view_radius=view_radius,
+                      show_goals=show_goals, title=title, legend=legend, highlight=highlight)
+    try:
+        return r.draw(trails)
+    finally:
+        r.close()
+
+
+class EpisodeRecorder:
+    """Frames of one world: call `capture()` after `reset()` and after each `step()`.
+
+    Keeps a trail of past positions per agent (the last `trail_length` steps,
+    all when None); a new episode (auto-reset, or the world's step going back)
+    starts the trails afresh. With `auto_reset` on, the step that ends an
+    episode already shows the world after its reset (the engine keeps no final
+    positions): `render_episode` stops before that frame, or run the engine
+    with `auto_reset: false` to see the final state. `capture(draw=False)`
+    only extends the trails. `seconds` accumulates drawing time, so
+    `seconds_per_frame` is the cost of a frame.
+    """
+
+    def __init__(self, sim, world: int = 0, *, trail_length: int | None = None, **render_kw):
+        self.sim, self.world, self.render_kw = sim, int(world), render_kw
+        self.trail_length = trail_length
+        self.frames: list[np.ndarray] = []
+        self.trails: dict[int, list[np.ndarray]] = {}
+        self.seconds = 0.0
+        self._renderer: FrameRenderer | None = None
+        self._last_step = -1
+
+    @property
+    def renderer(self) -> FrameRenderer:
+        # a new batch of scenes (sim.set_scenes) invalidates the road layer and the per-agent colours
+        if self._renderer is None or self._renderer.model is not self.sim.model:
+            if self._renderer is not None:
+                self._renderer.close()
+            self._renderer = FrameRenderer(self.sim, self.world, **self.render_kw)
+            self.trails = {}
+        return self._renderer
+
+    def _record_positions(self) -> None:
+        sim, w = self.sim, self.world
+        step = int(sim.world_step[w])
+        if int(sim.world_reset[w]) != 0 or step < self._last_step:
+            self.trails = {}
+        self._last_step = step
+        shown = (_np(sim.present[w]) != 0) & (_np(sim.removed[w]) == 0) & (_np(sim.slot_valid[w]) != 0)
+        pos = _np(sim.pos[w])
+        for a in np.nonzero(shown)[0]:
+            tr = self.trails.setdefault(int(a), [])
+            tr.append(pos[a].astype(np.float64))
+            if self.trail_length is not None and len(tr) > self.trail_length:
+                del tr[: len(tr) - self.trail_length]
+
+    def capture(self, draw: bool = True) -> np.ndarray | None:
+        renderer = self.renderer
+        self._record_positions()
+        if not draw:
+            return None
+        t0 = time.perf_counter()
+        frame = renderer.draw({a: np.asarray(tr) for a, tr in self.trails.items()})
+        self.seconds += time.perf_counter() - t0
+        self.frames.append(frame)
+        return frame
+
+    @property
+    def seconds_per_frame(self) -> float:
+        return self.seconds / max(len(self.frames), 1)
+
+    def save(self, path: str | Path, fps: float = 10, frame: int = -1) -> Path:
+        """Write .gif / .mp4 (all frames) or .png (frame `frame`, default the last)."""
+        path = Path(path)
+        ext = path.suffix.lower()
+        if ext not in (".gif", ".mp4", ".png"):
+            raise ValueError(f"{path}: expected a .gif, .mp4 or .png file name")
+        if not self.frames:
+            if ext != ".png":
+                raise ValueError("nothing to save: no frames captured")
+            self.capture()  # a .png of the current state
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if ext == ".png":
+            from PIL import Image
+
+            Image.fromarray(self.frames[frame]).save(path)
+        elif ext == ".gif":
+            save_gif(self.frames, path, fps)
+        else:
+            save_mp4(self.frames, path, fps)
+        return path
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+
+def save_gif(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> None:
+    """Looping GIF. Note: GIF writers merge consecutive identical frames (the step counter keeps ours distinct)."""
+    from PIL import Image
+
+    # one shared adaptive palette (no per-frame colour flicker, a smaller file), made from a few frames plus
+    # swatches of the key colours so that an outline appearing late in the episode keeps its colour
+    keys = np.array([_rgba(c)[:3] * 255 for c in (COLLIDED, OFFROAD, CONTROLLED, REPLAYED, PEDESTRIAN, CYCLIST,
+                                                   OTHER, STOP_SIGN, ROAD_EDGE, BACKGROUND)], np.uint8)
+    w = frames[0].shape[1]
+    swatch = np.repeat(np.repeat(keys[None], 8, 0), -(-w // len(keys)), 1)[:, :w]
+    sample = np.concatenate([frames[i][::2] for i in sorted({0, len(frames) // 2, len(frames) - 1})]
+                            + [swatch] * 40)
+    pal = Image.fromarray(sample).quantize(colors=255, method=Image.Quantize.MEDIANCUT)
+    ims = [Image.fromarray(f).quantize(palette=pal, dither=Image.Dither.NONE) for f in frames]
+    ims[0].save(path, save_all=True, append_images=ims[1:], duration=max(int(round(1000 / fps)), 20), loop=0)
+
+
+def mp4_backend() -> str | None:
+    """How .mp4 would be written: "imageio" (imageio-ffmpeg installed), "matplotlib" (ffmpeg on PATH) or None."""
+    try:
+        import imageio_ffmpeg  # noqa: F401
+
+        return "imageio"
+    except ImportError:
+        pass
+    from matplotlib import animation
+
+    return "matplotlib" if animation.writers.is_available("ffmpeg") else None
+
+
+def check_mp4() -> None:
+    """Raise a RuntimeError telling the user what to do when no .mp4 writer is available."""
+    if mp4_backend() is None:
+        raise RuntimeError("writing .mp4 needs ffmpeg (pip install imageio-ffmpeg, or put an ffmpeg on PATH); "
+                           "save a .gif instead")
+
+
+def save_mp4(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> None:
+    """H.264 MP4 through imageio's ffmpeg plugin, else matplotlib's FFMpegWriter (needs ffmpeg on PATH)."""
+    check_mp4()
+    h, w = frames[0].shape[:2]
+    if mp4_backend() == "imageio":
+        import imageio.v2 as iio
+
+        with iio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=2,
+                            pixelformat="yuv420p") as wr:
+            for f in frames:
+                wr.append_data(f[: h - h % 2, : w - w % 2])  # yuv420p wants even sides
+        return
+    from matplotlib import animation
+
+    fig = Figure(figsize=(w / _DPI, h / _DPI), dpi=_DPI)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, 1))
+    ax.set_axis_off()
+    im = ax.imshow(frames[0], interpolation="none")
+    writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
+    with writer.saving(fig, str(path), dpi=_DPI):
+        for f in frames:
+            im.set_data(f)
+            writer.grab_frame()
+
+
+def render_episode(sim, policy: Callable, steps: int | None = None, world: int = 0, out: str | Path | None = None,
+                   *, fps: float = 10, reset: bool = True, stop_at_end: bool = True, progress: bool = False,
+                   **kw) -> list[np.ndarray]:
+    """Reset `sim`, record world `world` under `policy(sim)` for `steps` steps; optionally save to `out`.
+
+    Returns the frames, the reset state first. `steps` defaults to one episode.
+    With `stop_at_end` (default) recording stops when the world's episode ends
+    (all its controlled agents done, or the log ran out): with the engine's
+    `auto_reset` on, the frame of that step would show the world reset, so it
+    is left out; with `auto_reset: false` the final state is the last frame.
+    Other keywords go to `EpisodeRecorder` / `render_frame`. For a .png `out`
+    without auto-reset only the last frame is drawn (and returned).
+    """
+    if out is not None and Path(out).suffix.lower() == ".mp4":
+        check_mp4()  # fail before the episode, not after it
+    if steps is None:
+        steps = sim.episode_length
+    if reset:
+        sim.reset()
+    rec = EpisodeRecorder(sim, world, **kw)
+    # a .png needs only the last frame; without auto-reset the final state stays to be drawn at the end
+    lazy = out is not None and Path(out).suffix.lower() == ".png" and not getattr(sim.cfg, "auto_reset", True)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=steps, desc="render", unit="step", leave=False)
+    try:
+        rec.capture(draw=not lazy)
+        for _ in range(steps):
+            policy(sim)
+            sim.step()
+            if bar is not None:
+                bar.update(1)
+            if stop_at_end and int(sim.world_reset[world]) != 0:
+                break
+            rec.capture(draw=not lazy)
+            if stop_at_end and int(sim.world_ended[world]) != 0:
+                break
+    finally:
+        if bar is not None:
+            bar.close()
+    if lazy:
+        rec.frames.append(rec.renderer.draw({a: np.asarray(tr) for a, tr in rec.trails.items()}))
+    if out is not None:
+        rec.save(out, fps=fps)
+    rec.close()
+    return rec.frames
