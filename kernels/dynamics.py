@@ -158,9 +158,23 @@ def expert_actions_kernel(
             action_out[i, t] = wp.vec3(0.0, 0.0, 0.0)
             index_out[i, t] = -1
             continue
-        if active == 0 or log_valid[i, t + 1] == 0:
+        if active == 0:
             action_out[i, t] = wp.vec3(0.0, 0.0, 0.0)
             index_out[i, t] = -1
+            continue
+        if log_valid[i, t + 1] == 0:
+            # a gap in the log (or its end): coast with the no-op action, as the engine will,
+            # and let the tracker close the distance once the log resumes
+            action_out[i, t] = wp.vec3(0.0, 0.0, 0.0)
+            index_out[i, t] = nearest_bin(0.0, -max_accel, max_accel, n_accel) * n_kappa + nearest_bin(
+                0.0, -max_kappa, max_kappa, n_kappa)
+            if dynamics == DYNAMICS_DELTA_LOCAL:
+                index_out[i, t] = 0
+            if t >= init_step:
+                if dynamics == DYNAMICS_BICYCLE:
+                    pos, yaw, vel, speed = bicycle_forward(pos, yaw, vel, 0.0, 0.0, dt)
+                else:
+                    pos, yaw, vel, speed = delta_local_forward(pos, yaw, wp.vec3(0.0, 0.0, 0.0), dt)
             continue
         if dynamics == DYNAMICS_BICYCLE:
             yaw_t = log_yaw[i, t + 1]

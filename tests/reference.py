@@ -128,7 +128,12 @@ def expert_track(pos, yaw, vel, valid, init, dt=0.1, gain_long=0.3, gain_lat=1.0
             if valid[t]:
                 p, y, v, seen = pos[t].astype(np.float64), float(yaw[t]), vel[t].astype(np.float64), True
         out[t] = p
-        if t == T - 1 or not seen or not valid[t + 1]:
+        if t == T - 1 or not seen:
+            continue
+        if not valid[t + 1]:  # a gap in the log: coast with the no-op action
+            if t >= init:
+                p, y, v = bicycle_forward(p, np.array(y), v, np.array(0.0), np.array(0.0), dt)
+                y = float(y)
             continue
         y_t, s_t = float(yaw[t + 1]), float(np.linalg.norm(vel[t + 1]))
         if t >= init:
