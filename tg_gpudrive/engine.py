@@ -52,7 +52,7 @@ from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.kernels.reward import NUM_TERMS, REWARD_TERMS
 from tg_gpudrive.scene import Scene, SceneError
-from tg_gpudrive.types import AgentType, CollisionMode, RoadType, parse_enum
+from tg_gpudrive.types import AgentType, CollisionMode, parse_enum
 
 log = logging.getLogger("tg_gpudrive")
 
@@ -83,7 +83,6 @@ def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
 
     Order: the SDC, objects of interest, agents valid at `init_step`,
     vehicles, then nearest to the SDC (or the scene centre)."""
-    n = scene.num_agents
     init = min(init_step, scene.num_steps - 1)
     valid_any = scene.log_valid.any(axis=1)
     centre = scene.log_pos[scene.is_sdc, init].mean(0) if scene.is_sdc.any() else np.zeros(2, np.float32)

@@ -301,7 +301,6 @@ class FrameRenderer:
         self.ax.add_artist(bar)
 
     def _add_legend(self, strip_frac: float) -> None:
-        k = self.scale
         box = lambda face, edge, lw=0.6: Patch(facecolor=face, edgecolor=edge, linewidth=lw)  # noqa: E731
         handles = [
             (box(CONTROLLED, _darker(_rgba(CONTROLLED))), "controlled"),

@@ -192,7 +192,7 @@ class Trainer:
         stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev), "alive": torch.zeros((), device=dev),
                  "episodes": torch.zeros((), device=dev), "goal": torch.zeros((), device=dev),
                  "collided": torch.zeros((), device=dev), "offroad": torch.zeros((), device=dev),
-                 "min_dist": torch.zeros((), device=dev)}
+                 "min_dist": torch.zeros((), device=dev), "speed": torch.zeros((), device=dev)}
         bad = torch.zeros((), dtype=torch.bool, device=dev)  # non-finite policy output, checked once per rollout
         for t in range(T):
             obs = sim.obs[:, :C]
@@ -232,6 +232,7 @@ class Trainer:
             buf["done"][t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
             stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
             stats["alive"] += alive.sum()
+            stats["speed"] += (sim.speed[:, :C] * alive).sum()
             ended = (sim.world_ended[:, None] != 0) & (sim.controlled[:, :C] != 0)
             stats["episodes"] += ended.sum()
             stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
@@ -358,6 +359,7 @@ class Trainer:
                 "offroad_rate": float(stats["offroad"]) / n_ep if n_ep else float("nan"),
                 "mean_min_distance": float(stats["min_dist"]) / n_ep if n_ep else float("nan"),
                 "cost": float(buf["cost"].sum() / max(steps, 1)),
+                "mean_speed": float(stats["speed"]) / max(steps, 1),
                 "scenes_visited": self.sampler.visited,
             })
             per_term = stats["terms"] / max(steps, 1)
