@@ -81,8 +81,11 @@ class SceneSampler:
         return idx
 
     def sample(self) -> list[Scene]:
-        """Next `num_worlds` scenes (materialised through ``source.get``)."""
-        return [self.source.get(int(i)) for i in self.sample_indices()]
+        """Next `num_worlds` scenes (materialised through ``source.get_many`` when the source has it)."""
+        idx = [int(i) for i in self.sample_indices()]
+        if hasattr(self.source, "get_many"):
+            return self.source.get_many(idx)
+        return [self.source.get(i) for i in idx]
 
     @property
     def visited(self) -> int:

@@ -99,11 +99,45 @@ class ProceduralSource(SceneSource):
     def __len__(self) -> int:
         return self.n
 
+    # generated scenes are kept (about 50 kB each) so resampling does not generate them again
+    cache_size = 20_000
+
+    def _args(self, i: int) -> tuple:
+        return self.types[i % len(self.types)], self.seed + i, self.params
+
     def get(self, i: int) -> Scene:
         from tg_gpudrive.data.procedural import generate_scene
 
         i = self._check(i)
-        return generate_scene(self.types[i % len(self.types)], self.seed + i, self.params)
+        cache = self.__dict__.setdefault("_cache", OrderedDict())
+        if i not in cache:
+            cache[i] = generate_scene(*self._args(i))
+            if len(cache) > self.cache_size:
+                cache.popitem(last=False)
+        return cache[i]
+
+    def get_many(self, indices: Sequence[int]) -> list[Scene]:
+        """Scenes for `indices`; missing ones are generated in worker processes when there are many."""
+        import os
+
+        cache = self.__dict__.setdefault("_cache", OrderedDict())
+        missing = sorted({self._check(i) for i in indices} - set(cache))
+        workers = min(os.cpu_count() or 1, 16)
+        if len(missing) >= 64 and workers > 2:
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(workers) as pool:
+                for i, sc in zip(missing, pool.map(_generate, [self._args(i) for i in missing], chunksize=16)):
+                    cache[i] = sc
+            while len(cache) > self.cache_size:
+                cache.popitem(last=False)
+        return [self.get(i) for i in indices]
+
+
+def _generate(args: tuple) -> Scene:
+    from tg_gpudrive.data.procedural import generate_scene
+
+    return generate_scene(*args)
 
 
 class StoreSource(SceneSource):
