@@ -25,7 +25,7 @@ if [ "$stage" = a ]; then
     | tail -3 | tee "$OUT/bench_store.txt"
 fi
 if [ "$stage" = b ]; then
-  timeout 500 python3 -m tg_gpudrive.cli train --config "$R"/configs/train/gpu.yaml --out /tmp/run_gpu \
+  timeout ${TRAIN_SECONDS:-500} python3 -m tg_gpudrive.cli train --config "$R"/configs/train/gpu.yaml --out /tmp/run_gpu \
     --set checkpoint_every=10 2>&1 | tr '\r' '\n' | grep -v "^$" | tail -3
   cp /tmp/run_gpu/metrics.csv "$OUT/train_gpu_metrics.csv"
   python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('/tmp/run_gpu/metrics.csv', '$OUT/train_gpu_curves.png')"

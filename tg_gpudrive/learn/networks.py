@@ -114,8 +114,12 @@ class CentralCritic(nn.Module):
     def forward(self, obs: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lead = obs.shape[:-2]
         C = obs.shape[-2]
-        h = self.encoder(obs).reshape(-1, C, self.attn.embed_dim)
         m = mask.reshape(-1, C)
+        # encode only the agents that are there; padded slots stay zero and are masked as keys
+        flat = obs.reshape(-1, obs.shape[-1])
+        rows = m.reshape(-1).nonzero(as_tuple=True)[0]
+        enc = self.encoder(flat[rows])
+        h = enc.new_zeros(flat.shape[0], self.attn.embed_dim).index_copy(0, rows, enc).reshape(-1, C, self.attn.embed_dim)
         # a world with no valid agent still needs one key to attend to
         key_pad = ~m & m.any(dim=1, keepdim=True)
         pooled, _ = self.attn(h, h, h, key_padding_mask=key_pad, need_weights=False)

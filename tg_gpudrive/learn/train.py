@@ -115,6 +115,7 @@ class Trainer:
         self.out.mkdir(parents=True, exist_ok=True)
         self.progress = progress
         self.device = "cuda:0" if cfg.device == "cuda" else cfg.device
+        torch.backends.cuda.matmul.allow_tf32 = True
         ck = None
         if resume is not None:
             path = Path(resume)
@@ -165,8 +166,14 @@ class Trainer:
         self.prior = ExpertPrior(self.sim, self.cfg.prior_sigma_accel, self.cfg.prior_sigma_curvature)
 
     # ------------------------------------------------------------- rollout
+    def _amp(self):
+        """bf16 autocast for the networks on GPU (losses stay in float32)."""
+        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.sim.is_cuda and self.cfg.amp)
+
     def _policy_out(self, obs, slots):
-        return self.actor(obs, slots)
+        with self._amp():
+            out = self.actor(obs, slots)
+        return out.float() if self.head.discrete else (out[0].float(), out[1].float())
 
     @torch.no_grad()
     def rollout(self) -> dict:
@@ -219,7 +226,8 @@ class Trainer:
                 buf["old"][t] = out
             else:
                 buf["old"][0][t], buf["old"][1][t] = out
-            buf["value"][t], buf["quant"][t] = self.critic(obs, mask)
+            with self._amp():
+                buf["value"][t], buf["quant"][t] = self.critic(obs, mask)
             buf["prior"][t] = self.prior.context(sim, C)
             if self.head.discrete:
                 sim.actions_index[:, :C] = a.to(torch.int32)
@@ -240,7 +248,8 @@ class Trainer:
             stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
             stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
         obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
-        buf["value"][T], buf["quant"][T] = self.critic(obs, mask)
+        with self._amp():
+            buf["value"][T], buf["quant"][T] = self.critic(obs, mask)
         if bool(bad):
             raise TrainingError(f"non-finite policy output during the rollout of update {self.update}; stopped "
                                 f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
@@ -289,18 +298,25 @@ class Trainer:
                 mi = m[idx]
                 if not mi.any():
                     continue
-                out = self.actor(obs[idx], slots)
+                # the actor is per agent: run it on the live rows only (often under half of W x C)
+                g, c = mi.nonzero(as_tuple=True)
+                rows = idx[g]
+                with self._amp():
+                    out = self.actor(obs[rows, c], c)
+                    v, q = self.critic(obs[idx], mi)
+                out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
+                v, q = v.float(), q.float()
                 d = self.head.dist(out)
-                logp = d.log_prob(act[idx])
+                logp = d.log_prob(act[rows, c])
                 ent = d.entropy()
-                prior_out = self.prior.distribution(prior_ctx[idx], obs[idx])
-                old_out = old[idx] if self.head.discrete else (old[0][idx], old[1][idx])
+                prior_out = self.prior.distribution(prior_ctx[rows, c], obs[rows, c])
+                old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
                 kl_prior = self.head.kl(out, prior_out)
                 kl_prev = self.head.kl(out, old_out)
+                lam_rows = lam[c] if cfg.per_agent_lambda else lam
                 loss_pi, st = L.cce_mappo_actor_loss(
-                    logp, logp_old[idx], ar[idx], ac[idx], lam, ent, kl_prior, kl_prev, clip_eps=cfg.clip,
-                    entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2, mask=mi)
-                v, q = self.critic(obs[idx], mi)
+                    logp, logp_old[rows, c], ar[rows, c], ac[rows, c], lam_rows, ent, kl_prior, kl_prev,
+                    clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2)
                 loss_v = L.masked_mean((v - rr[idx]) ** 2, mi)
                 loss_q = L.quantile_huber_loss(q, qt[idx], kappa=1.0, mask=mi)
                 loss = loss_pi + cfg.value_coef * (loss_v + loss_q)
