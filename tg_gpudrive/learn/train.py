@@ -317,8 +317,13 @@ class Trainer:
                 loss_pi, st = L.cce_mappo_actor_loss(
                     logp, logp_old[rows, c], ar[rows, c], ac[rows, c], lam_rows, ent, kl_prior, kl_prev,
                     clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2)
-                loss_v = L.masked_mean((v - rr[idx]) ** 2, mi)
-                loss_q = L.quantile_huber_loss(q, qt[idx], kappa=1.0, mask=mi)
+                loss_v = (v[g, c] - rr[rows, c]).pow(2).mean()
+                # quantile loss on live rows, against at most 16 evenly spaced target samples: the
+                # pairwise (N x M) Huber term is otherwise the largest tensor of the update
+                tq = qt[rows, c]
+                if tq.shape[-1] > 16:
+                    tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, 16, device=tq.device).round().long()]
+                loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
                 loss = loss_pi + cfg.value_coef * (loss_v + loss_q)
                 if not torch.isfinite(loss):
                     raise TrainingError(
