@@ -34,6 +34,6 @@ if [ "$stage" = c ]; then
   python3 "$R"/scripts/run_grid.py --base "$R"/configs/train/gpu.yaml --out /tmp/grid \
     --set scenes=procedural:dense_intersection --set control=nearest_conflict --set control_k=5 \
     --set num_scenes=256 --set num_worlds=256 --set updates=${GRID_UPDATES:-25} --set resample_every=0 \
-    --set checkpoint_every=1000 2>/dev/null | tail -20
+    --set checkpoint_every=1000 2>"$OUT/grid_stderr.txt" | tail -20; tail -5 "$OUT/grid_stderr.txt"
   cp /tmp/grid/grid.json /tmp/grid/grid.md "$OUT/"
 fi

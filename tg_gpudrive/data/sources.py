@@ -124,9 +124,11 @@ class ProceduralSource(SceneSource):
         missing = sorted({self._check(i) for i in indices} - set(cache))
         workers = min(os.cpu_count() or 1, 16)
         if len(missing) >= 64 and workers > 2:
+            import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            with ProcessPoolExecutor(workers) as pool:
+            # spawn, not fork: the parent may already hold a CUDA context
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 for i, sc in zip(missing, pool.map(_generate, [self._args(i) for i in missing], chunksize=16)):
                     cache[i] = sc
             while len(cache) > self.cache_size:
