@@ -31,7 +31,7 @@ if [ "$stage" = b ]; then
   python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('/tmp/run_gpu/metrics.csv', '$OUT/train_gpu_curves.png')"
 fi
 if [ "$stage" = c ]; then
-  python3 "$R"/scripts/run_grid.py --base "$R"/configs/train/gpu.yaml --out /tmp/grid \
+  python3 "$R"/scripts/run_grid.py --base "$R"/configs/train/gpu.yaml --grid "$R"/configs/train/grid.yaml --out /tmp/grid \
     --set scenes=procedural:dense_intersection --set control=nearest_conflict --set control_k=5 \
     --set num_scenes=256 --set num_worlds=256 --set updates=${GRID_UPDATES:-25} --set resample_every=0 \
     --set checkpoint_every=1000 2>"$OUT/grid_stderr.txt" | tail -20; tail -5 "$OUT/grid_stderr.txt"
