@@ -254,3 +254,21 @@ def test_without_auto_reset_worlds_wait_frozen_until_reset(device):
     assert sim.world_done.tolist() == [1, 0] and int(sim.world_step[1]) == 5
     sim.step(zero)
     assert sim.alive[0].sum() == 0 and sim.alive[1].sum() == 3
+
+
+def test_background_agents_are_driven_but_not_counted(device):
+    sc = head_on_scene()
+    cfg = EngineConfig(max_agents=4, init_steps=0, action_space="continuous", road_k=4, partner_k=4)
+    sim = Simulator([sc], cfg, device, controlled=[np.array([False, True, False])],
+                    background=[np.array([True, False, False])])
+    # policy agent first, then the background one, then the replayed one
+    assert sim.model.slot_agent[0, :3].tolist() == [1, 0, 2]
+    assert sim.policy_agents[0].tolist() == [True, False, False, False]
+    assert sim.controlled[0, :3].tolist() == [1, 1, 0] and sim.max_controlled == 1
+    sim.reset()
+    a = torch.zeros((1, 4, 2), device=device)
+    a[0, 1, 0] = -6.0  # the background agent brakes: it follows the action buffer, not its log
+    for _ in range(10):
+        sim.step(a)
+    assert float(sim.pos[0, 1, 0]) < 10 * 1.0 - 1.0  # behind where its log would be at t = 1 s
+    assert float(sim.pos[0, 2, 0]) == pytest.approx(-15 + 10 * 1.0, abs=1e-4)  # replayed

@@ -8,7 +8,9 @@ Model (fixed while a batch of scenes is loaded):
 
     field               shape           dtype   unit / meaning
     slot_valid          (W*A,)          int32   slot holds an agent
-    controlled          (W*A,)          int32   driven by the policy (else log replay)
+    controlled          (W*A,)          int32   integrated from the action buffers (else log replay)
+    background          (W*A,)          int32   controlled, but driven by a background model (reactive
+                                                traffic), not the policy; outcomes count for the policy only
     agent_type          (W*A,)          int32   AgentType
     length, width       (W*A,)          f32     m
     goal                (W*A,)          vec2    m
@@ -68,7 +70,7 @@ class BuildReport:
     """What the builder dropped or changed, per world, so nothing is lost silently."""
 
     truncated_agents: list[int]  # agents beyond max_agents, per world
-    controlled: list[int]  # controlled agents per world
+    controlled: list[int]  # policy-controlled agents per world (background-driven ones not counted)
     skipped_at_goal: list[int]  # vehicles not controlled because they start within goal_radius
     segments: list[int]  # road segments per world after splitting
 
@@ -157,7 +159,7 @@ class Model:
     """Fixed arrays of a batch of scenes (see the module docstring for fields)."""
 
     def __init__(self, scenes: list[Scene], cfg: EngineConfig, device: str,
-                 controlled: list[np.ndarray] | None = None):
+                 controlled: list[np.ndarray] | None = None, background: list[np.ndarray] | None = None):
         if not scenes:
             raise ValueError("Model needs at least one scene")
         self.cfg, self.device = cfg, device
@@ -181,6 +183,7 @@ class Model:
 
         h = {  # host arrays, (W, A, ...)
             "slot_valid": np.zeros((W, A), np.int32), "controlled": np.zeros((W, A), np.int32),
+            "background": np.zeros((W, A), np.int32),
             "agent_type": np.zeros((W, A), np.int32), "length": np.ones((W, A), np.float32),
             "width": np.ones((W, A), np.float32), "goal": np.zeros((W, A, 2), np.float32),
             "log_pos": np.zeros((W, A, T, 2), np.float32), "log_yaw": np.zeros((W, A, T), np.float32),
@@ -209,14 +212,17 @@ class Model:
                 skipped = 0
             else:
                 ctrl, skipped = default_controlled(sc, idx, cfg)
-            # controlled agents take the first slots, so a learner can view obs[:, :max_controlled]
-            order = np.argsort(~ctrl, kind="stable")
-            idx, ctrl = idx[order], ctrl[order]
+            bg = np.zeros(len(idx), bool) if background is None else np.asarray(background[w], bool)[idx] & ~ctrl
+            # policy agents take the first slots (a learner views obs[:, :max_controlled]), then the
+            # background-driven ones, then the replayed ones
+            order = np.lexsort((bg, ~(ctrl | bg)))
+            idx, ctrl, bg = idx[order], ctrl[order], bg[order]
             report.controlled.append(int(ctrl.sum()))
             report.skipped_at_goal.append(skipped)
             self.slot_agent[w, :n] = idx
             h["slot_valid"][w, :n] = 1
-            h["controlled"][w, :n] = ctrl
+            h["controlled"][w, :n] = ctrl | bg
+            h["background"][w, :n] = bg
             h["agent_type"][w, :n] = sc.agent_type[idx]
             h["length"][w, :n] = sc.length[idx]
             h["width"][w, :n] = sc.width[idx]
@@ -255,6 +261,7 @@ class Model:
 
         self.slot_valid = flat(h["slot_valid"], wp.int32)
         self.controlled = flat(h["controlled"], wp.int32)
+        self.background = flat(h["background"], wp.int32)
         self.agent_type = flat(h["agent_type"], wp.int32)
         self.length = flat(h["length"], float)
         self.width = flat(h["width"], float)

@@ -84,14 +84,14 @@ class EpisodeStats:
         s = self.sim
         self.speed_sum += (s.speed * s.alive).sum()
         self.alive_steps += s.alive.sum()
-        rows = (s.world_ended[:, None] != 0) & (s.controlled != 0)
+        rows = (s.world_ended[:, None] != 0) & s.policy_agents
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
                   s.final_return, s.final_steps)
 
     def add_unfinished(self) -> None:
         """Count episodes still running (used when a rollout ends before any episode did)."""
         s = self.sim
-        rows = (s.controlled != 0) & (s.ep_steps > 0)
+        rows = s.policy_agents & (s.ep_steps > 0)
         self._add(rows, s.ep_goal, s.ep_collided, s.ep_offroad, s.ep_cost, s.ep_min_dist, s.ep_return, s.ep_steps)
 
     def summary(self) -> dict:
@@ -143,7 +143,7 @@ def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = Fal
     if float(stats.sums["episodes"].sum()) == 0:
         stats.add_unfinished()
     out = stats.summary()
-    n_ctrl = int(sim.controlled.sum())
+    n_ctrl = int(sim.policy_agents.sum())
     out.update({
         "worlds": sim.num_worlds,
         "agents_controlled": n_ctrl,

@@ -61,16 +61,19 @@ def resolve_device(device: str | torch.device | None) -> str:
 
 class Simulator:
     def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "cpu",
-                 controlled: Sequence[np.ndarray] | None = None):
+                 controlled: Sequence[np.ndarray] | None = None, background: Sequence[np.ndarray] | None = None):
+        """`controlled` / `background`: per scene, (N,) bool masks over its agents. Controlled agents
+        are the policy's; background agents are integrated from the same action buffers but driven
+        by a background model (reactive traffic); all others replay their logs."""
         self.cfg = config or EngineConfig()
         self.device = resolve_device(device)
         self.is_cuda = self.device.startswith("cuda")
-        self._build(list(scenes), controlled)
+        self._build(list(scenes), controlled, background)
 
     # ------------------------------------------------------------------ setup
-    def _build(self, scenes: list[Scene], controlled) -> None:
+    def _build(self, scenes: list[Scene], controlled, background=None) -> None:
         with wp.ScopedDevice(self.device):
-            self.model = Model(scenes, self.cfg, self.device, controlled)
+            self.model = Model(scenes, self.cfg, self.device, controlled, background)
             self.state = State(self.model, self.cfg)
             self.control = Control(self.model)
         self._graph = None
@@ -98,7 +101,10 @@ class Simulator:
         self.applied_action = t(s.applied_action).view(W, A, 3)
         self.reward_terms = t(s.reward_terms).view(W, A, len(REWARD_TERMS))
         self.obs = t(s.obs).view(W, A, m.obs_dim)
-        self.controlled = t(m.controlled).view(W, A)
+        self.controlled = t(m.controlled).view(W, A)  # integrated from actions (policy + background)
+        self.background = t(m.background).view(W, A)
+        # the policy's agents: what rates, returns and learners count
+        self.policy_agents = (self.controlled != 0) & (self.background == 0)
         self.slot_valid = t(m.slot_valid).view(W, A)
         self.goal = t(m.goal).view(W, A, 2)
         self.length = t(m.length).view(W, A)
@@ -120,9 +126,10 @@ class Simulator:
             self._ev_in = wp.Event(self.device)
             self._ev_out = wp.Event(self.device)
 
-    def set_scenes(self, scenes: Sequence[Scene], controlled: Sequence[np.ndarray] | None = None) -> None:
+    def set_scenes(self, scenes: Sequence[Scene], controlled: Sequence[np.ndarray] | None = None,
+                   background: Sequence[np.ndarray] | None = None) -> None:
         """Load a new batch of scenes (resampling); the step graph is captured again."""
-        self._build(list(scenes), controlled)
+        self._build(list(scenes), controlled, background)
         self.reset()
 
     # -------------------------------------------------------------- properties
@@ -246,7 +253,7 @@ class Simulator:
     # --------------------------------------------------------------- read-outs
     def finished_episodes(self) -> dict[str, torch.Tensor]:
         """Outcomes of the controlled agents whose episode ended at the last step (1-D tensors)."""
-        rows = (self.world_ended[:, None] != 0) & (self.controlled != 0)
+        rows = (self.world_ended[:, None] != 0) & self.policy_agents
         return {
             "goal": self.final_goal[rows], "collided": self.final_collided[rows],
             "offroad": self.final_offroad[rows], "return": self.final_return[rows],

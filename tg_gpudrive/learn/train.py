@@ -241,7 +241,7 @@ class Trainer:
             stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
             stats["alive"] += alive.sum()
             stats["speed"] += (sim.speed[:, :C] * alive).sum()
-            ended = (sim.world_ended[:, None] != 0) & (sim.controlled[:, :C] != 0)
+            ended = (sim.world_ended[:, None] != 0) & sim.policy_agents[:, :C]
             stats["episodes"] += ended.sum()
             stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
             stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
