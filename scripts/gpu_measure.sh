@@ -37,3 +37,11 @@ if [ "$stage" = c ]; then
     --set checkpoint_every=1000 2>"$OUT/grid_stderr.txt" | tail -20; tail -5 "$OUT/grid_stderr.txt"
   cp /tmp/grid/grid.json /tmp/grid/grid.md "$OUT/"
 fi
+if [ "$stage" = d ]; then  # 1 vs 2 GPUs (nvidia-h200-x2)
+  for n in 1 2; do
+    timeout 200 python3 -m tg_gpudrive.cli train --config "$R"/configs/train/gpu.yaml --out /tmp/scale$n \
+      --nproc $n --set updates=${SCALE_UPDATES:-12} --set resample_every=0 --set num_scenes=256 \
+      --set checkpoint_every=1000 2>&1 | tr '\r' '\n' | grep -v "^$" | tail -1
+    cp /tmp/scale$n/metrics.csv "$OUT/scale_${n}gpu.csv"
+  done
+fi

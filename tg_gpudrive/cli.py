@@ -68,6 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR exactly")
     p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
+    p.add_argument("--nproc", type=int, default=1,
+                   help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
 
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
@@ -172,7 +174,23 @@ def cmd_train(args) -> int:
     else:
         data = load_yaml(args.config)
     cfg = from_dict(TrainConfig, apply_overrides(data, args.set), args.config)
-    out = train_main(cfg, out_dir=args.out or args.resume, resume=args.resume, progress=True)
+    out_dir = args.out or args.resume
+    if args.nproc > 1:
+        import torch.multiprocessing as mp
+
+        from tg_gpudrive.learn.distributed import free_port
+
+        ctx = mp.get_context("spawn")
+        result = ctx.SimpleQueue()
+        mp.spawn(_train_worker, args=(args.nproc, free_port(), cfg, out_dir, args.resume, result),
+                 nprocs=args.nproc)
+        out = result.get()
+    else:
+        from tg_gpudrive.learn import distributed
+
+        distributed.init_from_env(cfg.device)  # a torchrun launch: join its process group
+        out = train_main(cfg, out_dir=out_dir, resume=args.resume, progress=True)
+        distributed.cleanup()
     if args.json:
         print(json.dumps(out))
     else:
@@ -180,6 +198,19 @@ def cmd_train(args) -> int:
               f"collision {out.get('collision_rate', float('nan')):.3f}  "
               f"offroad {out.get('offroad_rate', float('nan')):.3f}  lambda {out['lambda']:.3f}")
     return 0
+
+
+def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result) -> None:
+    from tg_gpudrive.learn import distributed
+    from tg_gpudrive.learn.train import train_main
+
+    distributed.init(rank, world, port, cfg.device)
+    try:
+        out = train_main(cfg, out_dir=out_dir, resume=resume, progress=rank == 0)
+        if rank == 0:
+            result.put(out)
+    finally:
+        distributed.cleanup()
 
 
 def cmd_evaluate(args) -> int:

@@ -120,6 +120,7 @@ class TrainConfig:
     hidden: int = 128
     heads: int = 1  # >1: per-slot actor heads
     amp: bool = True  # bf16 autocast of the networks on GPU
+    normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
     eta1: float = 0.05
     eta2: float = 20.0

@@ -34,6 +34,7 @@ import torch
 
 from tg_gpudrive.config import TrainConfig, to_dict
 from tg_gpudrive.control import control_masks
+from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
 from tg_gpudrive.learn.prior import ExpertPrior
@@ -112,9 +113,12 @@ class Trainer:
 
         self.cfg = cfg
         self.out = Path(out_dir or cfg.out_dir)
-        self.out.mkdir(parents=True, exist_ok=True)
-        self.progress = progress
-        self.device = "cuda:0" if cfg.device == "cuda" else cfg.device
+        self.rank, self.world = dist_util.rank(), dist_util.world_size()
+        self.lead = self.rank == 0  # logs and checkpoints
+        if self.lead:
+            self.out.mkdir(parents=True, exist_ok=True)
+        self.progress = progress and self.lead
+        self.device = dist_util.local_device(cfg.device)
         torch.backends.cuda.matmul.allow_tf32 = True
         ck = None
         if resume is not None:
@@ -123,10 +127,14 @@ class Trainer:
             if not path.exists():
                 raise FileNotFoundError(f"--resume: no checkpoint at {path}")
             ck = torch.load(path, map_location="cpu", weights_only=False)
-        self._seed(cfg.seed)
+        self._seed(cfg.seed + self.rank)
         self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
-        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed)
-        if ck is not None:
+        if self.world > 1:
+            self.source = dist_util.ShardSource(self.source, self.rank, self.world)
+        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.rank)
+        # exact resume needs the same process count: engine states and samplers are per rank
+        exact = ck is not None and ck.get("world_size", 1) == self.world == 1
+        if exact:
             self.sampler.load_state_dict(ck["sampler"])
             self.sampler.last_indices = np.asarray(ck["scene_indices"], np.int64)
             scenes = [self.source.get(int(i)) for i in self.sampler.last_indices]
@@ -134,19 +142,29 @@ class Trainer:
             scenes = self.sampler.sample()
         self.sim = Simulator(scenes, cfg.env, self.device, controlled=self._control(scenes))
         self.actor, self.critic = build_models(cfg, self.sim, self.device)
+        if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
+            self.actor.load_state_dict(ck["actor"])
+            self.critic.load_state_dict(ck["critic"])
+        self.actor_fwd, self.critic_fwd = self.actor, self.critic
+        if self.world > 1:
+            from torch.nn.parallel import DistributedDataParallel as DDP
+
+            ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
+            self.actor_fwd = DDP(self.actor, device_ids=ids)
+            self.critic_fwd = DDP(self.critic, device_ids=ids)
         self.head = PolicyHead(cfg.env.action_space == "discrete")
         self.prior = ExpertPrior(self.sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature)
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
-        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed)
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0
         self.sim.reset()
         if ck is not None:
-            self._load(ck)
+            self._load(ck, exact)
         self.csv_path = self.out / "metrics.csv"
 
     # ------------------------------------------------------------ setup bits
@@ -277,73 +295,90 @@ class Trainer:
             jc[:C] = (cvar * mask).sum((0, 1)) / cnt
         else:
             jc = L.masked_mean(cvar, mask)
+        jc = dist_util.all_reduce_mean(jc)  # one constraint estimate, so lambda stays equal on all ranks
         lam_before = self.lagrange.value.detach().clone()
         self.lagrange.update(jc, cfg.cost_limit)
         lam = lam_before[:C] if cfg.per_agent_lambda else lam_before
 
         n_groups = T * W
-        flat = lambda x: x.reshape(n_groups, *x.shape[2:])  # noqa: E731
-        obs, act, logp_old, m = flat(buf["obs"]), flat(buf["act"]), flat(buf["logp"]), flat(mask)
-        ar, ac, rr, qt = flat(adv_r), flat(adv_c), flat(ret_r), flat(q_target)
-        prior_ctx = flat(buf["prior"])
-        old = flat(buf["old"]) if self.head.discrete else (flat(buf["old"][0]), flat(buf["old"][1]))
-        slots = torch.arange(C, device=self.device)
+        batch = self.flatten(buf, adv_r, adv_c, ret_r, q_target)
         mb = max(1, n_groups // cfg.minibatches)
         acc: dict[str, float] = {}
         n_mb = 0
         for _ in range(cfg.epochs):
             perm = torch.randperm(n_groups, generator=self.gen, device=self.device)
             for s in range(0, n_groups, mb):
-                idx = perm[s:s + mb]
-                mi = m[idx]
-                if not mi.any():
-                    continue
-                # the actor is per agent: run it on the live rows only (often under half of W x C)
-                g, c = mi.nonzero(as_tuple=True)
-                rows = idx[g]
-                with self._amp():
-                    out = self.actor(obs[rows, c], c)
-                    v, q = self.critic(obs[idx], mi)
-                out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
-                v, q = v.float(), q.float()
-                d = self.head.dist(out)
-                logp = d.log_prob(act[rows, c])
-                ent = d.entropy()
-                prior_out = self.prior.distribution(prior_ctx[rows, c], obs[rows, c])
-                old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
-                kl_prior = self.head.kl(out, prior_out)
-                kl_prev = self.head.kl(out, old_out)
-                lam_rows = lam[c] if cfg.per_agent_lambda else lam
-                loss_pi, st = L.cce_mappo_actor_loss(
-                    logp, logp_old[rows, c], ar[rows, c], ac[rows, c], lam_rows, ent, kl_prior, kl_prev,
-                    clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2)
-                loss_v = (v[g, c] - rr[rows, c]).pow(2).mean()
-                # quantile loss on live rows, against at most 16 evenly spaced target samples: the
-                # pairwise (N x M) Huber term is otherwise the largest tensor of the update
-                tq = qt[rows, c]
-                if tq.shape[-1] > 16:
-                    tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, 16, device=tq.device).round().long()]
-                loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
-                loss = loss_pi + cfg.value_coef * (loss_v + loss_q)
+                loss, parts = self.minibatch_loss(batch, perm[s:s + mb], lam)
                 if not torch.isfinite(loss):
                     raise TrainingError(
-                        f"non-finite loss in update {self.update} (policy {float(loss_pi):.4g}, value "
-                        f"{float(loss_v):.4g}, cost quantiles {float(loss_q):.4g}); stopped without saving, the "
-                        f"last good checkpoint is {self.out / 'checkpoint.pt'}")
+                        f"non-finite loss in update {self.update} (policy {float(parts['loss/policy']):.4g}, "
+                        f"value {float(parts['loss/value']):.4g}, cost quantiles "
+                        f"{float(parts['loss/cost_quantile']):.4g}); stopped without saving, the last good "
+                        f"checkpoint is {self.out / 'checkpoint.pt'}")
                 self.opt.zero_grad(set_to_none=True)
-                loss.backward()
+                loss.backward()  # under DDP the gradients are averaged over the ranks here
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.opt.step()
-                for k, val in {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
-                               "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
-                               "clip_frac": st["clip_frac"]}.items():
+                for k, val in parts.items():
                     acc[k] = acc.get(k, 0.0) + float(val.detach())
                 n_mb += 1
         out = {k: v / max(n_mb, 1) for k, v in acc.items()}
         out["cvar"] = float(jc.mean())
-        out["lambda"] = float(self.lagrange.value.mean())
+        out["lambda"] = float(self.lagrange.value.mean().detach())
         out["cost_return"] = float(L.masked_mean(ret_c, mask))
         return out
+
+    def flatten(self, buf, adv_r, adv_c, ret_r, q_target) -> dict:
+        """(T, W, C, ...) rollout tensors -> (T*W, C, ...) groups: one group = one world at one step."""
+        T, W = buf["reward"].shape[:2]
+        flat = lambda x: x.reshape(T * W, *x.shape[2:])  # noqa: E731
+        b = {k: flat(buf[k]) for k in ("obs", "act", "logp", "mask", "prior")}
+        b.update(adv_r=flat(adv_r), adv_c=flat(adv_c), ret_r=flat(ret_r), q_target=flat(q_target))
+        b["old"] = flat(buf["old"]) if self.head.discrete else (flat(buf["old"][0]), flat(buf["old"][1]))
+        return b
+
+    def minibatch_loss(self, b: dict, idx: torch.Tensor, lam) -> tuple[torch.Tensor, dict]:
+        """CCE-MAPPO loss of the groups `idx`: actor on their live rows, critic on the groups."""
+        cfg = self.cfg
+        mi = b["mask"][idx]
+        # the actor is per agent: run it on the live rows only (often under half of W x C)
+        g, c = mi.nonzero(as_tuple=True)
+        weight = 1.0
+        if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
+            g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
+                1, dtype=torch.long, device=idx.device), 0.0
+        rows = idx[g]
+        obs = b["obs"]
+        with self._amp():
+            out = self.actor_fwd(obs[rows, c], c)
+            v, q = self.critic_fwd(obs[idx], mi)
+        out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
+        v, q = v.float(), q.float()
+        d = self.head.dist(out)
+        logp = d.log_prob(b["act"][rows, c])
+        ent = d.entropy()
+        prior_out = self.prior.distribution(b["prior"][rows, c], obs[rows, c])
+        old = b["old"]
+        old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
+        kl_prior = self.head.kl(out, prior_out)
+        kl_prev = self.head.kl(out, old_out)
+        lam_rows = lam[c] if cfg.per_agent_lambda else lam
+        loss_pi, st = L.cce_mappo_actor_loss(
+            logp, b["logp"][rows, c], b["adv_r"][rows, c], b["adv_c"][rows, c], lam_rows, ent, kl_prior,
+            kl_prev, clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2,
+            normalize_advantages=cfg.normalize_advantages)
+        loss_v = (v[g, c] - b["ret_r"][rows, c]).pow(2).mean()
+        # quantile loss on live rows, against at most 16 evenly spaced target samples: the
+        # pairwise (N x M) Huber term is otherwise the largest tensor of the update
+        tq = b["q_target"][rows, c]
+        if tq.shape[-1] > 16:
+            tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, 16, device=tq.device).round().long()]
+        loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
+        loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
+        parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
+                 "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
+                 "clip_frac": st["clip_frac"]}
+        return loss, parts
 
     # ----------------------------------------------------------------- loop
     def train(self) -> dict:
@@ -359,6 +394,7 @@ class Trainer:
                 self._resample()
             t0 = time.perf_counter()
             buf, stats = self.rollout()
+            dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
             if self.sim.is_cuda:
                 torch.cuda.synchronize(self.device)
             t_roll = time.perf_counter() - t0
@@ -379,26 +415,29 @@ class Trainer:
                 "collision_rate": float(stats["collided"]) / n_ep if n_ep else float("nan"),
                 "offroad_rate": float(stats["offroad"]) / n_ep if n_ep else float("nan"),
                 "mean_min_distance": float(stats["min_dist"]) / n_ep if n_ep else float("nan"),
-                "cost": float(buf["cost"].sum() / max(steps, 1)),
+                "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
                 "mean_speed": float(stats["speed"]) / max(steps, 1),
                 "scenes_visited": self.sampler.visited,
             })
             per_term = stats["terms"] / max(steps, 1)
             for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
                 row[f"reward/{name}"] = v
-            row["reward"] = float(buf["reward"].sum() / max(steps, 1))
-            self._log(row)
+            row["reward"] = float(buf["reward"].sum() / max(int(buf["mask"].sum()), 1))
+            row["ranks"] = self.world
+            if self.lead:
+                self._log(row)
             last = row
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=f"{row['goal_rate']:.2f}",
                                 coll=f"{row['collision_rate']:.2f}", off=f"{row['offroad_rate']:.2f}",
                                 lam=f"{row['lambda']:.2f}")
-            if self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates:
+            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates):
                 self.save()
         if bar is not None:
             bar.close()
-        self.plot()
+        if self.lead:
+            self.plot()
         return last
 
     # ------------------------------------------------------------ logging
@@ -430,6 +469,7 @@ class Trainer:
             "lagrange": self.lagrange.state_dict(), "lagrange_opt": self.lagrange.optimizer.state_dict(),
             "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "rng": rng,
             "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
+            "world_size": self.world,
             "engine": self.sim.snapshot(),
         }
 
@@ -441,13 +481,17 @@ class Trainer:
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
 
-    def _load(self, ck: dict) -> None:
-        self.actor.load_state_dict(ck["actor"])
-        self.critic.load_state_dict(ck["critic"])
+    def _load(self, ck: dict, exact: bool) -> None:
         self.opt.load_state_dict(ck["opt"])
         self.lagrange.load_state_dict(ck["lagrange"])
         self.lagrange.optimizer.load_state_dict(ck["lagrange_opt"])
         self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
+        if not exact:
+            # another process count: weights, optimiser, lambda and counters carry over; episodes
+            # start afresh on each rank's own scene shard
+            self.gen.manual_seed(self.cfg.seed + self.rank + 7919 * self.update)
+            self._trim_csv()
+            return
         rng = ck["rng"]
         torch.set_rng_state(rng["torch"])
         np.random.set_state(rng["numpy"])
@@ -456,8 +500,11 @@ class Trainer:
         if "cuda" in rng and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(rng["cuda"])
         self.sim.restore(ck["engine"])
+        self._trim_csv()
+
+    def _trim_csv(self) -> None:
         # metrics.csv may hold rows written after this checkpoint: keep only those up to it
-        if (self.out / "metrics.csv").exists():
+        if self.lead and (self.out / "metrics.csv").exists():
             rows = list(csv.DictReader((self.out / "metrics.csv").open()))
             keep = [r for r in rows if int(r["update"]) <= self.update]
             if len(keep) != len(rows):

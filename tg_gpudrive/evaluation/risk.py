@@ -1,0 +1,135 @@
+"""Risk of generated scenarios: collisions, time-to-collision, gaps, hard braking, and a ranking.
+
+Definitions (per policy agent and episode; "other" = any other agent present
+at the same step, policy-driven or replayed):
+
+    collision      the engine flagged a box overlap at some step of the episode
+    min_gap        m, smallest centre-to-centre distance to another agent (the engine's and the
+                   cost's `beta` convention)
+    min_ttc        s, smallest constant-velocity time-to-collision over the episode: every agent
+                   is covered by TTC_DISCS discs of radius width/2 along its length, both move on
+                   with their current velocity, TTC is the first time any disc pair touches
+                   (0 when they already overlap); no contact within TTC_HORIZON counts as
+                   TTC_HORIZON
+    hard_brakes    events with accel < HARD_BRAKE (-4 m/s^2): a run of consecutive such steps is
+                   one event
+
+Scenario criticality ranks episodes by (any collision, lowest min TTC, lowest
+min gap, most hard brakes), most critical first.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tg_gpudrive.evaluation.rollouts import Trajectories
+
+HARD_BRAKE = -4.0  # m/s^2
+TTC_HORIZON = 10.0  # s
+TTC_DISCS = 3
+TTC_CRITICAL = 1.5  # s, "near miss" threshold reported as a rate
+
+
+def disc_centres(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """(E, A, K, D, 2): D discs of radius width/2 spaced along the box's long axis."""
+    off = np.linspace(-1.0, 1.0, TTC_DISCS) if TTC_DISCS > 1 else np.zeros(1)
+    offs = 0.5 * np.maximum(length - width, 0.0)[..., None] * off  # (E, A, D)
+    heading = np.stack([np.cos(yaw), np.sin(yaw)], -1)  # (E, A, K, 2)
+    return pos[..., None, :] + heading[..., None, :] * offs[:, :, None, :, None]
+
+
+def pair_ttc(p: np.ndarray, v: np.ndarray, r: np.ndarray, horizon: float = TTC_HORIZON) -> np.ndarray:
+    """Constant-velocity TTC of discs with relative position p (..., 2), relative velocity v, radius sum r."""
+    c = (p * p).sum(-1) - r * r
+    a = (v * v).sum(-1)
+    b = 2.0 * (p * v).sum(-1)
+    disc = b * b - 4.0 * a * c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (-b - np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)
+    hit = (a > 1e-12) & (disc >= 0) & (t >= 0)
+    ttc = np.where(hit, t, np.inf)
+    ttc = np.where(c <= 0, 0.0, ttc)
+    return np.minimum(ttc, horizon)
+
+
+def min_ttc(tr: Trajectories) -> np.ndarray:
+    """(E, A) min TTC of every policy agent over its episode (TTC_HORIZON where none)."""
+    E, A, K = tr.valid.shape
+    out = np.full((E, A), TTC_HORIZON, np.float64)
+    centres = disc_centres(tr.pos, tr.yaw, tr.length, tr.width)  # (E, A, K, D, 2)
+    rad = 0.5 * tr.width  # (E, A)
+    for e in range(E):
+        rows = np.nonzero(tr.policy[e] & tr.valid[e].any(-1))[0]
+        if len(rows) == 0:
+            continue
+        ci, cj = centres[e, rows], centres[e]  # (R, K, D, 2), (A, K, D, 2)
+        p = cj[None, :, :, None, :, :] - ci[:, None, :, :, None, :]  # (R, A, K, Di, Dj, 2)
+        v = (tr.vel[e][None, :, :, None, None, :] - tr.vel[e, rows][:, None, :, None, None, :])
+        r = (rad[e, rows][:, None] + rad[e][None, :])[:, :, None, None, None]
+        ttc = pair_ttc(p, np.broadcast_to(v, p.shape), r).min(axis=(-1, -2))  # (R, A, K)
+        ok = tr.valid[e, rows][:, None, :] & tr.valid[e][None, :, :]
+        ok &= rows[:, None, None] != np.arange(A)[None, :, None]
+        out[e, rows] = np.where(ok, ttc, TTC_HORIZON).min(axis=(1, 2))
+    return out
+
+
+def min_gap(tr: Trajectories) -> np.ndarray:
+    """(E, A) smallest centre distance to another agent (the recording's `nearest`, capped there)."""
+    near = np.where(tr.valid, tr.nearest, np.inf).min(-1)
+    return near
+
+
+def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
+    """(E, A) number of hard-braking events (runs of consecutive steps with accel < threshold)."""
+    hb = tr.acted & (tr.accel < threshold)
+    onset = hb.copy()
+    onset[..., 1:] &= ~hb[..., :-1]
+    return onset.sum(-1)
+
+
+def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
+    """Per (episode, agent) arrays, and `agents` (E, A): the policy agents that appear."""
+    agents = tr.policy & tr.valid.any(-1)
+    return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
+            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "hard_brakes": hard_brakes(tr)}
+
+
+def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
+    """Rates over policy agent-episodes."""
+    r = risk or episode_risk(tr)
+    m = r["agents"]
+    n = int(m.sum())
+    if n == 0:
+        return {"agent_episodes": 0}
+    gap = r["min_gap"][m]
+    return {
+        "agent_episodes": n,
+        "collision_rate": float(r["collided"][m].mean()),
+        "offroad_rate": float(r["offroad"][m].mean()),
+        "mean_min_ttc_s": float(r["min_ttc"][m].mean()),
+        "near_miss_rate": float((r["min_ttc"][m] < TTC_CRITICAL).mean()),
+        "mean_min_gap_m": float(gap[np.isfinite(gap)].mean()) if np.isfinite(gap).any() else float("nan"),
+        "hard_brakes_per_agent": float(r["hard_brakes"][m].mean()),
+        "hard_brake_rate": float((r["hard_brakes"][m] > 0).mean()),
+    }
+
+
+def rank_scenarios(tr: Trajectories, risk: dict | None = None, top: int = 10) -> list[dict]:
+    """The `top` most safety-critical episodes, most critical first (see the module docstring)."""
+    r = risk or episode_risk(tr)
+    rows = []
+    for e in range(tr.num_episodes):
+        m = r["agents"][e]
+        if not m.any():
+            continue
+        rows.append({
+            "episode": e, "scene_id": tr.scenes[int(tr.scene_index[e])].scene_id,
+            "scenario_type": tr.scenes[int(tr.scene_index[e])].metadata.get("scenario_type", "unknown"),
+            "seed": int(tr.seed[e]), "label": tr.label,
+            "collisions": int(r["collided"][e][m].sum()),
+            "min_ttc_s": float(r["min_ttc"][e][m].min()),
+            "min_gap_m": float(r["min_gap"][e][m].min()),
+            "hard_brakes": int(r["hard_brakes"][e][m].sum()),
+        })
+    rows.sort(key=lambda x: (-x["collisions"], x["min_ttc_s"], x["min_gap_m"], -x["hard_brakes"]))
+    return rows[:top]

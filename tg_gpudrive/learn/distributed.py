@@ -1,0 +1,98 @@
+"""Multi-process CCE-MAPPO with torch.distributed: one process per GPU (or CPU process with gloo).
+
+Each rank owns its engine on its own device and its own shard of the scene
+source (scene i belongs to rank i % world); actor and critic are wrapped in
+DistributedDataParallel, so gradients are averaged over ranks in backward();
+the constraint estimate behind the Lagrange multiplier and the logged
+statistics are all-reduced, so lambda stays identical everywhere; rank 0 alone
+logs and writes checkpoints. Launch with `tg-gpudrive train --nproc N` or with
+`torchrun --nproc_per_node N -m tg_gpudrive.cli train ...`. NCCL's NVLink
+multicast setting (NCCL_NVLS_ENABLE) is left as the environment has it.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+
+import torch
+import torch.distributed as dist
+
+
+def is_dist() -> bool:
+    return dist.is_available() and dist.is_initialized()
+
+
+def rank() -> int:
+    return dist.get_rank() if is_dist() else 0
+
+
+def world_size() -> int:
+    return dist.get_world_size() if is_dist() else 1
+
+
+def all_reduce_mean(x: torch.Tensor) -> torch.Tensor:
+    if not is_dist():
+        return x
+    y = x.detach().clone()
+    dist.all_reduce(y, op=dist.ReduceOp.SUM)
+    return y / dist.get_world_size()
+
+
+def all_reduce_sum_(tensors: dict) -> None:
+    if is_dist():
+        for t in tensors.values():
+            dist.all_reduce(t, op=dist.ReduceOp.SUM)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def init_from_env(device: str) -> bool:
+    """Join the group torchrun describes in the environment; False when not launched that way."""
+    if is_dist() or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
+        return is_dist()
+    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    return True
+
+
+def init(rank_: int, world: int, port: int, device: str) -> None:
+    os.environ.setdefault("MASTER_ADDR", "127.0.0.1")
+    os.environ["MASTER_PORT"] = str(port)
+    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo", rank=rank_, world_size=world)
+
+
+def local_device(device: str) -> str:
+    """cuda -> cuda:<local rank> under a process group; cpu stays cpu."""
+    if device.startswith("cuda") and is_dist():
+        local = int(os.environ.get("LOCAL_RANK", rank()))
+        return f"cuda:{local}"
+    return "cuda:0" if device == "cuda" else device
+
+
+class ShardSource:
+    """Rank `r` of `w` sees scenes r, r + w, r + 2w, ... of `source`."""
+
+    def __init__(self, source, rank_: int, world: int):
+        self.source, self.rank, self.world = source, rank_, world
+        self.name = f"{getattr(source, 'name', 'scenes')}[shard {rank_}/{world}]"
+
+    def __len__(self) -> int:
+        return max(0, (len(self.source) - self.rank + self.world - 1) // self.world)
+
+    def get(self, i: int):
+        return self.source.get(self.rank + int(i) * self.world)
+
+    def get_many(self, indices):
+        idx = [self.rank + int(i) * self.world for i in indices]
+        if hasattr(self.source, "get_many"):
+            return self.source.get_many(idx)
+        return [self.source.get(i) for i in idx]
+
+
+def cleanup() -> None:
+    if is_dist():
+        dist.destroy_process_group()

@@ -1,0 +1,218 @@
+"""The world model: an autoregressive next-action model over the engine's tensors.
+
+In the spirit of TrafficGamer's generative world model (a QCNet-style decoder),
+every agent at every step gets a distribution over its next action from
+
+    ego token        the ego block of its observation row
+    temporal  CA     cross-attention over its own last `history` states
+                     (position, heading, speed and applied action, in its current frame)
+    map       CA     cross-attention over the road rows of its observation
+    neighbour CA     cross-attention over the partner rows of its observation
+    self-attention   one transformer layer over the four tokens, then an MLP
+
+and returns logits over the engine's discrete (accel, curvature) grid. The
+observation already holds map and neighbours in the agent's frame, so the only
+extra input is the history window, kept by `HistoryBuffer` (W, A, H, F) and
+updated lazily from the simulator (`sync`). Only the discrete action space is
+supported; a continuous config is refused with a clear error.
+
+Observation rows are nearest-first, so the model reads at most `max_partners`
+partner rows and `max_roads` road rows: one set of weights works with any
+`partner_k` / `road_k` of the engine config.
+
+History features (per agent and step, `HIST_FEATURES`):
+
+    field    unit     meaning
+    dx, dy   m        past position in the agent's current frame (x forward, y left)
+    dyaw     rad      past heading minus current heading (wrapped)
+    speed    m/s      past speed
+    accel    m/s^2    action that brought the agent to that state
+    kappa    1/m
+    valid    0/1      the agent was present at that step
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+
+HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
+HIST_DIM = len(HIST_FEATURES)
+# raw ring entries: world-frame x, y, yaw, speed, accel, kappa, valid
+_RAW_DIM = 7
+
+_EGO_SCALE = [20.0, 5.0, 2.0, 50.0, 50.0, 1.0, 1.0, 5.0, 5.0, 8.0]
+_PARTNER_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 20.0, 20.0, 5.0, 2.0, 4.0]
+_ROAD_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 5.0, 7.0]
+_HIST_SCALE = [20.0, 5.0, 1.0, 20.0, 6.0, 0.3, 1.0]
+
+
+def require_discrete(cfg) -> None:
+    if cfg.action_space != "discrete" or cfg.dynamics != "bicycle":
+        raise NotImplementedError(
+            "the world model supports the discrete bicycle action grid only (action_space: discrete, "
+            f"dynamics: bicycle); got action_space={cfg.action_space}, dynamics={cfg.dynamics}. A mixture of "
+            "Laplace head for continuous actions is not implemented")
+
+
+def _mlp(i: int, d: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(i, d), nn.ReLU(), nn.Linear(d, d))
+
+
+class _CrossAttention(nn.Module):
+    """Query token attends over a masked key set; a learned null key keeps empty sets defined."""
+
+    def __init__(self, d: int, heads: int):
+        super().__init__()
+        self.null = nn.Parameter(torch.zeros(1, 1, d))
+        self.attn = nn.MultiheadAttention(d, heads, batch_first=True)
+        self.norm = nn.LayerNorm(d)
+
+    def forward(self, q: torch.Tensor, keys: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        n = keys.shape[0]
+        keys = torch.cat([self.null.expand(n, 1, -1), keys], dim=1)
+        pad = torch.cat([mask.new_zeros(n, 1), ~mask], dim=1)
+        out, _ = self.attn(q[:, None], keys, keys, key_padding_mask=pad, need_weights=False)
+        return self.norm(out[:, 0])
+
+
+class WorldModel(nn.Module):
+    """(obs rows (N, obs_dim), history (N, H, HIST_DIM)) -> logits (N, num_actions).
+
+    `partner_k`, `road_k`: the engine layout of the observation rows (set with `set_layout`)."""
+
+    def __init__(self, *, num_actions: int = 91, hidden: int = 64, heads: int = 4, history: int = 10,
+                 max_partners: int = 8, max_roads: int = 32, partner_k: int = 8, road_k: int = 32):
+        super().__init__()
+        self.hparams = dict(num_actions=num_actions, hidden=hidden, heads=heads, history=history,
+                            max_partners=max_partners, max_roads=max_roads)
+        self.num_actions, self.history = num_actions, history
+        self.max_partners, self.max_roads = max_partners, max_roads
+        self.set_layout(partner_k, road_k)
+        d = hidden
+        self.register_buffer("ego_scale", torch.tensor(_EGO_SCALE))
+        self.register_buffer("partner_scale", torch.tensor(_PARTNER_SCALE))
+        self.register_buffer("road_scale", torch.tensor(_ROAD_SCALE))
+        self.register_buffer("hist_scale", torch.tensor(_HIST_SCALE))
+        self.ego = _mlp(EGO_DIM, d)
+        self.temporal_in = _mlp(HIST_DIM + 1, d)  # + cos/sin dyaw replace dyaw, see _hist_tokens
+        self.time_emb = nn.Parameter(torch.randn(history, d) * 0.02)
+        self.road_in = _mlp(ROAD_DIM, d)
+        self.partner_in = _mlp(PARTNER_DIM, d)
+        self.ca_time = _CrossAttention(d, heads)
+        self.ca_map = _CrossAttention(d, heads)
+        self.ca_agent = _CrossAttention(d, heads)
+        self.self_attn = nn.TransformerEncoderLayer(d, heads, dim_feedforward=2 * d, dropout=0.0, batch_first=True)
+        self.head = nn.Sequential(nn.Linear(4 * d, 2 * d), nn.ReLU(), nn.Linear(2 * d, num_actions))
+
+    def set_layout(self, partner_k: int, road_k: int) -> None:
+        self.partner_k, self.road_k = int(partner_k), int(road_k)
+
+    def _hist_tokens(self, hist: torch.Tensor) -> torch.Tensor:
+        h = hist / self.hist_scale
+        dyaw = hist[..., 2:3]
+        feats = torch.cat([h[..., :2], torch.cos(dyaw), torch.sin(dyaw), h[..., 3:]], dim=-1)
+        return self.temporal_in(feats) + self.time_emb[-hist.shape[-2]:]
+
+    def forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor:
+        lead = obs.shape[:-1]
+        obs = obs.reshape(-1, obs.shape[-1])
+        hist = hist.reshape(-1, *hist.shape[-2:])
+        k, kr = self.partner_k, self.road_k
+        kp, krr = min(k, self.max_partners), min(kr, self.max_roads)
+        ego = obs[:, :EGO_DIM] / self.ego_scale
+        part = obs[:, EGO_DIM:EGO_DIM + k * PARTNER_DIM].reshape(-1, k, PARTNER_DIM)[:, :kp]
+        road = obs[:, EGO_DIM + k * PARTNER_DIM:].reshape(-1, kr, ROAD_DIM)[:, :krr]
+        q = self.ego(ego)
+        t = self.ca_time(q, self._hist_tokens(hist), hist[..., -1] > 0.5)
+        m = self.ca_map(q + t, self.road_in(road / self.road_scale), road[..., 0] > 0.5)
+        n = self.ca_agent(q + t + m, self.partner_in(part / self.partner_scale), part[..., 0] > 0.5)
+        z = self.self_attn(torch.stack([q, t, m, n], dim=1))
+        return self.head(z.reshape(z.shape[0], -1)).reshape(*lead, self.num_actions)
+
+
+# ----------------------------------------------------------------- history
+def _wrap(a: torch.Tensor) -> torch.Tensor:
+    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+
+
+class HistoryBuffer:
+    """Rolling (W, A, H, 7) window of every slot's states, kept in step with a Simulator.
+
+    `sync(sim)` brings it up to the simulator's current step: one step later it
+    pushes the current state; at a reset (or any other jump of `world_step`, or
+    the first call) it refills the world's window from the log, whose warm-up
+    steps precede `init_step`. Call it once per step before reading (the
+    consumers here do), at least once every step the simulator takes."""
+
+    def __init__(self, history: int = 10):
+        self.H = history
+        self.raw: torch.Tensor | None = None
+        self._model = None
+        self._last: torch.Tensor | None = None
+
+    def _bind(self, sim) -> None:
+        import warp as wp
+
+        m = sim.model
+        W, A, T = m.num_worlds, m.max_agents, m.num_steps
+        self._model = m
+        self.raw = torch.zeros((W, A, self.H, _RAW_DIM), device=sim.pos.device)
+        self._log_pos = wp.to_torch(m.log_pos).view(W, A, T, 2)
+        self._log_yaw = wp.to_torch(m.log_yaw).view(W, A, T)
+        self._log_vel = wp.to_torch(m.log_vel).view(W, A, T, 2)
+        self._log_valid = wp.to_torch(m.log_valid).view(W, A, T)
+        self._last = torch.full((W,), -10, dtype=torch.int64, device=sim.pos.device)
+
+    def _fill_from_log(self, sim, worlds: torch.Tensor) -> None:
+        if not bool(worlds.any()):
+            return
+        T = self._model.num_steps
+        steps = sim.world_step.long()[:, None] + torch.arange(-self.H + 1, 1, device=worlds.device)  # (W, H)
+        ok = steps >= 0
+        s = steps.clamp(0, T - 1)
+        W, A = sim.pos.shape[:2]
+        si = s[:, None, :].expand(W, A, self.H)
+        pos = torch.gather(self._log_pos, 2, si[..., None].expand(W, A, self.H, 2))
+        yaw = torch.gather(self._log_yaw, 2, si)
+        speed = torch.gather(self._log_vel, 2, si[..., None].expand(W, A, self.H, 2)).norm(dim=-1)
+        valid = torch.gather(self._log_valid, 2, si).float() * ok[:, None, :].float()
+        prev = (s - 1).clamp(min=0)[:, None, :].expand(W, A, self.H)
+        act = torch.gather(sim.expert_action, 2, prev[..., None].expand(W, A, self.H, 3))[..., :2]
+        act = act * (s > 0)[:, None, :, None].float()
+        new = torch.cat([pos, yaw[..., None], speed[..., None], act, valid[..., None]], dim=-1)
+        self.raw[worlds] = new[worlds]
+
+    def sync(self, sim) -> None:
+        if self._model is not sim.model:
+            self._bind(sim)
+        step = sim.world_step.long()
+        same = step == self._last
+        push = (step == self._last + 1) & ~same
+        refill = ~same & ~push
+        if bool(push.any()):
+            present = (sim.present != 0).float()
+            cur = torch.cat([sim.pos, sim.yaw[..., None], sim.speed[..., None], sim.applied_action[..., :2],
+                             present[..., None]], dim=-1)
+            rolled = torch.cat([self.raw[:, :, 1:], cur[:, :, None]], dim=2)
+            self.raw[push] = rolled[push]
+        self._fill_from_log(sim, refill)
+        self._last = step.clone()
+
+    def features(self, sim, rows: slice | None = None) -> torch.Tensor:
+        """(W, A', H, HIST_DIM) window in each agent's current frame (`rows`: slot slice, default all)."""
+        rows = rows or slice(None)
+        raw = self.raw[:, rows]
+        p, yaw = sim.pos[:, rows], sim.yaw[:, rows]
+        c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
+        d = raw[..., :2] - p[:, :, None]
+        dx = c * d[..., 0] + s * d[..., 1]
+        dy = -s * d[..., 0] + c * d[..., 1]
+        dyaw = _wrap(raw[..., 2] - yaw[..., None])
+        valid = raw[..., 6]
+        out = torch.stack([dx, dy, dyaw, raw[..., 3], raw[..., 4], raw[..., 5], valid], dim=-1)
+        return out * valid[..., None]
