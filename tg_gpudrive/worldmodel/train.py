@@ -300,7 +300,7 @@ def fit(model: WorldModel, data: dict, *, steps: int, batch_size: int, lr: float
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         if on_step is not None:
-            on_step(step + 1, float(loss))
+            on_step(step + 1, float(loss.detach()))
     return opt
 
 
