@@ -72,6 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
 
+    p = sub.add_parser("train-world-model", help="train the world model (behaviour prior / reactive traffic)")
+    from tg_gpudrive.worldmodel.train import add_arguments as _world_model_args
+
+    _world_model_args(p)
+
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory)")
@@ -327,7 +332,13 @@ def cmd_convert(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": cmd_simulate, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
+def cmd_train_world_model(args) -> int:
+    from tg_gpudrive.worldmodel.train import run
+
+    return run(args) or 0
+
+
+COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
             "evaluate": cmd_evaluate, "render": cmd_render}
 
 

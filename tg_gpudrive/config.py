@@ -130,7 +130,8 @@ class TrainConfig:
     lambda_lr: float = 0.05
     per_agent_lambda: bool = False  # one multiplier per controlled slot
     quantiles: int = 64
-    prior: str = "expert"  # expert
+    prior: str = "expert"  # expert | world_model
+    prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model
     prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
     # bookkeeping
@@ -142,8 +143,8 @@ class TrainConfig:
             raise ConfigError(f"control: expected vehicles, nearest_conflict or ids, got {self.control!r}")
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
-        if self.prior not in ("expert",):
-            raise ConfigError(f"prior: expected expert, got {self.prior!r}")
+        if self.prior not in ("expert", "world_model"):
+            raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:
             raise ConfigError("rollout_steps, updates and num_worlds must be >= 1")
 

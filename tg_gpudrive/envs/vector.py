@@ -236,7 +236,7 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         self._reset_rows = torch.zeros(N, dtype=torch.bool, device=dev)
         self._ended_rows = torch.zeros(N, dtype=torch.bool, device=dev)
         self._flag_w = torch.zeros(W, dtype=torch.bool, device=dev)
-        self._ctrl = (sim.controlled != 0)
+        self._ctrl = sim.policy_agents.clone()  # background-driven agents are not the user's rows
         if self.discrete:
             self.noop_action = noop_index(cfg)
             self._action_view = sim.actions_index.view(N)

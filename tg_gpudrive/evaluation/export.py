@@ -22,6 +22,7 @@ whole-metre offset (recorded in `Scene.origin`), otherwise equal.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +72,8 @@ def scene_to_json(scene: Scene) -> dict:
         kind = RoadType(int(scene.road_type[r]))
         mid = _MID_BASE[kind] + int(sub[r]) if kind in _MID_BASE else _MID_OTHER.get(kind, -1)
         roads.append({
-            "geometry": [{"x": _f(p[0] + o[0]), "y": _f(p[1] + o[1]), "z": 0.0} for p in scene.polyline(r).astype(np.float64)],
+            "geometry": [{"x": _f(p[0] + o[0]), "y": _f(p[1] + o[1]), "z": 0.0}
+                         for p in scene.polyline(r).astype(np.float64)],
             "type": kind.name.lower(), "map_element_id": mid, "id": int(scene.road_id[r]),
         })
     tl = {}
@@ -81,11 +83,11 @@ def scene_to_json(scene: Scene) -> dict:
         tl[str(int(lane))] = {"state": [TrafficLightState(int(s)).name.lower() for s in col],
                               "x": [_f(stop[0])] * len(col), "y": [_f(stop[1])] * len(col),
                               "time_index": list(range(len(col)))}
+    interest = [{"track_index": int(i), "difficulty": 0} for i in np.nonzero(scene.is_interest)[0]]
     md = {"sdc_track_index": meta.get("sdc_track_index",
                                       int(np.argmax(scene.is_sdc)) if scene.is_sdc.any() else None),
           "objects_of_interest": [int(x) for x in meta.get("objects_of_interest", []) or []],
-          "tracks_to_predict": meta.get("tracks_to_predict",
-                                        [{"track_index": int(i), "difficulty": 0} for i in np.nonzero(scene.is_interest)[0]])}
+          "tracks_to_predict": meta.get("tracks_to_predict", interest)}
     if md["sdc_track_index"] is None:
         del md["sdc_track_index"]
     out = {"name": meta.get("name") or f"{scene.scene_id}.json", "scenario_id": scene.scene_id,
@@ -146,5 +148,6 @@ def export_episodes(tr: Trajectories, episodes, out_dir: str | Path, risk_rows: 
     out = []
     for i, e in enumerate(episodes):
         sc = generated_scene(tr, int(e), risk=(risk_rows[i] if risk_rows else None))
-        out.append(write_scene_json(sc, Path(out_dir) / f"{sc.scene_id}.json"))
+        name = re.sub(r"[^A-Za-z0-9_.-]+", "_", sc.scene_id)
+        out.append(write_scene_json(sc, Path(out_dir) / f"{name}.json"))
     return out

@@ -75,6 +75,16 @@ def build_models(cfg: TrainConfig, sim: Simulator, device: str):
     return actor, critic
 
 
+def make_prior(cfg: TrainConfig, sim: Simulator):
+    """The magnet: the logged expert actions, or the learned world model (tg_gpudrive.worldmodel)."""
+    if cfg.prior == "world_model":
+        from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
+
+        model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
+        return WorldModelPrior(model, sim)
+    return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature)
+
+
 def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
     """A `policy(sim)` callable from a training checkpoint (used by evaluate and render)."""
     ck = torch.load(Path(path), map_location=sim.device, weights_only=False)
@@ -153,7 +163,7 @@ class Trainer:
             self.actor_fwd = DDP(self.actor, device_ids=ids)
             self.critic_fwd = DDP(self.critic, device_ids=ids)
         self.head = PolicyHead(cfg.env.action_space == "discrete")
-        self.prior = ExpertPrior(self.sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature)
+        self.prior = make_prior(cfg, self.sim)
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
@@ -181,7 +191,7 @@ class Trainer:
     def _resample(self) -> None:
         scenes = self.sampler.sample()
         self.sim.set_scenes(scenes, controlled=self._control(scenes))
-        self.prior = ExpertPrior(self.sim, self.cfg.prior_sigma_accel, self.cfg.prior_sigma_curvature)
+        self.prior = make_prior(self.cfg, self.sim)
 
     # ------------------------------------------------------------- rollout
     def _amp(self):
@@ -209,7 +219,7 @@ class Trainer:
             "done": torch.zeros((T, W, C), device=dev),
             "value": torch.zeros((T + 1, W, C), device=dev),
             "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
-            "prior": torch.zeros((T, W, C, 4), device=dev),
+            "prior": torch.zeros((T, W, C, getattr(self.prior, "context_dim", 4)), device=dev),
         }
         buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
                       else (torch.zeros((T, W, C, self._act_dim()), device=dev),

@@ -1,0 +1,103 @@
+"""Run the experiment grid (configs/experiments/grid.yaml) in batches, then the report.
+
+    python scripts/run_experiments.py --config configs/experiments/grid.yaml --out runs/experiments \
+        [--batch 4] [--set device=cuda] [--dry-run] [--report-only]
+
+Every cell (beta x alpha) and every baseline is one `tg-gpudrive train` process
+(`python -m tg_gpudrive.cli train ...`); `--batch` of them run at the same time
+(on one GPU they share it; W worlds each). A run directory that already holds a
+checkpoint of its final update is skipped, so an interrupted grid resumes. When
+all runs are done, `tg_gpudrive.evaluation.report.report_main` writes
+<out>/report/.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+from tg_gpudrive.config import REPO_CONFIGS
+
+
+def _yaml(v) -> str:
+    """A value as `--set` parses it back (YAML: 1e-08 would be a string, 1.0e-08 is a float)."""
+    if isinstance(v, str):
+        return v
+    return yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
+    """(run name, train overrides) for every cell and baseline."""
+    common = [f"{k}={_yaml(v)}" for k, v in (exp.get("overrides") or {}).items()]
+    runs = []
+    for beta in exp["beta"]:
+        for alpha in exp["alpha"]:
+            runs.append((f"beta{beta}_alpha{alpha}", common + [f"env.beta={beta}", f"alpha={alpha}"] + extra))
+    for name, over in (exp.get("baselines") or {}).items():
+        sets = [f"{k}={_yaml(v)}" for k, v in over.items()]
+        runs.append((name, common + sets + extra))
+    return runs
+
+
+def done(run: Path, updates: int | None) -> bool:
+    rows = (run / "metrics.csv").read_text().splitlines() if (run / "metrics.csv").exists() else []
+    return (run / "checkpoint.pt").exists() and updates is not None and len(rows) - 1 >= updates
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default=str(REPO_CONFIGS / "experiments" / "grid.yaml"))
+    ap.add_argument("--out", default="runs/experiments")
+    ap.add_argument("--batch", type=int, default=None, help="runs trained at once (default: the config's)")
+    ap.add_argument("--set", action="append", default=[], help="extra train override for every run")
+    ap.add_argument("--dry-run", action="store_true", help="print the commands only")
+    ap.add_argument("--report-only", action="store_true")
+    args = ap.parse_args(argv)
+    cfg_path = Path(args.config)
+    exp = yaml.safe_load(cfg_path.read_text())
+    base = Path(exp["base"])
+    if not base.is_absolute():
+        base = (REPO_CONFIGS / "train" / base) if (REPO_CONFIGS / "train" / base).exists() else cfg_path.parent / base
+    out = Path(args.out)
+    runs = plan(exp, args.set)
+    updates = dict(a.split("=", 1) for _, sets in runs[:1] for a in sets).get("updates")
+    if updates is None:
+        updates = yaml.safe_load(base.read_text()).get("updates")
+    batch = args.batch or int(exp.get("batch", 1))
+    todo = [(n, s) for n, s in runs if not done(out / n, int(updates) if updates is not None else None)]
+    if not args.report_only:
+        for i in range(0, len(todo), batch):
+            procs = []
+            for name, sets in todo[i:i + batch]:
+                cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--config", str(base), "--out",
+                       str(out / name)] + [x for s in sets for x in ("--set", s)]
+                print(" ".join(cmd), flush=True)
+                if not args.dry_run:
+                    (out / name).mkdir(parents=True, exist_ok=True)
+                    log = (out / name / "train.log").open("w")
+                    procs.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+            for name, p, log in procs:
+                rc = p.wait()
+                log.close()
+                print(f"{name}: exit {rc}", flush=True)
+                if rc != 0:
+                    print(f"{name} failed; see {out / name / 'train.log'}", file=sys.stderr)
+                    return rc
+    if args.dry_run:
+        return 0
+    from tg_gpudrive.evaluation.report import ReportOptions, report_main
+
+    r = exp.get("report") or {}
+    opts = ReportOptions(scenes=int(r.get("scenes", 4)), seeds=tuple(r.get("seeds", (0, 1))),
+                         br_iters=int(r.get("br_iters", 5)), br_seeds=tuple(r.get("br_seeds", (0, 1))))
+    report_main([out / n for n, _ in runs], out / "report", opts)
+    print(f"wrote {out / 'report' / 'report.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

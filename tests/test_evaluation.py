@@ -1,0 +1,235 @@
+"""Scenario-quality evaluation: divergences against hand-computed values, Wasserstein against
+scipy, CCE-gap zero / positive, exporter round trip, and the report on a tiny CPU run."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+
+from conftest import WOMD_FILES
+from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
+from tg_gpudrive.data.procedural import generate_scene
+from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.evaluation import diversity as div
+from tg_gpudrive.evaluation import exploitability as ex
+from tg_gpudrive.evaluation import fidelity as fid
+from tg_gpudrive.evaluation import risk as rk
+from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
+from tg_gpudrive.evaluation.rollouts import logged_episodes, record_episodes, record_rollouts
+from tg_gpudrive.rollout import expert_policy, make_random_policy
+from tg_gpudrive.scene import make_scene
+from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.types import RoadType
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    # tiny per-step batches: torch's thread pool only adds overhead (and contends on shared cores)
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+# ------------------------------------------------------------ divergences
+def test_divergences_by_hand():
+    p, q = np.array([1.0, 0.0]), np.array([0.5, 0.5])
+    assert fid.hellinger(p, q) == pytest.approx(math.sqrt(1 - math.sqrt(0.5)))
+    assert fid.hellinger(p, p) == pytest.approx(0.0, abs=1e-12)
+    assert fid.hellinger([1, 0], [0, 1]) == pytest.approx(1.0)
+    # KL with eps smoothing: p' = (p + e) / (1 + 2e)
+    e = 1e-6
+    pp = (np.array([1.0, 0.0]) + e) / (1 + 2 * e)
+    qq = (np.array([0.5, 0.5]) + e) / (1 + 2 * e)
+    assert fid.kl_divergence(p, q, eps=e) == pytest.approx((pp * np.log(pp / qq)).sum())
+    assert fid.kl_divergence([2, 2], [1, 3]) == pytest.approx(0.5 * math.log(0.5 / 0.25) + 0.5 * math.log(0.5 / 0.75),
+                                                               rel=1e-5)
+    # counts are normalised; W1 of a point mass shifted by two bins of width 0.5 is 1.0
+    assert fid.wasserstein1([0, 4, 0, 0], [0, 0, 0, 1], 0.5) == pytest.approx(1.0)
+
+
+def test_wasserstein_matches_scipy(rng):
+    b = fid.FEATURES["speed"]
+    p, q = fid.histogram(rng.normal(10, 3, 500), b), fid.histogram(rng.normal(13, 2, 700), b)
+    want = scipy.stats.wasserstein_distance(b.centers, b.centers, p, q)
+    assert fid.wasserstein1(p, q, b.width) == pytest.approx(want, rel=1e-9)
+
+
+def test_histogram_clips_into_the_edge_bins():
+    b = fid.FEATURES["accel"]
+    h = fid.histogram([-100.0, 100.0, 0.1], b)
+    assert h.sum() == 3 and h[0] == 1 and h[-1] == 1 and h[b.num_bins // 2] == 1
+
+
+def test_realism_likelihood():
+    b = fid.Binning(0.0, 2.0, 1.0, "m")
+    q = np.array([3.0, 1.0])
+    # logged samples: one in each bin -> mean log of the smoothed masses
+    qs = (q / 4 + fid.REALISM_EPS) / (1 + 2 * fid.REALISM_EPS)
+    assert fid.log_likelihood([0.5, 1.5], q, b) == pytest.approx(np.log(qs).mean())
+
+
+# ---------------------------------------------------------- rollouts & risk
+@pytest.fixture(scope="module")
+def merge_sim():
+    scenes = [generate_scene("merge", s) for s in range(2)]
+    return Simulator(scenes, EngineConfig(max_agents=16, partner_k=4, road_k=8), "cpu")
+
+
+def test_expert_is_close_to_the_logs_and_random_is_not(merge_sim):
+    logged = logged_episodes(merge_sim)
+    expert = record_episodes(merge_sim, expert_policy, label="expert")
+    rand = record_episodes(merge_sim, make_random_policy(0, "cpu"), label="random")
+    fe, fr = fid.compare(logged, expert), fid.compare(logged, rand)
+    for name in ("speed", "nearest"):
+        assert fe["per_feature"][name]["hellinger"] < fr["per_feature"][name]["hellinger"]
+    assert fe["realism_ours"] > fr["realism_ours"]
+    # log replay is one trajectory per scene: no diversity; random rollouts differ
+    both = record_rollouts(merge_sim, make_random_policy(1, "cpu"), seeds=[0, 1])
+    assert div.diversity(both)["mean"] > 0.5
+    two = record_rollouts(merge_sim, expert_policy, seeds=[0, 1])
+    assert div.diversity(two)["mean"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_ttc_closed_form_head_on():
+    # two discs 20 m apart closing at 10 m/s, radii 1 + 1: contact after (20 - 2) / 10 s
+    t = rk.pair_ttc(np.array([20.0, 0.0]), np.array([-10.0, 0.0]), np.array(2.0))
+    assert float(t) == pytest.approx(1.8)
+    assert float(rk.pair_ttc(np.array([1.0, 0.0]), np.array([0.0, 0.0]), np.array(2.0))) == 0.0  # overlap
+    assert float(rk.pair_ttc(np.array([20.0, 0.0]), np.array([10.0, 0.0]), np.array(2.0))) == rk.TTC_HORIZON
+
+
+def test_risk_of_a_rear_end_scene():
+    """A fast car behind a stopped one: TTC from the closed form, collision and hard braking found."""
+    T = 40
+    lead = np.stack([np.full(T, 30.0), np.zeros(T)], -1)
+    follow = np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)  # 10 m/s, dt 0.1
+    sc = make_scene(np.stack([lead, follow]), np.zeros((2, T)), length=4.0, width=2.0,
+                    roads=[(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))])
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
+    sim = Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])])
+    tr = record_episodes(sim, lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    r = rk.episode_risk(tr)
+    slot = int(np.nonzero(tr.policy[0])[0][0])
+    # at k = 0: gap 29 m between centres, 3 discs of radius 1, outer discs 1 m from the centre:
+    # contact when the gap closes to 2 + 2 * 1 = 4 m -> (29 - 4) / 10 s
+    assert r["min_ttc"][0, slot] <= (29.0 - 4.0) / 10.0 + 1e-4
+    assert r["collided"][0, slot]
+    assert r["min_gap"][0, slot] < 4.0
+    # braking at the last grid value (-6 m/s^2) from 10 m/s is one event
+    sim2 = Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])])
+    tr2 = record_episodes(sim2, lambda s: s.actions_index.fill_(0 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    assert rk.hard_brakes(tr2)[0, slot] == 1
+    assert not rk.episode_risk(tr2)["collided"][0, slot]
+    ranked = rk.rank_scenarios(tr.concat([tr2, tr]))
+    assert ranked[0]["collisions"] == 1 and ranked[-1]["collisions"] == 0
+
+
+# ----------------------------------------------------------------- CCE-gap
+def test_cce_gap_matrix_game():
+    A = np.array([[3.0, 0.0], [5.0, 1.0]])  # prisoner's dilemma, row player; column player gets A.T
+    nash = [np.array([0.0, 1.0]), np.array([0.0, 1.0])]
+    coop = [np.array([1.0, 0.0]), np.array([1.0, 0.0])]
+    for prof, want in ((nash, 0.0), (coop, 2.0)):
+        g = ex.MatrixGame([A, A.T], prof)
+        assert g.exact_gaps() == pytest.approx([want, want])
+        res = ex.cce_gap(lambda s: ex.MatrixGame([A, A.T], prof, batch=128, seed=s), seeds=(0, 1), iters=60,
+                         lr=0.1, eval_rounds=2)
+        assert res["gap_per_agent"] == pytest.approx([want, want], abs=0.1)
+        assert res["mean_gap"] == pytest.approx(want, abs=0.1)
+
+
+def _straight_scene():
+    T = 60
+    pos = np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)[None]  # 10 m/s along a lane to its goal
+    return make_scene(pos, np.zeros((1, T)), roads=[(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))])
+
+
+def test_cce_gap_single_agent_engine_game():
+    """One vehicle on a lane: the expert already reaches the goal (best response, gap ~ 0); a policy
+    that always brakes is beaten by a best response by about the goal reward plus the progress."""
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=8)
+    sim = Simulator([_straight_scene()] * 4, cfg, "cpu")
+
+    def brake(s):
+        s.actions_index.fill_(0 * cfg.curvature_bins + cfg.curvature_bins // 2)
+
+    kw = dict(seeds=(0, 1), iters=4, lr=3e-3, eval_rounds=1)
+    good = ex.cce_gap(lambda s: ex.SimGame(sim, expert_policy), **kw)
+    bad = ex.cce_gap(lambda s: ex.SimGame(sim, brake), **kw)
+    assert len(good["agents"]) == 1
+    assert good["mean_gap"] < 0.3, good
+    assert bad["mean_gap"] > 2.0, bad
+    assert bad["j_br_per_agent"][0] > good["j_pi_per_agent"][0] - 0.5
+
+
+# ------------------------------------------------------------------ export
+@pytest.mark.parametrize("path", WOMD_FILES[:1])
+def test_export_round_trip_is_identical(path, tmp_path):
+    a = load_gpudrive_json(path)
+    b = load_gpudrive_json(write_scene_json(a, tmp_path / "x.json"))
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype and np.array_equal(x, y), f.name
+        elif f.name == "metadata":
+            assert {k: v for k, v in x.items() if k != "source"} == {k: v for k, v in y.items() if k != "source"}
+        else:
+            assert x == y, f.name
+
+
+def test_export_generated_episode_carries_the_rollout(merge_sim, tmp_path):
+    tr = record_episodes(merge_sim, make_random_policy(3, "cpu"), seed=3, label="rand")
+    risk = rk.rank_scenarios(tr, top=5)
+    e = risk[0]["episode"]
+    path = write_scene_json(generated_scene(tr, e, risk=risk[0]), tmp_path / "gen.json")
+    sc = load_gpudrive_json(path)
+    meta = json.loads(path.read_text())["metadata"]["tg_gpudrive"]
+    assert meta["generated"] and meta["risk"]["min_ttc_s"] == risk[0]["min_ttc_s"]
+    src = tr.scenes[int(tr.scene_index[e])]
+    shift = (sc.origin - src.origin).astype(np.float32)  # the loader re-centres on its own origin
+    T0 = tr.init_step
+    moved = 0
+    for a in np.nonzero(tr.policy[e])[0]:
+        idx = tr.slot_agent[e, a]
+        v = tr.valid[e, a]
+        K = min(len(v), sc.num_steps - T0)
+        assert np.array_equal(sc.log_valid[idx, T0:T0 + K], v[:K])
+        got = sc.log_pos[idx, T0:T0 + K][v[:K]] + shift
+        np.testing.assert_allclose(got, tr.pos[e, a, :K][v[:K]], atol=1e-3)
+        moved += np.abs(tr.pos[e, a, :K][v[:K]] - src.log_pos[idx, T0:T0 + K][v[:K]]).max() > 1.0
+        assert meta["controlled_ids"].count(int(src.agent_id[idx])) == 1
+    assert moved  # the random policy left the log: the file holds the generated paths, not the log
+
+
+# ------------------------------------------------------------------ report
+def test_report_on_tiny_runs(tmp_path):
+    from tg_gpudrive.evaluation.report import FILES, main
+    from tg_gpudrive.learn.train import Trainer
+
+    base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
+    runs = []
+    for name, kw in (("cce", {}), ("mappo", dict(eta1=0.0, eta2=math.inf, lambda_lr=0.0, lambda_init=1e-8))):
+        cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1,
+                                  hidden=16, quantiles=4, updates=2, checkpoint_every=2, control="nearest_conflict",
+                                  control_k=2, out_dir=str(tmp_path / name), **kw)
+        Trainer(cfg, tmp_path / name, progress=False).train()
+        runs.append(str(tmp_path / name))
+    out = tmp_path / "report"
+    assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--seeds", "0", "1", "--br-iters", "1",
+                 "--br-seeds", "0", "--top", "1"]) == 0
+    for f in FILES:
+        assert (out / f).stat().st_size > 0, f
+    md = (out / "report.md").read_text()
+    for label in ("log replay (expert)", "behaviour prior", "| cce | CCE-MAPPO", "| mappo | MAPPO", "realism (ours)"):
+        assert label in md
+    summary = json.loads((out / "summary.json").read_text())
+    assert {r["label"] for r in summary["results"]} == {"log replay (expert)", "behaviour prior", "cce", "mappo"}
+    assert list((out / "scenarios" / "cce").glob("*.json"))
+    assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2

@@ -1,0 +1,395 @@
+"""`tg-gpudrive report`: the scenario-quality report of one or more training runs.
+
+    report_main(["runs/grid/beta4.0_alpha0.5", ...], "report/")
+
+For every run directory (holding checkpoint.pt, config.json, metrics.csv as
+`learn.train.Trainer` writes them) the run's policy drives the first
+`scenes` scenes of its own scene source (same control selection), once per
+rollout seed; the logs of those worlds are the reference. Baselines on the
+first run's scenes: log replay (the closed-loop inverse-dynamics expert of the
+engine) and the behaviour prior alone (actions sampled from the expert prior,
+learn/prior.py, discrete action spaces). A run counts as plain MAPPO when its
+config switches the magnet, the proximal term and the constraint off
+(eta1 = 0, eta2 = inf, lambda_lr = 0 with a negligible lambda_init; see
+configs/experiments/grid.yaml), else as CCE-MAPPO.
+
+Writes into `out`:
+
+    report.md           tables: comparison against baselines, fidelity per feature, CCE-gap per
+                        agent, diversity per scenario type, most critical scenarios
+    grid.png            the beta x alpha grid of top-down scenes (last frame of world 0)
+    multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
+    fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
+    cce_gap.png         CCE-gap per agent, per run
+    summary.json        every number of the tables
+    scenarios/<run>/    the most critical generated scenarios as GPUDrive JSON (risk in metadata)
+    frames/<run>.png    the top-down pictures of the grid
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from tg_gpudrive.evaluation import diversity as div
+from tg_gpudrive.evaluation import exploitability as ex
+from tg_gpudrive.evaluation import fidelity as fid
+from tg_gpudrive.evaluation import risk as rk
+from tg_gpudrive.evaluation.export import export_episodes
+from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts
+
+FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "summary.json")
+
+
+@dataclasses.dataclass
+class ReportOptions:
+    scenes: int = 4  # evaluation scenes per run (worlds)
+    seeds: tuple[int, ...] = (0, 1)  # rollout seeds (diversity needs >= 2)
+    br_iters: int = 5  # best-response updates per seed
+    br_seeds: tuple[int, ...] = (0, 1)
+    br_lr: float = 3e-4
+    br_rounds: int = 1  # evaluation batches of J_pi and J_br
+    top: int = 3  # critical scenarios exported per run
+    device: str | None = None  # default: the run's config device
+    frame_size: int = 320
+
+
+# ------------------------------------------------------------------ helpers
+def _run_config(run: Path):
+    from tg_gpudrive.config import TrainConfig, from_dict
+
+    path = run / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{run}: no config.json (not a training run directory?)")
+    return from_dict(TrainConfig, json.loads(path.read_text()), str(path))
+
+
+def run_kind(cfg) -> str:
+    plain = cfg.eta1 == 0 and math.isinf(cfg.eta2) and cfg.lambda_lr == 0 and cfg.lambda_init < 1e-3
+    return "MAPPO" if plain else "CCE-MAPPO"
+
+
+def _scenes(cfg, n: int):
+    from tg_gpudrive.control import control_masks
+    from tg_gpudrive.data.sources import resolve_scenes
+
+    src = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
+    scenes = [src.get(i) for i in range(min(n, len(src)))]
+    return scenes, control_masks(scenes, cfg.env, cfg.control, cfg.control_k, cfg.control_ids)
+
+
+def prior_policy(sim):
+    """Sample every slot's action from the expert prior (learn/prior.py): "the behaviour prior alone"."""
+    from tg_gpudrive.learn.prior import ExpertPrior
+
+    prior = ExpertPrior(sim)
+
+    def policy(sim_):
+        logits = prior.distribution(prior.context(sim_, sim_.max_agents))
+        a = torch.distributions.Categorical(logits=logits).sample()
+        sim_.actions_index.copy_(a.to(torch.int32))
+
+    return policy
+
+
+def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.ndarray:
+    """Last frame of world 0's episode under the run's policy (engine without auto-reset, so the
+    final state is still there to draw; only that frame is drawn), also saved to `path`."""
+    from PIL import Image
+
+    from tg_gpudrive.learn.train import load_policy
+    from tg_gpudrive.render import render_episode
+    from tg_gpudrive.simulator import Simulator
+
+    sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
+    torch.manual_seed(0)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    render_episode(sim, load_policy(ckpt, sim), world=0, out=path, size=(size, size), legend=False)
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def _gap_game_sim(cfg, scenes, masks, device):
+    """Worlds = each scene once per policy agent, so every agent deviates in one world."""
+    from tg_gpudrive.simulator import Simulator
+
+    k = max(1, max(int(m.sum()) for m in masks))
+    return Simulator([s for s in scenes for _ in range(k)], cfg.env, device,
+                     controlled=[m for m in masks for _ in range(k)])
+
+
+def _evaluate(label, sim, policy, logged, opts, gap_game=None) -> tuple[dict, object]:
+    gen = record_rollouts(sim, policy, opts.seeds, label=label)
+    risk = rk.episode_risk(gen)
+    res = {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
+           "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=opts.top)}
+    if gap_game is not None:
+        res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
+                                    eval_rounds=opts.br_rounds)
+    return res, gen
+
+
+def _read_metrics(run: Path) -> list[dict]:
+    path = run / "metrics.csv"
+    return list(csv.DictReader(path.open())) if path.exists() else []
+
+
+def _fig():
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(dpi=100)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+# ---------------------------------------------------------------- figures
+def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path) -> None:
+    betas = sorted({b for b, _ in cells}) or [0.0]
+    alphas = sorted({a for _, a in cells}) or [0.0]
+    fig = _fig()
+    fig.set_size_inches(2.4 * len(betas) + 0.6, 2.4 * len(alphas) + 0.6)
+    for r, a in enumerate(alphas):
+        for c, b in enumerate(betas):
+            ax = fig.add_subplot(len(alphas), len(betas), r * len(betas) + c + 1)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if (b, a) in cells:
+                ax.imshow(cells[(b, a)])
+            if r == 0:
+                ax.set_title(f"beta = {b:g} m", fontsize=9)
+            if c == 0:
+                ax.set_ylabel(f"alpha = {a:g}", fontsize=9)
+    fig.suptitle("CCE-MAPPO scenes: beta (distance budget, columns) x alpha (CVaR level, rows)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def plot_multipliers(curves: dict[str, list[dict]], path: Path) -> None:
+    fig = _fig()
+    fig.set_size_inches(10, 3.4)
+    for i, key in enumerate(("lambda", "cvar", "cost")):
+        ax = fig.add_subplot(1, 3, i + 1)
+        for label, rows in curves.items():
+            x = [int(r["update"]) for r in rows if r.get(key) not in (None, "", "nan")]
+            y = [float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")]
+            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=label)
+        ax.set_xlabel("update", fontsize=8)
+        ax.set_title({"lambda": "Lagrange multiplier lambda", "cvar": "CVaR_alpha of cost-to-go",
+                      "cost": "cost per agent-step"}[key], fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.axes[0].legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def plot_gaps(gaps: dict[str, dict], path: Path) -> None:
+    fig = _fig()
+    labels = list(gaps)
+    n_agents = max([len(g["gap_per_agent"]) for g in gaps.values()] or [1])
+    fig.set_size_inches(max(5, 0.5 * n_agents * max(len(labels), 1) + 2), 3.4)
+    ax = fig.add_subplot(1, 1, 1)
+    w = 0.8 / max(len(labels), 1)
+    for i, label in enumerate(labels):
+        g = gaps[label]["gap_per_agent"]
+        ax.bar(np.arange(len(g)) + i * w, g, width=w, label=f"{label} (mean {gaps[label]['mean_gap']:.3g})")
+    ax.set_xlabel("policy agent (scene / agent index)", fontsize=8)
+    ax.set_ylabel("CCE-gap (return gain of best response)", fontsize=8)
+    ax.legend(fontsize=6)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+# ------------------------------------------------------------------ tables
+def _fmt(v, nd=3) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    v = float(v)
+    return "nan" if math.isnan(v) else f"{v:.{nd}g}" if abs(v) < 1e4 else f"{v:.3e}"
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(c if isinstance(c, str) else _fmt(c) for c in r) + " |" for r in rows]
+    return "\n".join(out) + "\n"
+
+
+def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
+    L = ["# Scenario-quality report\n",
+         f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run, rollout seeds "
+         f"{meta['seeds']}; CCE-gap: {meta['br_iters']} best-response updates x seeds {meta['br_seeds']}. "
+         "Definitions and binning: `tg_gpudrive/evaluation/` module docstrings (fidelity bins: speed 0.5 m/s on "
+         "[0, 30], accel 0.25 m/s^2 on [-8, 8], nearest 0.5 m on [0, 50], curvature 0.005 1/m on [-0.3, 0.3]; "
+         f"KL smoothing eps {fid.KL_EPS:g}; TTC: {rk.TTC_DISCS} discs of radius width/2 per agent, constant "
+         f"velocity, horizon {rk.TTC_HORIZON:g} s; hard brake: accel < {rk.HARD_BRAKE:g} m/s^2).\n",
+         "**realism (ours)** is a Waymo-Sim-Agents-*style* likelihood score computed by this project, "
+         "not the official challenge metric.\n",
+         "![grid](grid.png)\n", "## Comparison against baselines\n"]
+    rows = []
+    for r in results:
+        f = r["fidelity"]["per_feature"]
+        g = r.get("cce_gap")
+        rows.append([r["label"], r.get("kind", "baseline"), r["fidelity"]["realism_ours"],
+                     np.nanmean([v["hellinger"] for v in f.values()]), np.nanmean([v["kl"] for v in f.values()]),
+                     f"{_fmt(g['mean_gap'])} ± {_fmt(g['ci95'])}" if g else "-", r["diversity"]["mean"],
+                     r["risk"].get("collision_rate"), r["risk"].get("near_miss_rate"),
+                     r["risk"].get("mean_min_ttc_s"), r["risk"].get("mean_min_gap_m"),
+                     r["risk"].get("hard_brakes_per_agent")])
+    L.append(_table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI",
+                     "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
+                     "mean min gap [m]", "hard brakes / agent"], rows))
+    L.append("\n## Fidelity per feature (logged vs generated)\n\n![fidelity](fidelity.png)\n\n")
+    rows = []
+    for r in results:
+        for name, v in r["fidelity"]["per_feature"].items():
+            rows.append([r["label"], name, v["hellinger"], v["kl"], v["w1"], v["likelihood"],
+                         v.get("mean_logged"), v.get("mean_generated")])
+    L.append(_table(["policy", "feature", "Hellinger", "KL(log || gen)", "W1", "likelihood", "mean logged",
+                     "mean generated"], rows))
+    L.append("\n## Multipliers during training\n\n![multipliers](multipliers.png)\n")
+    L.append("\n## CCE-gap per agent\n\n![cce_gap](cce_gap.png)\n\n")
+    rows = []
+    for r in results:
+        g = r.get("cce_gap")
+        if not g:
+            continue
+        for name, gap, gain, jp, jb in zip(g["agents"], g["gap_per_agent"], g["gain_per_agent"], g["j_pi_per_agent"],
+                                           g["j_br_per_agent"]):
+            rows.append([r["label"], name, gap, gain, jp, jb])
+    L.append(_table(["policy", "agent", "gap", "raw gain", "J(pi)", "J(BR)"], rows))
+    L.append("\n## Diversity per scenario type [m]\n\n")
+    rows = [[r["label"], t, v] for r in results for t, v in r["diversity"]["per_type"].items()]
+    L.append(_table(["policy", "scenario type", "mean pairwise displacement"], rows))
+    L.append("\n## Most safety-critical generated scenarios\n\n")
+    rows = [[c["label"], c["scene_id"], c["seed"], c["collisions"], c["min_ttc_s"], c["min_gap_m"], c["hard_brakes"],
+             c.get("file", "-")] for r in results if r.get("kind") for c in r["critical"]]
+    L.append(_table(["run", "scene", "seed", "colliding agents", "min TTC [s]", "min gap [m]", "hard brakes",
+                     "exported"], rows))
+    (out / "report.md").write_text("\n".join(L))
+
+
+# --------------------------------------------------------------------- main
+def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOptions | None = None) -> dict:
+    """Evaluate the runs and the baselines, write the report files (FILES) into `out`; return the summary."""
+    from tg_gpudrive.learn.train import load_policy
+    from tg_gpudrive.rollout import expert_policy
+    from tg_gpudrive.simulator import Simulator
+
+    opts = options or ReportOptions()
+    runs = [Path(r) for r in runs]
+    if not runs:
+        raise ValueError("report: give at least one run directory")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    threads = torch.get_num_threads()
+    results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
+    try:
+        for i, run in enumerate(runs):
+            cfg = _run_config(run)
+            ckpt = run / "checkpoint.pt"
+            if not ckpt.exists():
+                raise FileNotFoundError(f"{run}: no checkpoint.pt")
+            device = opts.device or ("cuda:0" if cfg.device == "cuda" else cfg.device)
+            if device == "cpu":
+                torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
+            scenes, masks = _scenes(cfg, opts.scenes)
+            sim = Simulator(scenes, cfg.env, device, controlled=masks)
+            logged = logged_episodes(sim)
+            gsim = _gap_game_sim(cfg, scenes, masks, device)
+            label = run.name
+            if i == 0:  # baselines on the first run's scenes and engine
+                logged_all = logged
+                res, gen = _evaluate("log replay (expert)", sim, expert_policy, logged, opts,
+                                     lambda s: ex.SimGame(gsim, expert_policy))
+                results.append(res)
+                generated_all[res["label"]] = gen
+                gaps[res["label"]] = res["cce_gap"]
+                if cfg.env.action_space == "discrete":
+                    pp = prior_policy(sim)
+                    res, gen = _evaluate("behaviour prior", sim, pp, logged, opts,
+                                         lambda s: ex.SimGame(gsim, prior_policy(gsim)))
+                    results.append(res)
+                    generated_all[res["label"]] = gen
+                    gaps[res["label"]] = res["cce_gap"]
+            policy = load_policy(ckpt, sim)
+            gpolicy = load_policy(ckpt, gsim)
+            actor = ex.load_actor(ckpt, gsim)
+            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor))
+            res["kind"] = run_kind(cfg)
+            res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
+            results.append(res)
+            generated_all[label] = gen
+            gaps[label] = res["cce_gap"]
+            curves[label] = _read_metrics(run)
+            if res["kind"] == "CCE-MAPPO":
+                cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[0], masks[0], ckpt, device,
+                                                               opts.frame_size, out / "frames" / f"{label}.png")
+            # the most critical scenarios, as GPUDrive JSON with their risk figures
+            crit = res["critical"]
+            files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
+            for c, f in zip(crit, files):
+                c["file"] = str(f.relative_to(out))
+    finally:
+        torch.set_num_threads(threads)
+    plot_grid(cells, out / "grid.png")
+    plot_multipliers(curves, out / "multipliers.png")
+    fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
+    plot_gaps(gaps, out / "cce_gap.png")
+    meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
+            "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds)}
+    write_markdown(out, results, meta)
+    summary = {"meta": meta, "results": results}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))
+    return summary
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    raise TypeError(type(o))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="tg-gpudrive report", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    d = ReportOptions()
+    p.add_argument("--runs", nargs="+", required=True, help="training run directories")
+    p.add_argument("--out", default="report", help="output directory")
+    p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes per run")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), help="rollout seeds")
+    p.add_argument("--br-iters", type=int, default=d.br_iters, help="best-response updates per seed")
+    p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds))
+    p.add_argument("--br-lr", type=float, default=d.br_lr)
+    p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
+    p.add_argument("--device", default=None, help="default: each run's config device")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`tg-gpudrive report --runs DIR [DIR ...] --out DIR`; returns the exit status."""
+    args = build_parser().parse_args(argv)
+    opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
+                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, top=args.top, device=args.device)
+    try:
+        report_main(args.runs, args.out, opts)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"tg-gpudrive report: error: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {Path(args.out) / 'report.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
