@@ -215,7 +215,7 @@ def test_report_on_tiny_runs(tmp_path):
 
     base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
     runs = []
-    for name, kw in (("cce", {}), ("mappo", dict(eta1=0.0, eta2=math.inf, lambda_lr=0.0, lambda_init=1e-8))):
+    for name, kw in (("cce", {}), ("mappo", dict(eta1=0.0, eta2=math.inf, constraint=False))):
         cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1,
                                   hidden=16, quantiles=4, updates=2, checkpoint_every=2, control="nearest_conflict",
                                   control_k=2, out_dir=str(tmp_path / name), **kw)

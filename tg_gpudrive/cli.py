@@ -3,6 +3,10 @@
     tg-gpudrive simulate  --scenes procedural:all --worlds 64 --policy expert
     tg-gpudrive benchmark --device cuda --json
     tg-gpudrive convert   womd_dir/ --out store/
+    tg-gpudrive train     --config configs/train/small_cpu.yaml
+    tg-gpudrive evaluate  --checkpoint runs/small_cpu --collision-mode stop
+    tg-gpudrive render    --scenes procedural:merge --policy expert --out episode.gif
+    tg-gpudrive report    --runs runs/grid/* --out report/
 
 Every subcommand takes the engine config (`--env-config`, default
 configs/env/default.yaml, plus `--set key=value` overrides).
@@ -108,6 +112,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=10.0)
     p.add_argument("--highlight", choices=["controlled", "all", "none"], default="controlled",
                    help="whose collisions / off-road events are outlined")
+
+    sub.add_parser("report", add_help=False,
+                   help="scenario-quality report of training runs (tg-gpudrive report --runs DIR... --out DIR)")
 
     p = sub.add_parser("convert", help="pack WOMD files (json / tfrecord) into a memory-mapped store")
     p.add_argument("inputs", nargs="+", help="files or directories")
@@ -343,6 +350,11 @@ COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["report"]:  # its own argument parser (tg_gpudrive.evaluation.report)
+        from tg_gpudrive.evaluation.report import main as report_main
+
+        return report_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")

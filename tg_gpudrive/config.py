@@ -129,6 +129,7 @@ class TrainConfig:
     lambda_init: float = 0.1
     lambda_lr: float = 0.05
     per_agent_lambda: bool = False  # one multiplier per controlled slot
+    constraint: bool = True  # false: no CVaR constraint (lambda = 0), i.e. plain MAPPO with eta1 = 0
     quantiles: int = 64
     prior: str = "expert"  # expert | world_model
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model

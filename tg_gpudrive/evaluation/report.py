@@ -10,7 +10,7 @@ first run's scenes: log replay (the closed-loop inverse-dynamics expert of the
 engine) and the behaviour prior alone (actions sampled from the expert prior,
 learn/prior.py, discrete action spaces). A run counts as plain MAPPO when its
 config switches the magnet, the proximal term and the constraint off
-(eta1 = 0, eta2 = inf, lambda_lr = 0 with a negligible lambda_init; see
+(eta1 = 0, eta2 = inf, constraint = false; see
 configs/experiments/grid.yaml), else as CCE-MAPPO.
 
 Writes into `out`:
@@ -74,7 +74,7 @@ def _run_config(run: Path):
 
 
 def run_kind(cfg) -> str:
-    plain = cfg.eta1 == 0 and math.isinf(cfg.eta2) and cfg.lambda_lr == 0 and cfg.lambda_init < 1e-3
+    plain = cfg.eta1 == 0 and math.isinf(cfg.eta2) and (not cfg.constraint or (cfg.lambda_lr == 0 and cfg.lambda_init < 1e-3))
     return "MAPPO" if plain else "CCE-MAPPO"
 
 

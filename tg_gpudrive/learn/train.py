@@ -307,7 +307,10 @@ class Trainer:
             jc = L.masked_mean(cvar, mask)
         jc = dist_util.all_reduce_mean(jc)  # one constraint estimate, so lambda stays equal on all ranks
         lam_before = self.lagrange.value.detach().clone()
-        self.lagrange.update(jc, cfg.cost_limit)
+        if cfg.constraint:
+            self.lagrange.update(jc, cfg.cost_limit)
+        else:
+            lam_before = torch.zeros_like(lam_before)
         lam = lam_before[:C] if cfg.per_agent_lambda else lam_before
 
         n_groups = T * W
@@ -334,7 +337,7 @@ class Trainer:
                 n_mb += 1
         out = {k: v / max(n_mb, 1) for k, v in acc.items()}
         out["cvar"] = float(jc.mean())
-        out["lambda"] = float(self.lagrange.value.mean().detach())
+        out["lambda"] = float(self.lagrange.value.mean().detach()) if cfg.constraint else 0.0
         out["cost_return"] = float(L.masked_mean(ret_c, mask))
         return out
 
