@@ -155,40 +155,15 @@ def collide_kernel(
     cy = cell_coord(p[1], c)
     nearest = c
     hit = int(0)
-    # two neighbour cells may hash to one bucket: remember visited buckets so
-    # no pair is tested twice (the result would be the same, only slower)
-    v0 = int(-1)
-    v1 = int(-1)
-    v2 = int(-1)
-    v3 = int(-1)
-    v4 = int(-1)
-    v5 = int(-1)
-    v6 = int(-1)
-    v7 = int(-1)
-    k = int(0)
-    for dx in range(-1, 2):
-        for dy in range(-1, 2):
-            h = cell_hash(cx + dx, cy + dy, n_cells)
-            seen = (h == v0) or (h == v1) or (h == v2) or (h == v3) or (h == v4) or (h == v5) or (h == v6) or (h == v7)
-            if k == 0:
-                v0 = h
-            elif k == 1:
-                v1 = h
-            elif k == 2:
-                v2 = h
-            elif k == 3:
-                v3 = h
-            elif k == 4:
-                v4 = h
-            elif k == 5:
-                v5 = h
-            elif k == 6:
-                v6 = h
-            elif k == 7:
-                v7 = h
-            k += 1
-            if seen:
-                continue
+    for k in range(9):
+        h = cell_hash(cx + k / 3 - 1, cy + k % 3 - 1, n_cells)
+        # two neighbour cells may hash to one bucket: visit it once (the result would be the
+        # same, only slower)
+        seen = int(0)
+        for e in range(k):
+            if cell_hash(cx + e / 3 - 1, cy + e % 3 - 1, n_cells) == h:
+                seen = 1
+        if seen == 0:
             g = w * n_cells + h
             for s in range(cell_start[g], cell_fill[g]):
                 j = base + cell_items[base + s]

@@ -12,6 +12,8 @@ import torch
 import warp as wp
 from conftest import WOMD_FILES
 
+from scenes import crossing_scene
+
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.womd_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
@@ -57,20 +59,7 @@ def test_expert_tracks_real_womd_logs(womd_scenes, device):
 
 
 def head_on_scene():
-    """A drives +x towards (20, 0), B crosses it driving +y, C follows A 15 m behind."""
-    t = np.arange(T) * 0.1
-    pos = np.zeros((3, T, 2))
-    pos[0, :, 0] = 10 * t
-    pos[1, :, 0] = 20.0
-    pos[1, :, 1] = -20 + 10 * t
-    pos[2, :, 0] = -15 + 10 * t
-    pos[:, -1] += np.array([[500, 0], [0, 500], [500, 0]])  # goals far away
-    yaw = np.zeros((3, T))
-    yaw[1] = np.pi / 2
-    vel = np.zeros((3, T, 2))
-    vel[:, :, 0] = [[10], [0], [10]]
-    vel[1, :, 1] = 10
-    return make_scene(pos, yaw, log_vel=vel, length=4.0, width=2.0)
+    return crossing_scene(T)
 
 
 def run_modes(mode, device, steps=35):

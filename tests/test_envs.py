@@ -13,13 +13,13 @@ import torch
 from conftest import WOMD_FILES
 from gymnasium.utils.env_checker import check_env
 from pettingzoo.test import parallel_api_test
+from scenes import crossing_scene
 
 import tg_gpudrive.envs  # noqa: F401  (registers the ids)
 from tg_gpudrive.config import ConfigError, EngineConfig
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
 from tg_gpudrive.envs.vector import TGVectorEnv, make_config, noop_index
-from tg_gpudrive.scene import make_scene
 from tg_gpudrive.simulator import Simulator
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
@@ -28,22 +28,7 @@ T = 40
 
 
 def head_on_scene():
-    """A drives +x towards (20, 0), B crosses it driving +y, C follows A 15 m behind (as in test_engine).
-
-    At constant velocity (the no-op action) A and B first overlap at log step 18, on the 18th step."""
-    t = np.arange(T) * 0.1
-    pos = np.zeros((3, T, 2))
-    pos[0, :, 0] = 10 * t
-    pos[1, :, 0] = 20.0
-    pos[1, :, 1] = -20 + 10 * t
-    pos[2, :, 0] = -15 + 10 * t
-    pos[:, -1] += np.array([[500, 0], [0, 500], [500, 0]])  # goals far away
-    yaw = np.zeros((3, T))
-    yaw[1] = np.pi / 2
-    vel = np.zeros((3, T, 2))
-    vel[:, :, 0] = [[10], [0], [10]]
-    vel[1, :, 1] = 10
-    return make_scene(pos, yaw, log_vel=vel, length=4.0, width=2.0)
+    return crossing_scene(T)
 
 
 def head_on_config(mode: str) -> dict:
