@@ -138,6 +138,17 @@ def ego_partner_obs_kernel(
 
 
 @wp.func
+def heap_swap(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), x: int, y: int):
+    td = hd[x]
+    tj = hj[x]
+    hd[x] = hd[y]
+    hj[x] = hj[y]
+    hd[y] = td
+    hj[y] = tj
+    return 0
+
+
+@wp.func
 def heap_sift_down(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, start: int, n: int):
     """Restore the max-heap property below `start` in hd[b : b + n]."""
     k = start
@@ -150,12 +161,7 @@ def heap_sift_down(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: i
             m = l + 1
         if hd[b + m] <= hd[b + k]:
             break
-        td = hd[b + k]
-        tj = hj[b + k]
-        hd[b + k] = hd[b + m]
-        hj[b + k] = hj[b + m]
-        hd[b + m] = td
-        hj[b + m] = tj
+        heap_swap(hd, hj, b + k, b + m)
         k = m
     return 0
 
@@ -221,12 +227,7 @@ def road_obs_kernel(
                             par = (hc - 1) / 2
                             if heap_d[b + par] >= heap_d[b + hc]:
                                 break
-                            td = heap_d[b + par]
-                            tj = heap_j[b + par]
-                            heap_d[b + par] = heap_d[b + hc]
-                            heap_j[b + par] = heap_j[b + hc]
-                            heap_d[b + hc] = td
-                            heap_j[b + hc] = tj
+                            heap_swap(heap_d, heap_j, b + par, b + hc)
                             hc = par
                         n = n + 1
                     elif d2 < heap_d[b]:
@@ -237,12 +238,7 @@ def road_obs_kernel(
     e = n
     while e > 1:
         e = e - 1
-        td = heap_d[b]
-        tj = heap_j[b]
-        heap_d[b] = heap_d[b + e]
-        heap_j[b] = heap_j[b + e]
-        heap_d[b + e] = td
-        heap_j[b + e] = tj
+        heap_swap(heap_d, heap_j, b, b + e)
         heap_sift_down(heap_d, heap_j, b, 0, e)
     c = wp.cos(yaw[i])
     s = wp.sin(yaw[i])

@@ -209,21 +209,7 @@ class Trainer:
         T, W, C = cfg.rollout_steps, sim.num_worlds, max(sim.max_controlled, 1)
         dev = self.device
         slots = torch.arange(C, device=dev)
-        buf = {
-            "obs": torch.zeros((T, W, C, sim.obs_dim), device=dev),
-            "act": torch.zeros((T, W, C) if self.head.discrete else (T, W, C, self._act_dim()), device=dev),
-            "logp": torch.zeros((T, W, C), device=dev),
-            "mask": torch.zeros((T, W, C), dtype=torch.bool, device=dev),
-            "reward": torch.zeros((T, W, C), device=dev),
-            "cost": torch.zeros((T, W, C), device=dev),
-            "done": torch.zeros((T, W, C), device=dev),
-            "value": torch.zeros((T + 1, W, C), device=dev),
-            "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
-            "prior": torch.zeros((T, W, C, getattr(self.prior, "context_dim", 4)), device=dev),
-        }
-        buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
-                      else (torch.zeros((T, W, C, self._act_dim()), device=dev),
-                            torch.zeros((T, W, C, self._act_dim()), device=dev)))
+        buf = self._buffers(T, W, C)
         stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev), "alive": torch.zeros((), device=dev),
                  "episodes": torch.zeros((), device=dev), "goal": torch.zeros((), device=dev),
                  "collided": torch.zeros((), device=dev), "offroad": torch.zeros((), device=dev),
@@ -282,6 +268,32 @@ class Trainer:
             raise TrainingError(f"non-finite policy output during the rollout of update {self.update}; stopped "
                                 f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
         return buf, stats
+
+    def _buffers(self, T: int, W: int, C: int) -> dict:
+        """Rollout storage, allocated once per shape (several GB at 4,096 worlds) and reused:
+        every entry is overwritten by each rollout, so nothing needs clearing."""
+        key = (T, W, C)
+        if getattr(self, "_buf_key", None) == key:
+            return self._buf
+        cfg, sim, dev = self.cfg, self.sim, self.device
+        self._buf = None  # drop the old storage before allocating the new one
+        act = (T, W, C) if self.head.discrete else (T, W, C, self._act_dim())
+        buf = {
+            "obs": torch.zeros((T, W, C, sim.obs_dim), device=dev),
+            "act": torch.zeros(act, device=dev),
+            "logp": torch.zeros((T, W, C), device=dev),
+            "mask": torch.zeros((T, W, C), dtype=torch.bool, device=dev),
+            "reward": torch.zeros((T, W, C), device=dev),
+            "cost": torch.zeros((T, W, C), device=dev),
+            "done": torch.zeros((T, W, C), device=dev),
+            "value": torch.zeros((T + 1, W, C), device=dev),
+            "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
+            "prior": torch.zeros((T, W, C, getattr(self.prior, "context_dim", 4)), device=dev),
+        }
+        buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
+                      else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)))
+        self._buf, self._buf_key = buf, key
+        return buf
 
     def _act_dim(self) -> int:
         return 2 if self.cfg.env.dynamics == "bicycle" else 3
