@@ -335,6 +335,65 @@ def launch_step_agents(model, state, control, cfg) -> None:
 
 
 @wp.kernel
+def corrective_expert_kernel(
+    agents_per_world: int,
+    step: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec2),
+    yaw: wp.array(dtype=float),
+    vel: wp.array(dtype=wp.vec2),
+    log_pos: wp.array2d(dtype=wp.vec2),
+    log_yaw: wp.array2d(dtype=float),
+    log_vel: wp.array2d(dtype=wp.vec2),
+    log_valid: wp.array2d(dtype=wp.int32),
+    dt: float,
+    dynamics: int,
+    max_accel: float,
+    max_kappa: float,
+    n_accel: int,
+    n_kappa: int,
+    gain_long: float,
+    gain_lat: float,
+    action_out: wp.array(dtype=wp.vec3),
+    index_out: wp.array(dtype=wp.int32),
+):
+    """The expert's action from the agent's *current* state: the tracking controller of
+    `expert_actions_kernel` aimed at the log at t + 1 and t + 2, wherever the agent has
+    drifted to. Continuous action (a, kappa, 0) or (dx, dy, dyaw); the nearest grid index
+    (-1: the log has no next state)."""
+    i = wp.tid()
+    t = step[i / agents_per_world]
+    T = log_pos.shape[1]
+    if t + 1 >= T or log_valid[i, t + 1] == 0:
+        action_out[i] = wp.vec3(0.0, 0.0, 0.0)
+        index_out[i] = -1
+        return
+    if dynamics == DYNAMICS_BICYCLE:
+        has2 = int(0)
+        pos2 = log_pos[i, t + 1]
+        if t + 2 < T:
+            if log_valid[i, t + 2] != 0:
+                has2 = 1
+                pos2 = log_pos[i, t + 2]
+        yaw_t, vel_t = tracking_target(pos[i], yaw[i], vel[i], log_pos[i, t + 1], log_yaw[i, t + 1],
+                                       log_vel[i, t + 1], pos2, has2, dt, gain_long, gain_lat)
+        a, k = bicycle_inverse(yaw[i], vel[i], yaw_t, vel_t, dt, max_accel, max_kappa)
+        action_out[i] = wp.vec3(a, k, 0.0)
+        index_out[i] = nearest_bin(a, -max_accel, max_accel, n_accel) * n_kappa + nearest_bin(
+            k, -max_kappa, max_kappa, n_kappa)
+    else:
+        action_out[i] = delta_local_inverse(pos[i], yaw[i], log_pos[i, t + 1], log_yaw[i, t + 1])
+        index_out[i] = 0
+
+
+def launch_corrective_expert(model, state, cfg, action_out, index_out) -> None:
+    wp.launch(corrective_expert_kernel, dim=model.num_slots, device=model.device,
+              inputs=[model.max_agents, state.step, state.pos, state.yaw, state.vel, model.log_pos,
+                      model.log_yaw, model.log_vel, model.log_valid, model.dt, model.dynamics, cfg.max_accel,
+                      cfg.max_curvature, cfg.accel_bins, cfg.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
+              outputs=[action_out, index_out])
+
+
+@wp.kernel
 def expert_to_control_kernel(
     agents_per_world: int,
     step: wp.array(dtype=wp.int32),

@@ -20,6 +20,8 @@ from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.learn.train import Trainer, TrainingError
 from tg_gpudrive.simulator import Simulator
 
+from scenes import crossing_scene
+
 SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
 
 
@@ -66,20 +68,44 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(tmp_path):
     assert (tmp_path / "checkpoint.pt").read_bytes() == saved
 
 
-def test_expert_prior_peaks_on_the_expert_action():
+@pytest.mark.parametrize("closed_loop", [False, True])
+def test_expert_prior_peaks_on_the_expert_action(closed_loop):
     sc = generate_scene("merge", 3)
     sim = Simulator([sc], EngineConfig(max_agents=32, road_k=8, partner_k=4), "cpu")
     sim.reset()
-    prior = ExpertPrior(sim)
+    prior = ExpertPrior(sim, closed_loop=closed_loop)
     C = sim.max_controlled
     logits = prior.distribution(prior.context(sim, C))
     t = int(sim.world_step[0])
     want = sim.expert_index[0, :C, t]
+    # at reset every agent sits on its log: the closed-loop teacher agrees with the logged one
     assert (logits[0].argmax(-1) == want).all()
-    # the magnet is a real distribution: KL of the expert-greedy policy to it is small, of uniform large
+    # the magnet is a real distribution: KL of the expert-greedy policy to it is small, of uniform large.
+    # (The closed-loop prior centres on the unquantised action, at most halfway between two bins,
+    # so the nearest bin holds about half its mass or more: KL <= ln 2 plus the far bins' share.)
     greedy = torch.full_like(logits, -20.0).scatter(-1, want.long()[None, :, None], 0.0)
-    assert L.categorical_kl(greedy, logits).max() < 0.2
+    assert L.categorical_kl(greedy, logits).max() < (0.8 if closed_loop else 0.2)
     assert L.categorical_kl(torch.zeros_like(logits), logits).min() > 2.0
+
+
+def test_corrective_expert_steers_back_to_the_log(device):
+    """Agents of crossing_scene displaced from their logs: the teacher turns and speeds back."""
+    sim = Simulator([crossing_scene()], EngineConfig(max_agents=4, road_k=8, partner_k=2), device)
+    sim.reset()
+    a0, i0 = (x.clone() for x in sim.corrective_expert())
+    # on the log, driving straight at constant speed: no turn, (almost) no acceleration
+    assert torch.allclose(a0[0, :3, 1], torch.zeros(3, device=a0.device), atol=1e-4)
+    assert a0[0, :3, 0].abs().max() < 0.5
+    # A 2 m left of its log (+y) and C 4 m behind its own
+    sim.pos[0, 0, 1] += 2.0
+    sim.pos[0, 2, 0] -= 4.0
+    a, idx = sim.corrective_expert()
+    assert a[0, 0, 1] < -0.02  # curvature < 0: turn right, back towards y = 0
+    assert a[0, 2, 0] > 1.0  # speed up to close the gap
+    assert abs(float(a[0, 2, 1])) < 1e-4
+    cfg = sim.cfg
+    ia, ik = idx[0, 0] // cfg.curvature_bins, idx[0, 0] % cfg.curvature_bins
+    assert ik < cfg.curvature_bins // 2 and 0 <= ia < cfg.accel_bins  # the grid index agrees
 
 
 def test_nearest_conflict_control_picks_k_nearest():

@@ -135,6 +135,7 @@ class TrainConfig:
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model
     prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
+    prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
     # bookkeeping
     checkpoint_every: int = 10
     out_dir: str = "runs/train"

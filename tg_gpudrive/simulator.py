@@ -28,7 +28,7 @@ import warp as wp
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine import Control, Model, State
 from tg_gpudrive.kernels.collision import launch_collision
-from tg_gpudrive.kernels.dynamics import launch_expert_to_control, launch_step_agents
+from tg_gpudrive.kernels.dynamics import launch_corrective_expert, launch_expert_to_control, launch_step_agents
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM, launch_observations
 from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_finish
 from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
@@ -220,6 +220,23 @@ class Simulator:
             self._sync_in()
             launch_expert_to_control(self.model, self.state, self.control)
             self._sync_out()
+
+    def corrective_expert(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The expert's action from every agent's current state, (W, A, 3), and its nearest grid
+        index (W, A), -1 where the log has no next state. Unlike `expert_action` (the logged
+        actions, computed once along the log) this steers an agent that has drifted back to its
+        log: the same tracking controller, evaluated where the agent is now (kernels/dynamics.py).
+        The tensors are reused by the next call."""
+        n = self.model.num_slots
+        if getattr(self, "_corr", None) is None or self._corr[0].shape[0] != n:
+            dev = self.model.device
+            self._corr = (wp.zeros(n, dtype=wp.vec3, device=dev), wp.zeros(n, dtype=wp.int32, device=dev))
+        W, A = self.num_worlds, self.max_agents
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_corrective_expert(self.model, self.state, self.cfg, *self._corr)
+            self._sync_out()
+        return wp.to_torch(self._corr[0]).view(W, A, 3), wp.to_torch(self._corr[1]).view(W, A)
 
     def _write_actions(self, actions) -> None:
         W, A = self.num_worlds, self.max_agents

@@ -9,7 +9,11 @@ logits (..., num_actions) for discrete actions, (mean, log_std) for continuous.
 
 `ExpertPrior` centres the distribution on the inverse-dynamics expert action
 of the log at the current step (kernels/dynamics.py), so the magnet is real
-without a learned model. Where no expert action exists (the log is invalid at
+without a learned model. By default (`closed_loop=True`) that action is
+computed from the agent's current state, so an agent that has drifted off its
+log is pulled back towards it (a DAgger-style teacher); `closed_loop=False`
+uses the logged actions as they were computed along the log, which say
+nothing about how to recover from a drift. Where no expert action exists (the log is invalid at
 the next step) the prior is uniform (discrete) or wide (continuous). The
 learned world model plugs in by implementing the same two methods.
 """
@@ -36,8 +40,10 @@ class ExpertPrior(BehaviourPrior):
     sigma_accel [m/s^2] and sigma_curvature [1/m] set how tightly the magnet
     holds; with the default 7 x 13 grid one bin is 2 m/s^2 and 0.05 1/m."""
 
-    def __init__(self, sim: Simulator, sigma_accel: float = 0.7, sigma_curvature: float = 0.01):
+    def __init__(self, sim: Simulator, sigma_accel: float = 0.7, sigma_curvature: float = 0.01,
+                 closed_loop: bool = True):
         cfg = sim.cfg
+        self.closed_loop = closed_loop
         self.discrete = cfg.action_space == "discrete"
         self.bicycle = cfg.dynamics == "bicycle"
         dev = sim.reward.device
@@ -53,6 +59,9 @@ class ExpertPrior(BehaviourPrior):
     def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
         """(W, C, 4): expert action (3 values) and a validity flag, at each world's current step."""
         W, C = sim.num_worlds, num_controlled
+        if self.closed_loop:
+            act, idx = sim.corrective_expert()
+            return torch.cat([act[:, :C], (idx[:, :C] >= 0).float()[..., None]], dim=-1)
         t = sim.world_step.long().view(W, 1, 1, 1).expand(W, C, 1, 3)
         act = torch.gather(sim.expert_action[:, :C], 2, t)[:, :, 0]
         ti = sim.world_step.long().view(W, 1, 1).expand(W, C, 1)

@@ -82,7 +82,7 @@ def make_prior(cfg: TrainConfig, sim: Simulator):
 
         model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
         return WorldModelPrior(model, sim)
-    return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature)
+    return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop)
 
 
 def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
@@ -163,6 +163,8 @@ class Trainer:
             self.actor_fwd = DDP(self.actor, device_ids=ids)
             self.critic_fwd = DDP(self.critic, device_ids=ids)
         self.head = PolicyHead(cfg.env.action_space == "discrete")
+        e = cfg.env
+        self._noop = (e.accel_bins // 2) * e.curvature_bins + e.curvature_bins // 2  # zero accel and curvature
         self.prior = make_prior(cfg, self.sim)
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
@@ -218,7 +220,10 @@ class Trainer:
         for t in range(T):
             obs = sim.obs[:, :C]
             mask = sim.active[:, :C] != 0
-            out = self._policy_out(obs, slots)
+            # the actor runs on the live rows only (often under half of W x C); the other
+            # slots get the no-op action, which the engine ignores for agents that do not act
+            w_idx, c_idx = mask.nonzero(as_tuple=True)
+            out = self._policy_out(obs[w_idx, c_idx], c_idx)
             if self.head.discrete:
                 bad |= ~torch.isfinite(out).all()
                 out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
@@ -228,25 +233,29 @@ class Trainer:
             d = self.head.dist(out)
             # sampled with our own generator, so a resumed run replays the same actions
             if self.head.discrete:
-                a = torch.multinomial(torch.softmax(out, -1).reshape(-1, out.shape[-1]), 1,
-                                      generator=self.gen).reshape(out.shape[:-1])
+                a = torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0] if len(w_idx) else \
+                    torch.zeros(0, dtype=torch.long, device=dev)
             else:
                 a = out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=dev)
+            act = buf["act"][t]
+            act.zero_()
+            if self.head.discrete:
+                act.fill_(self._noop)
+            act[w_idx, c_idx] = a.to(act.dtype)
+            buf["logp"][t][w_idx, c_idx] = d.log_prob(a)
+            if self.head.discrete:
+                buf["old"][t][w_idx, c_idx] = out
+            else:
+                buf["old"][0][t][w_idx, c_idx], buf["old"][1][t][w_idx, c_idx] = out
             buf["obs"][t].copy_(obs)
             buf["mask"][t] = mask
-            buf["act"][t] = a
-            buf["logp"][t] = d.log_prob(a)
-            if self.head.discrete:
-                buf["old"][t] = out
-            else:
-                buf["old"][0][t], buf["old"][1][t] = out
             with self._amp():
                 buf["value"][t], buf["quant"][t] = self.critic(obs, mask)
             buf["prior"][t] = self.prior.context(sim, C)
             if self.head.discrete:
-                sim.actions_index[:, :C] = a.to(torch.int32)
+                sim.actions_index[:, :C] = act.to(torch.int32)
             else:
-                sim.actions[:, :C, : a.shape[-1]] = a
+                sim.actions[:, :C, : act.shape[-1]] = act
             sim.step()
             alive = sim.alive[:, :C].float()
             buf["reward"][t] = sim.reward[:, :C]
@@ -278,8 +287,10 @@ class Trainer:
         cfg, sim, dev = self.cfg, self.sim, self.device
         self._buf = None  # drop the old storage before allocating the new one
         act = (T, W, C) if self.head.discrete else (T, W, C, self._act_dim())
+        # under bf16 autocast the networks round their inputs to bf16 anyway: store them so
+        obs_dtype = torch.bfloat16 if sim.is_cuda and cfg.amp else torch.float32
         buf = {
-            "obs": torch.zeros((T, W, C, sim.obs_dim), device=dev),
+            "obs": torch.zeros((T, W, C, sim.obs_dim), dtype=obs_dtype, device=dev),
             "act": torch.zeros(act, device=dev),
             "logp": torch.zeros((T, W, C), device=dev),
             "mask": torch.zeros((T, W, C), dtype=torch.bool, device=dev),
@@ -382,7 +393,7 @@ class Trainer:
         d = self.head.dist(out)
         logp = d.log_prob(b["act"][rows, c])
         ent = d.entropy()
-        prior_out = self.prior.distribution(b["prior"][rows, c], obs[rows, c])
+        prior_out = self.prior.distribution(b["prior"][rows, c], obs[rows, c].float())
         old = b["old"]
         old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
         kl_prior = self.head.kl(out, prior_out)
