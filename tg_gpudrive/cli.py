@@ -1,6 +1,7 @@
 """`tg-gpudrive`: the one command-line entry.
 
     tg-gpudrive simulate  --scenes procedural:all --worlds 64 --policy expert
+    tg-gpudrive simulate  --control nearest_conflict --control-k 2 --background world_model
     tg-gpudrive benchmark --device cuda --json
     tg-gpudrive convert   womd_dir/ --out store/
     tg-gpudrive train     --config configs/train/small_cpu.yaml
@@ -43,6 +44,19 @@ def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all") -> 
                    help="distinct scenes to draw from the source (default: min(worlds, source size))")
 
 
+def _background_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--control", choices=["vehicles", "nearest_conflict"], default=None,
+                   help="who the policy drives: every eligible vehicle (default: the engine config's `control`) "
+                        "or the --control-k vehicles nearest the scene's conflict point")
+    p.add_argument("--control-k", type=int, default=5, help="nearest_conflict: how many (default 5)")
+    p.add_argument("--background", choices=["log", "world_model"], default="log",
+                   help="who drives the other eligible vehicles: log replay (default) or the world model, "
+                        "reacting to the policy's vehicles")
+    p.add_argument("--background-model", default=None, metavar="PATH",
+                   help="--background world_model: a world-model checkpoint (model.pt or a train-world-model "
+                        "run directory; default: the shipped model)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tg-gpudrive", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -56,6 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=int, default=None, help="default: one episode")
     p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"])
     p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    _background_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
     p = sub.add_parser("benchmark", help="engine agent steps/s for several world counts")
@@ -91,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=64, help="scene episodes to run (worlds x rounds)")
     p.add_argument("--worlds", type=int, default=None, help="parallel worlds (default: min(episodes, 256))")
     p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
+    _background_args(p)
     p.add_argument("--json", action="store_true")
 
     p = sub.add_parser("render", help="draw one world of an episode: .gif / .mp4, or its last frame as .png")
@@ -142,16 +158,45 @@ def _load_scenes(args, worlds: int):
     return sampler.sample()
 
 
-def cmd_simulate(args) -> int:
-    from tg_gpudrive.rollout import builtin_policy, run_rollout
+def _check_background_args(args) -> None:
+    if args.background_model is not None and args.background != "world_model":
+        raise ValueError("--background-model: only used with --background world_model")
+    if args.control == "nearest_conflict" and args.control_k < 1:
+        raise ValueError(f"--control-k: expected >= 1, got {args.control_k}")
+
+
+def _simulator_with_background(args, cfg, scenes):
+    """The Simulator with the --control agents as the policy's and the --background driver (None: log)."""
+    from tg_gpudrive.control import control_masks
+    from tg_gpudrive.rollout import background_masks, make_background_driver
     from tg_gpudrive.simulator import Simulator
 
+    ctrl = control_masks(scenes, cfg, args.control, args.control_k) if args.control else None
+    sim = Simulator(scenes, cfg, args.device, ctrl, background_masks(scenes, cfg, args.background, ctrl))
+    driver = make_background_driver(sim, args.background, args.background_model, args.seed, "--background-model")
+    if driver is not None and not bool((sim.background != 0).any()):
+        log.warning("--background world_model: no background vehicle (the policy drives every eligible one); "
+                    "choose fewer with --control nearest_conflict --control-k K")
+    return sim, driver
+
+
+def _background_report(args, cfg) -> dict:
+    model = (args.background_model or "shipped") if args.background == "world_model" else None
+    return {"background": args.background, "background_model": model, "control": args.control or cfg.control}
+
+
+def cmd_simulate(args) -> int:
+    from tg_gpudrive.rollout import builtin_policy, run_rollout
+
+    _check_background_args(args)
     cfg = _engine_config(args)
     scenes = _load_scenes(args, args.worlds)
-    sim = Simulator(scenes, cfg, args.device)
+    sim, background = _simulator_with_background(args, cfg, scenes)
     steps = args.steps or sim.episode_length
-    out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=not args.json)
-    out.update({"policy": args.policy, "collision_mode": cfg.collision_mode, "scenes": args.scenes})
+    out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=not args.json,
+                      background=background)
+    out.update({"policy": args.policy, "collision_mode": cfg.collision_mode, "scenes": args.scenes,
+                **_background_report(args, cfg)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -230,8 +275,8 @@ def cmd_evaluate(args) -> int:
 
     from tg_gpudrive.config import TrainConfig, from_dict
     from tg_gpudrive.rollout import builtin_policy, run_rollout
-    from tg_gpudrive.simulator import Simulator
 
+    _check_background_args(args)
     if args.checkpoint:
         from tg_gpudrive.learn.train import load_policy
 
@@ -247,13 +292,13 @@ def cmd_evaluate(args) -> int:
         cfg = _engine_config(args)
     worlds = args.worlds or min(args.episodes, 256)
     scenes = _load_scenes(args, worlds)
-    sim = Simulator(scenes, cfg, args.device)
+    sim, background = _simulator_with_background(args, cfg, scenes)
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
-    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json)
+    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background)
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": cfg.collision_mode,
-                "scenes": args.scenes})
+                "scenes": args.scenes, **_background_report(args, cfg)})
     if args.json:
         print(json.dumps(out))
     else:

@@ -1,16 +1,29 @@
-"""Built-in policies and the rollout loop that turns episodes into rates.
+"""Built-in policies, background drivers and the rollout loop that turns episodes into rates.
 
 A policy is a callable `policy(sim) -> None` that writes the action buffers of
 the simulator in place (`sim.actions_index` or `sim.actions`). Rollouts run
 any number of steps; every finished episode of every controlled agent is
 counted once, with the outcome flags the engine kept for it.
+
+Who drives the vehicles the policy does not (`BACKGROUNDS`):
+
+    log          they replay their logs (the engine's default)
+    world_model  the learned world model drives them reactively: they are marked
+                 background in the Simulator (`background_masks`) and
+                 `make_background_driver` writes their actions after the policy
+                 and before every `sim.step()`
+
+A background driver is itself a `policy(sim)` that writes only the background
+rows, so it must run after the policy (policies may write every row).
 """
 
 from __future__ import annotations
 
 import time
-from typing import Callable
+from pathlib import Path
+from typing import Callable, Sequence
 
+import numpy as np
 import torch
 
 from tg_gpudrive.simulator import Simulator
@@ -58,6 +71,55 @@ def builtin_policy(name: str, seed: int, device: str) -> Policy:
     raise ValueError(f"policy: expected expert, random or constant, got {name!r}")
 
 
+BACKGROUNDS = ("log", "world_model")
+
+
+def check_background(background: str, option: str = "background") -> str:
+    if background not in BACKGROUNDS:
+        raise ValueError(f"{option}: expected one of {', '.join(BACKGROUNDS)}, got {background!r}")
+    return background
+
+
+def background_masks(scenes: Sequence, cfg, background: str = "log",
+                     controlled: Sequence[np.ndarray] | None = None) -> list[np.ndarray] | None:
+    """The Simulator's `background` argument: None for log replay; for the world model, per scene,
+    (N,) bool over its agents: the vehicles the engine could control (present at init_step, away
+    from their goal: control.eligible) that the policy does not. With `controlled` None the
+    engine's default controlled agents are taken out by the Simulator itself."""
+    from tg_gpudrive.control import eligible
+
+    if check_background(background) == "log":
+        return None
+    out = []
+    for w, scene in enumerate(scenes):
+        m = eligible(scene, cfg)
+        if controlled is not None:
+            m &= ~np.asarray(controlled[w], bool)
+        out.append(m)
+    return out
+
+
+def make_background_driver(sim: Simulator, background: str = "log", model: str | Path | None = None,
+                           seed: int = 0, option: str = "background_model") -> Policy | None:
+    """None for log replay; else a `WorldModelDriver` of the background rows, with the checkpoint
+    `model` (a world-model .pt or a train-world-model run directory) or the shipped model.
+    Only the discrete action grid is supported (the loader raises NotImplementedError otherwise)."""
+    if check_background(background) == "log":
+        if model is not None:
+            raise ValueError(f"{option}: only used with background world_model, got background log")
+        return None
+    from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
+
+    if model is None:
+        wm = load_shipped(sim)
+    else:
+        path = Path(model)
+        if not (path / "model.pt" if path.is_dir() else path).is_file():
+            raise FileNotFoundError(f"{option}: no world-model checkpoint at {path}")
+        wm = load_world_model(path, sim)
+    return WorldModelDriver(wm, rows="background", seed=seed)
+
+
 class EpisodeStats:
     """Sums of episode outcomes per scenario type, accumulated on the device."""
 
@@ -82,8 +144,9 @@ class EpisodeStats:
 
     def after_step(self) -> None:
         s = self.sim
-        self.speed_sum += (s.speed * s.alive).sum()
-        self.alive_steps += s.alive.sum()
+        alive = s.alive * s.policy_agents  # background vehicles are alive too, but not the policy's
+        self.speed_sum += (s.speed * alive).sum()
+        self.alive_steps += alive.sum()
         rows = (s.world_ended[:, None] != 0) & s.policy_agents
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
                   s.final_return, s.final_steps)
@@ -117,8 +180,11 @@ class EpisodeStats:
         return out
 
 
-def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False) -> dict:
-    """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed."""
+def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False,
+                background: Policy | None = None) -> dict:
+    """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed.
+
+    `background`: a driver of the background rows (`make_background_driver`), run after the policy."""
     sim.reset()
     stats = EpisodeStats(sim)
     bar = None
@@ -131,6 +197,8 @@ def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = Fal
     t0 = time.perf_counter()
     for _ in range(steps):
         policy(sim)
+        if background is not None:
+            background(sim)
         sim.step()
         stats.after_step()
         if bar is not None:
@@ -147,6 +215,7 @@ def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = Fal
     out.update({
         "worlds": sim.num_worlds,
         "agents_controlled": n_ctrl,
+        "agents_background": int((sim.background != 0).sum()),
         "steps": steps,
         "seconds": seconds,
         "agent_steps_per_s": n_ctrl * steps / seconds,

@@ -2,7 +2,9 @@
 
 Agents are named ``agent_<slot>`` after their engine slot; `possible_agents`
 are the scene's controlled slots (`config.control`, or an explicit
-`controlled` mask), all live after reset. An agent leaves `env.agents` on the
+`controlled` mask), all live after reset. The other eligible vehicles replay
+their logs, or with ``background="world_model"`` are driven by the learned
+world model (never agents of the env). An agent leaves `env.agents` on the
 step the engine terminates it, which follows the config: a goal ends it unless
 ``goal_behaviour="continue"``; a collision or off-road ends it in the "stop"
 and "remove" collision modes and never in "ignore" (the event is then only
@@ -43,21 +45,25 @@ from tg_gpudrive.envs.vector import (
     single_action_space,
     single_observation_space,
 )
+from tg_gpudrive.rollout import check_background
 
 
 class TGParallelEnv(ParallelEnv):
     """Args: as `TGSingleAgentEnv` (scenes, scene_index, config, overrides, continuous, device, seed,
     render_mode), plus `controlled`: an optional bool mask over the scene's agents choosing the agents
-    (default: those `config.control` selects)."""
+    (default: those `config.control` selects), and `background` / `background_model`: who drives the
+    other eligible vehicles, "log" (default) or "world_model" (None: the shipped model)."""
 
     metadata = {"name": "tg_gpudrive_parallel_v0", "render_modes": ["rgb_array"], "render_fps": 10,
                 "is_parallelizable": True}
 
     def __init__(self, scenes="procedural:all", scene_index: int = 0, config: ConfigLike = None,
                  overrides: OverridesLike = None, continuous: bool | None = None, device: str = "cpu",
-                 seed: int = 0, controlled: np.ndarray | None = None, render_mode: str | None = None):
+                 seed: int = 0, controlled: np.ndarray | None = None, render_mode: str | None = None,
+                 background: str = "log", background_model=None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        check_background(background)
         self.render_mode = render_mode
         self.cfg = make_config(config, overrides, continuous)
         self.discrete = self.cfg.action_space == "discrete"
@@ -71,7 +77,7 @@ class TGParallelEnv(ParallelEnv):
         if controlled.shape != (scene.num_agents,):
             raise ValueError(f"controlled: expected a bool mask of shape ({scene.num_agents},), "
                              f"got {controlled.shape}")
-        self.world = EpisodeWorld(scene, self.cfg, device, controlled)
+        self.world = EpisodeWorld(scene, self.cfg, device, controlled, background, background_model, seed)
         self.sim = self.world.sim
         if len(self.world.slots) == 0:
             raise ValueError(f"scene {scene.scene_id}: no agent is controlled (config.control="

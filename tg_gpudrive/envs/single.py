@@ -2,7 +2,9 @@
 
 The other agents replay their logs, or are driven by `other_policy` (a
 ``policy(sim)`` callable writing the simulator's action buffers, as in
-tg_gpudrive.rollout, or one of "expert", "constant", "random"). Observations
+tg_gpudrive.rollout, or one of "expert", "constant", "random"), or, with
+``background="world_model"``, the other eligible vehicles are driven by the
+learned world model, reacting to the controlled one. Observations
 are numpy float32 rows of the engine's layout (kernels/observation.py);
 the env does not auto-reset: after terminated or truncated, step() raises
 until reset() is called, and the obs returned with the end is the true
@@ -39,6 +41,7 @@ from tg_gpudrive.envs.vector import (
     single_action_space,
     single_observation_space,
 )
+from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.simulator import Simulator
 
@@ -46,17 +49,23 @@ from tg_gpudrive.simulator import Simulator
 class EpisodeWorld:
     """One engine world that waits for reset() when its episode ends (``auto_reset=False``).
 
-    `controlled` is a bool mask over the scene's agents. Attributes: `sim`
-    (the Simulator), `cfg` (its config), `slots` (controlled slots),
-    `slot_agent` (scene agent index of each slot, -1 for none).
+    `controlled` is a bool mask over the scene's agents; `background` ("log" or
+    "world_model", with `background_model`) says who drives the other eligible
+    vehicles (tg_gpudrive.rollout). Attributes: `sim` (the Simulator), `cfg` (its
+    config), `slots` (the policy's slots, background ones excluded), `slot_agent`
+    (scene agent index of each slot, -1 for none).
     """
 
-    def __init__(self, scene: Scene, cfg: EngineConfig, device: str, controlled: np.ndarray):
+    def __init__(self, scene: Scene, cfg: EngineConfig, device: str, controlled: np.ndarray,
+                 background: str = "log", background_model=None, seed: int = 0):
         self.scene = scene
         self.cfg = dataclasses.replace(cfg, auto_reset=False)
-        self.sim = sim = Simulator([scene], self.cfg, device, [np.asarray(controlled, bool)])
+        ctrl = [np.asarray(controlled, bool)]
+        bg = background_masks([scene], self.cfg, background, ctrl)
+        self.sim = sim = Simulator([scene], self.cfg, device, ctrl, bg)
+        self.driver = make_background_driver(sim, background, background_model, seed)
         self.slot_agent = sim.model.slot_agent[0]
-        self.slots = np.nonzero(sim.controlled[0].cpu().numpy())[0]
+        self.slots = np.nonzero(sim.policy_agents[0].cpu().numpy())[0]
         self.ended = False
 
     @property
@@ -72,6 +81,8 @@ class EpisodeWorld:
         """One engine step; `ended` tells whether the world's episode is over (it is then frozen)."""
         if self.ended:
             raise RuntimeError("EpisodeWorld: the world's episode ended; reset() first")
+        if self.driver is not None:  # after every other writer of the action buffers
+            self.driver(self.sim)
         self.sim.step()
         self.ended = bool(self.sim.world_ended[0])
 
@@ -139,6 +150,9 @@ class TGSingleAgentEnv(gymnasium.Env):
         seed: offset of procedural scene seeds; also seeds a "random" `other_policy`.
         other_policy: None (others replay the log), a `policy(sim)` callable, or "expert",
             "constant", "random"; the others it drives are those `config.control` selects.
+        background: "log" (default) or "world_model": the world model drives the other eligible
+            vehicles (not with `other_policy`).
+        background_model: world-model checkpoint for "world_model" (None: the shipped model).
         render_mode: None or "rgb_array" (tg_gpudrive.render).
 
     Reward is the engine's weighted sum; `info` holds "cost", "reward_terms"
@@ -151,9 +165,14 @@ class TGSingleAgentEnv(gymnasium.Env):
 
     def __init__(self, scenes="procedural:all", scene_index: int = 0, agent: int | None = None,
                  config: ConfigLike = None, overrides: OverridesLike = None, continuous: bool | None = None,
-                 device: str = "cpu", seed: int = 0, other_policy=None, render_mode: str | None = None):
+                 device: str = "cpu", seed: int = 0, other_policy=None, render_mode: str | None = None,
+                 background: str = "log", background_model=None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        if check_background(background) != "log" and other_policy is not None:
+            raise ValueError(f"background: {background!r} and other_policy both drive the other vehicles; "
+                             "give one of them")
+        self.background, self.background_model, self.seed = background, background_model, seed
         self.render_mode = render_mode
         self.cfg = make_config(config, overrides, continuous)
         self.source = scene_source(scenes, seed)
@@ -175,7 +194,8 @@ class TGSingleAgentEnv(gymnasium.Env):
             mask = np.zeros(scene.num_agents, bool)
             mask[idx[ctrl]] = True
         mask[a] = True
-        self.world = EpisodeWorld(scene, self.cfg, self.device, mask)
+        self.world = EpisodeWorld(scene, self.cfg, self.device, mask, self.background, self.background_model,
+                                  self.seed)
         self.sim = self.world.sim
         self.scene, self.scene_index, self.agent_index = scene, scene_index, a
         self.agent_slot = int(np.nonzero(self.world.slot_agent == a)[0][0])

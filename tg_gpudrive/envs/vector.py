@@ -2,8 +2,20 @@
 
 One row per agent slot: ``num_envs = num_worlds * max_agents`` and row
 ``w * max_agents + a`` is slot ``a`` of world ``w``. Rows whose slot is not
-controlled (empty, or replayed from the log) are always masked out
-(``info["active"]`` False, reward 0, never terminated or truncated).
+the policy's (empty, replayed from the log, or a background vehicle) are
+always masked out (``info["active"]`` False, reward 0, never terminated or
+truncated).
+
+Background (``background=``): "log" (default) replays the vehicles the policy
+does not drive; "world_model" has the learned world model drive them
+(tg_gpudrive.rollout.make_background_driver, `background_model` a checkpoint
+or None for the shipped model): every step() writes the user's actions, then
+the model's actions of the background rows, then steps the engine, so the
+user's values in those rows are ignored. Background rows keep an obs row (the
+model reads it) but are masked like any other row that is not the policy's;
+their reward, cost and reward terms then come from small buffers allocated
+once instead of engine views. The engine ends a world's episode when every
+integrated agent, background vehicles included, is done (or at the time limit).
 
 Everything returned is a torch tensor on the engine's device and, apart from
 a few bool buffers allocated once (terminations, truncations, masks), a view
@@ -44,7 +56,8 @@ engine). Actions of rows that are not active are ignored; with
 ``strict=True`` they must equal `noop_action` or step() raises
 ``ValueError("action for finished agent row ...")``.
 
-This module must not copy observations to the host nor allocate per step.
+This module must not copy observations to the host nor allocate per step (the world model, when it
+drives the background, allocates its own inference temporaries).
 The helpers here (`make_config`, `scene_source`, `load_scenes`, the space builders) serve the other envs too.
 """
 
@@ -61,6 +74,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
+from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.simulator import Simulator
 
@@ -183,6 +197,8 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         device: "cpu", "cuda" or "cuda:N".
         seed: offset of procedural scene seeds (the engine itself is deterministic).
         controlled: optional per-scene bool masks over the scene's agents (Simulator's `controlled`).
+        background: who drives the other eligible vehicles: "log" (replay) or "world_model".
+        background_model: world-model checkpoint for "world_model" (None: the shipped model).
         strict: actions of inactive rows must be `noop_action`.
         render_mode: None or "rgb_array" (frames of `render_worlds`).
     """
@@ -192,13 +208,18 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
     def __init__(self, scenes="procedural:all", num_worlds: int | None = None, config: ConfigLike = None,
                  overrides: OverridesLike = None, continuous: bool | None = None, device: str = "cpu",
                  seed: int = 0, controlled: Sequence[np.ndarray] | None = None, strict: bool = False,
-                 render_mode: str | None = None, render_worlds: Sequence[int] = (0,)):
+                 render_mode: str | None = None, render_worlds: Sequence[int] = (0,), background: str = "log",
+                 background_model: str | Path | None = None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        self.background = check_background(background)
         self.cfg = make_config(config, overrides, continuous)
         self.metadata = dict(self.metadata, autoreset_mode=AutoresetMode.SAME_STEP if self.cfg.auto_reset
                              else AutoresetMode.DISABLED)
-        self.sim = Simulator(load_scenes(scenes, num_worlds, seed), self.cfg, device, controlled)
+        loaded = load_scenes(scenes, num_worlds, seed)
+        self.sim = Simulator(loaded, self.cfg, device, controlled,
+                             background_masks(loaded, self.cfg, background, controlled))
+        self._driver = make_background_driver(self.sim, background, background_model, seed)
         self.device = torch.device(self.sim.device)
         self.strict = bool(strict)
         self.render_mode = render_mode
@@ -237,6 +258,14 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         self._ended_rows = torch.zeros(N, dtype=torch.bool, device=dev)
         self._flag_w = torch.zeros(W, dtype=torch.bool, device=dev)
         self._ctrl = sim.policy_agents.clone()  # background-driven agents are not the user's rows
+        self._has_background = bool((sim.background != 0).any())
+        if self._has_background:
+            # the engine scores background rows like the policy's: serve masked copies instead of views
+            self._keep = self._ctrl.view(N).to(self._reward.dtype)
+            self._reward = torch.zeros_like(self._reward)
+            self._cost = torch.zeros_like(self._cost)
+            self._terms_buf = torch.zeros((N, K), dtype=terms.dtype, device=dev)
+            self._terms = {name: self._terms_buf[:, k] for k, name in enumerate(sim.reward_term_names)}
         if self.discrete:
             self.noop_action = noop_index(cfg)
             self._action_view = sim.actions_index.view(N)
@@ -283,7 +312,8 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
             worlds = w if worlds is None else worlds | w
         if "scenes" in options:
             new = load_scenes(options.pop("scenes"), self.num_worlds, self._seed if seed is None else seed)
-            self.sim.set_scenes(new, options.pop("controlled", None))
+            ctrl = options.pop("controlled", None)
+            self.sim.set_scenes(new, ctrl, background_masks(new, self.cfg, self.background, ctrl))
             self._setup()
             worlds = None
         if options:
@@ -308,13 +338,23 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         if self.strict:
             self._check_inactive(a)
         W, A = self.num_worlds, self.max_agents
-        self.sim.step(a.view(W, A) if self.discrete else a.view(W, A, self.action_dim))
+        a = a.view(W, A) if self.discrete else a.view(W, A, self.action_dim)
+        if self._driver is None:
+            self.sim.step(a)
+        else:
+            self.sim._write_actions(a)  # the user's rows first: the driver overwrites the background rows
+            self._driver(self.sim)
+            self.sim.step()
         self._fill_flags()
         for flags, rows in ((self.sim.world_reset, self._reset_rows), (self.sim.world_ended, self._ended_rows)):
             torch.ne(flags, 0, out=self._flag_w)
             torch.logical_and(self._flag_w[:, None], self._ctrl, out=rows.view(W, A))
         torch.ne(self.sim.terminated.view(-1), 0, out=self._term)
         torch.ne(self.sim.truncated.view(-1), 0, out=self._trunc)
+        if self._has_background:
+            ctrl = self._ctrl.view(-1)
+            self._term.logical_and_(ctrl)
+            self._trunc.logical_and_(ctrl)
         return self._obs, self._reward, self._term, self._trunc, self._info()
 
     def _fill_flags(self) -> None:
@@ -324,6 +364,14 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
             # the engine's `active` still says 1 for agents truncated in a frozen (world_done) world
             torch.eq(self.sim.world_done, 0, out=self._flag_w)
             self._active.view(self.num_worlds, self.max_agents).logical_and_(self._flag_w[:, None])
+        if self._has_background:
+            N = self.num_envs
+            ctrl = self._ctrl.view(N)
+            self._active.logical_and_(ctrl)
+            self._alive.logical_and_(ctrl)
+            torch.mul(self.sim.reward.view(N), self._keep, out=self._reward)
+            torch.mul(self.sim.cost.view(N), self._keep, out=self._cost)
+            torch.mul(self.sim.reward_terms.view(N, -1), self._keep[:, None], out=self._terms_buf)
 
     def _info(self) -> dict:
         info = {"reward_terms": self._terms, "cost": self._cost, "active": self._active, "alive": self._alive,
