@@ -1,19 +1,25 @@
 """Run the experiment grid (configs/experiments/grid.yaml) in batches, then the report.
 
     python scripts/run_experiments.py --config configs/experiments/grid.yaml --out runs/experiments \
-        [--batch 4] [--set device=cuda] [--dry-run] [--report-only]
+        [--batch 4] [--set device=cuda] [--dry-run] [--report-only] [--no-report]
 
 Every cell (beta x alpha) and every baseline is one `tg-gpudrive train` process
 (`python -m tg_gpudrive.cli train ...`); `--batch` of them run at the same time
 (on one GPU they share it; W worlds each). A run directory that already holds a
 checkpoint of its final update is skipped, so an interrupted grid resumes. When
-all runs are done, `tg_gpudrive.evaluation.report.report_main` writes
-<out>/report/.
+all runs are done, the flexibility table (how the knobs moved the multiplier,
+gaps, speed and cost during training: the mean of each run's last `--tail`
+updates) goes to <out>/flexibility.md and .json, then
+`tg_gpudrive.evaluation.report.report_main` writes <out>/report/ (skip it with
+`--no-report`).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -43,6 +49,34 @@ def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
     return runs
 
 
+FLEX_COLUMNS = ("lambda", "cvar", "mean_min_distance", "mean_speed", "cost", "collision_rate", "goal_rate")
+
+
+def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> list[dict]:
+    """Mean of the last `tail` updates of each run's metrics.csv, per cell: written as
+    <out>/flexibility.json and a Markdown table <out>/flexibility.md, and returned."""
+    rows = []
+    for name, sets in runs:
+        path = out / name / "metrics.csv"
+        if not path.exists():
+            continue
+        metrics = list(csv.DictReader(path.open()))[-tail:]
+        kv = dict(a.split("=", 1) for a in sets)
+        row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),
+               "updates": int(metrics[-1]["update"]) if metrics else 0}
+        for k in FLEX_COLUMNS:
+            vals = [float(m[k]) for m in metrics if m.get(k) not in (None, "", "nan")]
+            row[k] = sum(vals) / len(vals) if vals else math.nan
+        rows.append(row)
+    (out / "flexibility.json").write_text(json.dumps(rows, indent=1))
+    head = ["run", "beta", "alpha", "updates", *FLEX_COLUMNS]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lines.append("| " + " | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in head) + " |")
+    (out / "flexibility.md").write_text(f"Mean of the last {tail} training updates per run.\n\n" + "\n".join(lines) + "\n")
+    return rows
+
+
 def done(run: Path, updates: int | None) -> bool:
     rows = (run / "metrics.csv").read_text().splitlines() if (run / "metrics.csv").exists() else []
     return (run / "checkpoint.pt").exists() and updates is not None and len(rows) - 1 >= updates
@@ -56,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="extra train override for every run")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--no-report", action="store_true", help="train and tabulate, skip the report")
+    ap.add_argument("--tail", type=int, default=5, help="updates averaged in the flexibility table")
     args = ap.parse_args(argv)
     cfg_path = Path(args.config)
     exp = yaml.safe_load(cfg_path.read_text())
@@ -88,6 +124,10 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"{name} failed; see {out / name / 'train.log'}", file=sys.stderr)
                     return rc
     if args.dry_run:
+        return 0
+    flexibility(out, runs, args.tail)
+    print((out / "flexibility.md").read_text(), flush=True)
+    if args.no_report:
         return 0
     from tg_gpudrive.evaluation.report import ReportOptions, report_main
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,6 +27,8 @@ from tg_gpudrive.rollout import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.simulator import Simulator
 from tg_gpudrive.types import RoadType
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)
@@ -233,3 +236,22 @@ def test_report_on_tiny_runs(tmp_path):
     assert {r["label"] for r in summary["results"]} == {"log replay (expert)", "behaviour prior", "cce", "mappo"}
     assert list((out / "scenarios" / "cce").glob("*.json"))
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
+
+
+def test_flexibility_table_averages_the_last_updates(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    run = tmp_path / "beta2.0_alpha0.5"
+    run.mkdir()
+    cols = ["update", *mod.FLEX_COLUMNS]
+    lines = [",".join(cols)] + [",".join([str(u)] + [str(u * (i + 1)) for i in range(len(mod.FLEX_COLUMNS))])
+                                for u in range(1, 8)]
+    (run / "metrics.csv").write_text("\n".join(lines) + "\n")
+    rows = mod.flexibility(tmp_path, [("beta2.0_alpha0.5", ["env.beta=2.0", "alpha=0.5"]), ("missing", [])], tail=5)
+    assert len(rows) == 1 and rows[0]["beta"] == "2.0" and rows[0]["updates"] == 7
+    assert rows[0]["lambda"] == pytest.approx((3 + 4 + 5 + 6 + 7) / 5)  # updates 3..7, lambda = update
+    assert rows[0]["cvar"] == pytest.approx(2 * 5.0)
+    assert "| beta2.0_alpha0.5 | 2.0 | 0.5 | 7 | 5.000 |" in (tmp_path / "flexibility.md").read_text()

@@ -160,3 +160,17 @@ def test_nan_in_the_loss_itself_is_caught(tmp_path):
     buf["reward"][0, 0, 0] = float("nan")
     with pytest.raises(TrainingError, match=r"non-finite loss in update 0.*last good checkpoint"):
         tr.learn(buf)
+
+
+def test_target_goal_rate_counts_the_last_three_updates_episodes():
+    tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
+    tr.cfg = TrainConfig(target_goal_rate=0.95)
+    st = lambda g, n: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n))}  # noqa: E731
+    assert not tr._reached_target(st(10, 10))  # one update is not enough
+    assert not tr._reached_target(st(10, 10))
+    assert not tr._reached_target(st(0, 10))  # 20 / 30 = 0.67
+    assert not tr._reached_target(st(95, 100))  # (10 + 0 + 95) / 120 = 0.875
+    assert not tr._reached_target(st(100, 100))  # (0 + 95 + 100) / 210 = 0.929
+    assert tr._reached_target(st(100, 100))  # (95 + 100 + 100) / 300 = 0.983
+    tr.cfg = TrainConfig(target_goal_rate=0.0)
+    assert not tr._reached_target(st(100, 100))  # 0 switches the target off

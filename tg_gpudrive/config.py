@@ -137,6 +137,7 @@ class TrainConfig:
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
     prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
     # bookkeeping
+    target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)
     checkpoint_every: int = 10
     out_dir: str = "runs/train"
 

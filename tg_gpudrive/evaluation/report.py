@@ -142,6 +142,15 @@ def _read_metrics(run: Path) -> list[dict]:
     return list(csv.DictReader(path.open())) if path.exists() else []
 
 
+def _tail_means(rows: list[dict], keys: Sequence[str], tail: int = 5) -> dict:
+    """Mean of each key over the last `tail` training updates (NaN when absent)."""
+    out = {}
+    for k in keys:
+        vals = [float(r[k]) for r in rows[-tail:] if r.get(k) not in (None, "", "nan")]
+        out[k] = sum(vals) / len(vals) if vals else math.nan
+    return out
+
+
 def _fig():
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -248,6 +257,18 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
     L.append(_table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI",
                      "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
                      "mean min gap [m]", "hard brakes / agent"], rows))
+    cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
+    if cce:
+        L.append("\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
+                 "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
+                 "alpha (less risk-averse) -> faster, smaller gaps.\n\n")
+        rows = [[r["beta"], r["alpha"], r["train_tail"]["lambda"], r["train_tail"]["mean_min_distance"],
+                 r["train_tail"]["mean_speed"], r["train_tail"]["cost"], r["risk"].get("mean_min_gap_m"),
+                 r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
+                 r["risk"].get("collision_rate")] for r in cce]
+        L.append(_table(["beta [m]", "alpha", "lambda (train)", "min distance (train) [m]", "speed (train) [m/s]",
+                         "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"],
+                        rows))
     L.append("\n## Fidelity per feature (logged vs generated)\n\n![fidelity](fidelity.png)\n\n")
     rows = []
     for r in results:
@@ -331,6 +352,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             generated_all[label] = gen
             gaps[label] = res["cce_gap"]
             curves[label] = _read_metrics(run)
+            res["train_tail"] = _tail_means(curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
             if res["kind"] == "CCE-MAPPO":
                 cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[0], masks[0], ckpt, device,
                                                                opts.frame_size, out / "frames" / f"{label}.png")

@@ -468,13 +468,33 @@ class Trainer:
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=f"{row['goal_rate']:.2f}",
                                 coll=f"{row['collision_rate']:.2f}", off=f"{row['offroad_rate']:.2f}",
                                 lam=f"{row['lambda']:.2f}")
-            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates):
+            reached = self._reached_target(stats)
+            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached):
                 self.save()
+            if reached:
+                last["target_reached_s"] = self.wall
+                if self.lead:
+                    (self.out / "target.json").write_text(json.dumps(
+                        {"target_goal_rate": cfg.target_goal_rate, "update": self.update, "wall_s": self.wall,
+                         "agent_steps": self.agent_steps}, indent=1))
+                    if bar is not None:
+                        bar.write(f"goal rate {cfg.target_goal_rate} reached after {self.wall:.0f} s "
+                                  f"(update {self.update}, {self.agent_steps:,} agent steps)")
+                break
         if bar is not None:
             bar.close()
         if self.lead:
             self.plot()
         return last
+
+    def _reached_target(self, stats: dict) -> bool:
+        """Goal rate over the episodes of the last 3 updates (all ranks) >= target_goal_rate."""
+        if self.cfg.target_goal_rate <= 0:
+            return False
+        recent = getattr(self, "_recent", [])
+        self._recent = (recent + [(float(stats["goal"]), float(stats["episodes"]))])[-3:]
+        goals, eps = (sum(x) for x in zip(*self._recent))
+        return len(self._recent) == 3 and eps > 0 and goals / eps >= self.cfg.target_goal_rate
 
     # ------------------------------------------------------------ logging
     def _log(self, row: dict) -> None:
