@@ -1,47 +1,89 @@
 #!/usr/bin/env bash
-# The GPU figures of BENCHMARKS.md, in the order they were taken. Run from the repo root on a
-# machine where the project is importable (pip install -e . or PYTHONPATH), with $OUT a folder
-# for the files that come back. Stage "a": tests + engine/env/store benchmarks; "b": training
-# throughput and time to quality; "c": the beta x alpha flexibility grid.
+# The GPU figures of BENCHMARKS.md. Run from the repo root on a machine where the project is
+# importable (pip install -e . or PYTHONPATH); every stage leaves its files in /tmp/res/<stage>
+# and packs them into $OUT/<stage>.tgz (the device tool brings back at most 8 files).
+# On 2 x H200 two stages run side by side, one per GPU (GPU=0 / GPU=1):
+#   a         CUDA tests + engine / env / store benchmarks
+#   perf      training throughput per config (scripts/bench_train.py), then the world-model bench
+#   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
+#   store10k  a 10,000-scene store, training on it with resampling, held-out rates per collision mode
+#   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py)
+#   scale     both GPUs: 1 vs 2 processes (same worlds per GPU), then time to 95 % on 2 GPUs
+# Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
+# TRAIN_SET adds `--set` overrides to every training run (a CPU dry run shrinks everything).
 set -u
 R=$(pwd)
 OUT=${OUT:-/tmp/out}
-mkdir -p "$OUT"
-stage=${1:-a}
+stage=${1:?stage}
+RES=/tmp/res/$stage
+mkdir -p "$OUT" "$RES"
+export CUDA_VISIBLE_DEVICES=${GPU:-${CUDA_VISIBLE_DEVICES:-0}}
+export PYTHONUNBUFFERED=1
+CFG="$R"/configs/train/gpu.yaml
+SETS=()
+for s in ${TRAIN_SET:-}; do SETS+=(--set "$s"); done
 cd /tmp
-if [ "$stage" = a ]; then
+cli() { python3 -m tg_gpudrive.cli "$@"; }
+# a training run's progress bar, one line per update, without the carriage returns
+bar() { tr '\r' '\n' | grep -v '^\s*$' | grep -E 'reached|update|Error|error' | tail -${1:-3}; }
+pack() { find "$RES" -name 'checkpoint.pt*' -size +4M -delete; tar czf "$OUT/$stage.tgz" -C /tmp/res "$stage"; }
+
+case "$stage" in
+a)
   python3 -m pytest -q -p no:cacheprovider "$R"/tests/test_kernels.py "$R"/tests/test_engine.py \
-    "$R"/tests/test_envs.py "$R"/tests/test_losses.py -k cuda 2>&1 | tail -3
-  python3 -m tg_gpudrive.cli benchmark --scenes procedural:all --device cuda --json \
-    --worlds 1 64 1024 4096 8192 16384 --steps 50 2>/dev/null | tee "$OUT/bench_procedural.jsonl"
-  python3 -m tg_gpudrive.cli benchmark --scenes "$R"/tests/data --num-scenes 2 --device cuda --json \
-    --worlds 1024 4096 8192 --steps 50 2>/dev/null | tee "$OUT/bench_womd.jsonl"
-  python3 -m tg_gpudrive.cli benchmark --scenes procedural:all --device cuda --json --no-graph \
-    --worlds 4096 --steps 50 2>/dev/null | tee "$OUT/bench_nograph.jsonl"
-  python3 "$R"/scripts/bench_envs.py --device cuda --worlds 1024 --steps 100 2>/dev/null | tee "$OUT/bench_envs.json"
-  python3 -m tg_gpudrive.cli simulate --scenes procedural:all --worlds 1024 --num-scenes 120 --device cuda \
-    --policy expert --json 2>/dev/null | tee "$OUT/simulate_expert.json"
-  python3 "$R"/scripts/bench_store.py --n 10000 --worlds 4096 --workers 16 --out /tmp/store10k 2>&1 \
-    | tail -3 | tee "$OUT/bench_store.txt"
-fi
-if [ "$stage" = b ]; then
-  timeout ${TRAIN_SECONDS:-500} python3 -m tg_gpudrive.cli train --config "$R"/configs/train/gpu.yaml --out /tmp/run_gpu \
-    --set checkpoint_every=10 2>&1 | tr '\r' '\n' | grep -v "^$" | tail -3
-  cp /tmp/run_gpu/metrics.csv "$OUT/train_gpu_metrics.csv"
-  python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('/tmp/run_gpu/metrics.csv', '$OUT/train_gpu_curves.png')"
-fi
-if [ "$stage" = c ]; then
-  python3 "$R"/scripts/run_grid.py --base "$R"/configs/train/gpu.yaml --grid "$R"/configs/train/grid.yaml --out /tmp/grid \
-    --set scenes=procedural:dense_intersection --set control=nearest_conflict --set control_k=5 \
-    --set num_scenes=256 --set num_worlds=256 --set updates=${GRID_UPDATES:-25} --set resample_every=0 \
-    --set checkpoint_every=1000 2>"$OUT/grid_stderr.txt" | tail -20; tail -5 "$OUT/grid_stderr.txt"
-  cp /tmp/grid/grid.json /tmp/grid/grid.md "$OUT/"
-fi
-if [ "$stage" = d ]; then  # 1 vs 2 GPUs (nvidia-h200-x2)
-  for n in 1 2; do
-    timeout 200 python3 -m tg_gpudrive.cli train --config "$R"/configs/train/gpu.yaml --out /tmp/scale$n \
-      --nproc $n --set updates=${SCALE_UPDATES:-12} --set resample_every=0 --set num_scenes=256 \
-      --set checkpoint_every=1000 2>&1 | tr '\r' '\n' | grep -v "^$" | tail -1
-    cp /tmp/scale$n/metrics.csv "$OUT/scale_${n}gpu.csv"
+    "$R"/tests/test_envs.py "$R"/tests/test_losses.py "$R"/tests/test_train.py -k cuda 2>&1 | tail -3
+  cli benchmark --scenes procedural:all --device cuda --json --worlds 1024 4096 16384 --steps 50 \
+    2>/dev/null | tee "$RES/bench_procedural.jsonl"
+  ;;
+perf)
+  timeout ${PERF_SECONDS:-300} python3 "$R"/scripts/bench_train.py --config "$CFG" --updates ${PERF_UPDATES:-8} \
+    --out "$RES/bench_train.jsonl" "${SETS[@]}" \
+    ${PERF_VARIANTS:---variant w1024_e2mb8: --variant w4096_e2mb32:num_worlds=4096,minibatches=32 --variant w4096_e2mb8:num_worlds=4096 --variant w4096_e1mb8:num_worlds=4096,epochs=1 --variant w4096_e1mb4:num_worlds=4096,epochs=1,minibatches=4} 2>&1 | grep -v Warning
+  timeout ${WM_SECONDS:-150} python3 "$R"/scripts/bench_world_model.py ${WM_ARGS:---device cuda --worlds 1024} \
+    2>&1 | tail -20 | tee "$RES/bench_world_model.txt"
+  ;;
+ttq)
+  timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
+    --set target_goal_rate=0.95 --set checkpoint_every=100000 "${SETS[@]}" 2>&1 | bar 3
+  python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('$RES/run/metrics.csv', '$RES/curves.png')"
+  ;;
+store10k)
+  N=${STORE_N:-10000}
+  timeout 200 python3 "$R"/scripts/bench_store.py --n "$N" --worlds ${STORE_WORLDS:-4096} --workers 16 \
+    --out /tmp/store 2>&1 | tail -2 | tee "$RES/bench_store.txt"
+  timeout ${STORE_TRAIN_SECONDS:-240} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
+    --set scenes=/tmp/store --set num_scenes="$N" --set resample_every=5 --set checkpoint_every=10 \
+    "${SETS[@]}" 2>&1 | bar 2
+  for mode in ignore stop remove; do
+    timeout 60 python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \
+      --seed 50000 --num-scenes ${EVAL_N:-1024} --episodes ${EVAL_N:-1024} --worlds ${EVAL_N:-1024} \
+      --collision-mode $mode --json 2>/dev/null | tee "$RES/heldout_$mode.json"
   done
-fi
+  python3 -c "import torch; print('peak GPU memory of evaluate only; training peak is in bench_train')" >/dev/null
+  ;;
+grid)
+  timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --out "$RES" --no-report \
+    --set updates=${GRID_UPDATES:-60} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
+  # slim checkpoints (weights + config) so the report's inputs come back too
+  python3 - "$RES" <<'EOF'
+import sys, torch, pathlib
+for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
+    ck = torch.load(p, map_location="cpu", weights_only=False)
+    torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
+EOF
+  timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --out "$RES" --report-only \
+    "${SETS[@]}" 2>&1 | tail -3
+  ;;
+scale)
+  for n in 1 2; do
+    CUDA_VISIBLE_DEVICES=0,1 timeout 150 python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/scale$n" \
+      --nproc $n --set updates=${SCALE_UPDATES:-10} --set resample_every=0 --set num_worlds=${SCALE_WORLDS:-4096} --set checkpoint_every=100000 \
+      "${SETS[@]}" 2>&1 | bar 1
+  done
+  CUDA_VISIBLE_DEVICES=0,1 timeout ${TTQ2_SECONDS:-280} python3 -m tg_gpudrive.cli train --config "$CFG" \
+    --out "$RES/ttq2" --nproc 2 --set target_goal_rate=0.95 --set checkpoint_every=100000 \
+    --set num_worlds=${TTQ2_WORLDS:-512} "${SETS[@]}" 2>&1 | bar 3
+  ;;
+*) echo "unknown stage $stage"; exit 2 ;;
+esac
+pack

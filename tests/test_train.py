@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -86,6 +87,15 @@ def test_expert_prior_peaks_on_the_expert_action(closed_loop):
     greedy = torch.full_like(logits, -20.0).scatter(-1, want.long()[None, :, None], 0.0)
     assert L.categorical_kl(greedy, logits).max() < (0.8 if closed_loop else 0.2)
     assert L.categorical_kl(torch.zeros_like(logits), logits).min() > 2.0
+    # the uniform floor bounds log p from below (so does the KL of any policy: <= -log(floor / N));
+    # without it the far bins are practically impossible
+    lp = torch.log_softmax(logits, -1)
+    assert lp.min() >= math.log(0.05 / 91) - 1e-4 and lp.min() < math.log(0.05 / 91) + 0.01
+    bare = torch.log_softmax(ExpertPrior(sim, closed_loop=closed_loop, floor=0.0).distribution(
+        prior.context(sim, C)), -1)
+    assert bare.min() < -100.0
+    with pytest.raises(ValueError, match="floor"):
+        ExpertPrior(sim, floor=1.0)
 
 
 def test_corrective_expert_steers_back_to_the_log(device):

@@ -135,6 +135,7 @@ class TrainConfig:
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model
     prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
+    prior_floor: float = 0.05  # expert prior (discrete): uniform share mixed in, bounds log p and keeps entropy
     prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
     # bookkeeping
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)

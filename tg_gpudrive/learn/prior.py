@@ -20,6 +20,8 @@ learned world model plugs in by implementing the same two methods.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from tg_gpudrive.simulator import Simulator
@@ -38,12 +40,22 @@ class ExpertPrior(BehaviourPrior):
     """Discretised Gaussian around the logged action (discrete), or a Gaussian on it (continuous).
 
     sigma_accel [m/s^2] and sigma_curvature [1/m] set how tightly the magnet
-    holds; with the default 7 x 13 grid one bin is 2 m/s^2 and 0.05 1/m."""
+    holds; with the default 7 x 13 grid one bin is 2 m/s^2 and 0.05 1/m.
+
+    `floor` (discrete) mixes that Gaussian with the uniform distribution,
+    p = (1 - floor) N + floor / num_actions, so log p >= log(floor / num_actions):
+    an agent far from its log, where the teacher asks for a full turn the policy
+    will not make, adds a bounded KL instead of one that swamps the batch's
+    gradient, and the prior itself keeps some entropy (a magnet with none pulls
+    the policy to a deterministic one that stops exploring)."""
 
     def __init__(self, sim: Simulator, sigma_accel: float = 0.7, sigma_curvature: float = 0.01,
-                 closed_loop: bool = True):
+                 closed_loop: bool = True, floor: float = 0.05):
         cfg = sim.cfg
         self.closed_loop = closed_loop
+        if not 0.0 <= floor < 1.0:
+            raise ValueError(f"prior floor must lie in [0, 1), got {floor}")
+        self.floor = floor
         self.discrete = cfg.action_space == "discrete"
         self.bicycle = cfg.dynamics == "bicycle"
         dev = sim.reward.device
@@ -73,6 +85,10 @@ class ExpertPrior(BehaviourPrior):
         if self.discrete:
             z = (self.grid - act[..., None, :2]) / self.sigma[:2]
             logits = -0.5 * (z**2).sum(-1)
+            if self.floor > 0:
+                n = logits.shape[-1]
+                logits = torch.logaddexp(torch.log_softmax(logits, -1) + math.log1p(-self.floor),
+                                         torch.full_like(logits, math.log(self.floor / n)))
             return logits * valid  # invalid: all zeros = uniform
         k = 2 if self.bicycle else 3
         mean = act[..., :k]

@@ -61,6 +61,8 @@ class PolicyHead:
     def kl(self, out_p, out_q) -> torch.Tensor:
         if self.discrete:
             return L.categorical_kl(out_p, out_q)
+        if hasattr(out_q, "kl_from"):  # a prior without a closed form (worldmodel.mixture.LaplaceMixture)
+            return out_q.kl_from(out_p)
         return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
 
 
@@ -82,7 +84,7 @@ def make_prior(cfg: TrainConfig, sim: Simulator):
 
         model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
         return WorldModelPrior(model, sim)
-    return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop)
+    return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop, cfg.prior_floor)
 
 
 def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
@@ -339,25 +341,30 @@ class Trainer:
         n_groups = T * W
         batch = self.flatten(buf, adv_r, adv_c, ret_r, q_target)
         mb = max(1, n_groups // cfg.minibatches)
-        acc: dict[str, float] = {}
+        # loss parts accumulate on the device and are read once: a read per minibatch would
+        # stall the launch queue on every one of them
+        acc: dict[str, torch.Tensor] = {}
+        bad = torch.zeros((), dtype=torch.bool, device=self.device)
         n_mb = 0
         for _ in range(cfg.epochs):
             perm = torch.randperm(n_groups, generator=self.gen, device=self.device)
             for s in range(0, n_groups, mb):
                 loss, parts = self.minibatch_loss(batch, perm[s:s + mb], lam)
-                if not torch.isfinite(loss):
-                    raise TrainingError(
-                        f"non-finite loss in update {self.update} (policy {float(parts['loss/policy']):.4g}, "
-                        f"value {float(parts['loss/value']):.4g}, cost quantiles "
-                        f"{float(parts['loss/cost_quantile']):.4g}); stopped without saving, the last good "
-                        f"checkpoint is {self.out / 'checkpoint.pt'}")
+                bad |= ~torch.isfinite(loss)
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()  # under DDP the gradients are averaged over the ranks here
                 torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
                 self.opt.step()
                 for k, val in parts.items():
-                    acc[k] = acc.get(k, 0.0) + float(val.detach())
+                    acc[k] = acc.get(k, 0.0) + val.detach()
                 n_mb += 1
+        acc = {k: float(v) for k, v in acc.items()}
+        if bool(bad):
+            # the weights in memory are spoilt, nothing is saved: the checkpoint on disk stays the last good one
+            raise TrainingError(
+                f"non-finite loss in update {self.update} (mean policy {acc['loss/policy'] / n_mb:.4g}, value "
+                f"{acc['loss/value'] / n_mb:.4g}, cost quantiles {acc['loss/cost_quantile'] / n_mb:.4g}); stopped "
+                f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
         out = {k: v / max(n_mb, 1) for k, v in acc.items()}
         out["cvar"] = float(jc.mean())
         out["lambda"] = float(self.lagrange.value.mean().detach()) if cfg.constraint else 0.0
