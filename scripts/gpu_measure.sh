@@ -5,10 +5,14 @@
 # On 2 x H200 two stages run side by side, one per GPU (GPU=0 / GPU=1):
 #   a         CUDA tests + engine / env / store benchmarks
 #   perf      training throughput per config (scripts/bench_train.py), then the world-model bench
+#   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
+#             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
-#   store10k  a 10,000-scene store, training on it with resampling, held-out rates per collision mode
+#   storebuild  a 10,000-scene procedural store in /tmp/store (CPU only: runs beside GPU stages)
+#   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
 #   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py)
-#   scale     both GPUs: 1 vs 2 processes (same worlds per GPU), then time to 95 % on 2 GPUs
+#   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU
+#   (time to 95 % on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
 # TRAIN_SET adds `--set` overrides to every training run (a CPU dry run shrinks everything).
 set -u
@@ -42,36 +46,59 @@ perf)
   timeout ${WM_SECONDS:-150} python3 "$R"/scripts/bench_world_model.py ${WM_ARGS:---device cuda --worlds 1024} \
     2>&1 | tail -20 | tee "$RES/bench_world_model.txt"
   ;;
+sweep)
+  for v in ${SWEEP_VARIANTS:-floor05:prior_floor=0.05 floor0:prior_floor=0.0 floor05_eta01_lr1e3:eta1=0.1,lr=0.001 floor01_eta2:prior_floor=0.01,eta1=2.0}; do
+    name=${v%%:*}; kv=${v#*:}
+    timeout ${SWEEP_SECONDS:-400} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/$name" \
+      --set checkpoint_every=100000 "${SETS[@]}" $(for x in ${kv//,/ }; do echo --set $x; done) \
+      > "$RES/$name.log" 2>&1 &
+  done
+  wait
+  python3 - "$RES" <<'PY'
+import csv, pathlib, sys
+for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
+    rows = list(csv.DictReader((d / "metrics.csv").open()))
+    g = [float(r["goal_rate"]) for r in rows if r["goal_rate"] not in ("", "nan")] or [0.0]
+    win = [sum(g[i:i + 5]) / 5 for i in range(max(len(g) - 4, 1))]
+    best = max(range(len(win)), key=win.__getitem__)
+    last = rows[-1]
+    print(f"{d.name}: {len(rows)} updates, goal last5 {win[-1]:.3f}, best5 {win[best]:.3f} (evals {best + 1}-{best + 5} of {len(g)}), "
+          f"coll {float(last['collision_rate']):.2f} off {float(last['offroad_rate']):.2f} "
+          f"ent {float(last['entropy']):.2f} klp {float(last['kl/prior']):.2f} wall {float(last['wall_s']):.0f}s")
+PY
+  ;;
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
     --set target_goal_rate=0.95 --set checkpoint_every=100000 "${SETS[@]}" 2>&1 | bar 3
   python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('$RES/run/metrics.csv', '$RES/curves.png')"
   ;;
+storebuild)
+  [ -f /tmp/store/manifest.json ] || timeout 300 python3 "$R"/scripts/bench_store.py --n ${STORE_N:-10000} \
+    --worlds ${STORE_WORLDS:-4096} --workers ${STORE_WORKERS:-8} --out /tmp/store 2>&1 | tail -2 | tee "$RES/bench_store.txt"
+  ;;
 store10k)
   N=${STORE_N:-10000}
-  timeout 200 python3 "$R"/scripts/bench_store.py --n "$N" --worlds ${STORE_WORLDS:-4096} --workers 16 \
-    --out /tmp/store 2>&1 | tail -2 | tee "$RES/bench_store.txt"
-  timeout ${STORE_TRAIN_SECONDS:-240} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
-    --set scenes=/tmp/store --set num_scenes="$N" --set resample_every=5 --set checkpoint_every=10 \
-    "${SETS[@]}" 2>&1 | bar 2
+  [ -f /tmp/store/manifest.json ] || bash "$R"/scripts/gpu_measure.sh storebuild
+  CUDA_VISIBLE_DEVICES=${STORE_GPUS:-$CUDA_VISIBLE_DEVICES} timeout ${STORE_TRAIN_SECONDS:-240} python3 -m tg_gpudrive.cli \
+    train --config "$CFG" --out "$RES/run" --nproc ${STORE_NPROC:-1} --set scenes=/tmp/store --set num_scenes="$N" \
+    --set resample_every=5 --set checkpoint_every=5 --set target_goal_rate=${STORE_TARGET:-0} "${SETS[@]}" 2>&1 | bar 3
   for mode in ignore stop remove; do
     timeout 60 python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \
       --seed 50000 --num-scenes ${EVAL_N:-1024} --episodes ${EVAL_N:-1024} --worlds ${EVAL_N:-1024} \
       --collision-mode $mode --json 2>/dev/null | tee "$RES/heldout_$mode.json"
   done
-  python3 -c "import torch; print('peak GPU memory of evaluate only; training peak is in bench_train')" >/dev/null
   ;;
 grid)
-  timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --out "$RES" --no-report \
+  timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
     --set updates=${GRID_UPDATES:-60} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   # slim checkpoints (weights + config) so the report's inputs come back too
-  python3 - "$RES" <<'EOF'
+  python3 - "$RES" <<'PY'
 import sys, torch, pathlib
 for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
     ck = torch.load(p, map_location="cpu", weights_only=False)
     torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
-EOF
-  timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --out "$RES" --report-only \
+PY
+  timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --report-only \
     "${SETS[@]}" 2>&1 | tail -3
   ;;
 scale)
@@ -80,9 +107,6 @@ scale)
       --nproc $n --set updates=${SCALE_UPDATES:-10} --set resample_every=0 --set num_worlds=${SCALE_WORLDS:-4096} --set checkpoint_every=100000 \
       "${SETS[@]}" 2>&1 | bar 1
   done
-  CUDA_VISIBLE_DEVICES=0,1 timeout ${TTQ2_SECONDS:-280} python3 -m tg_gpudrive.cli train --config "$CFG" \
-    --out "$RES/ttq2" --nproc 2 --set target_goal_rate=0.95 --set checkpoint_every=100000 \
-    --set num_worlds=${TTQ2_WORLDS:-512} "${SETS[@]}" 2>&1 | bar 3
   ;;
 *) echo "unknown stage $stage"; exit 2 ;;
 esac

@@ -184,3 +184,20 @@ def test_target_goal_rate_counts_the_last_three_updates_episodes():
     assert tr._reached_target(st(100, 100))  # (95 + 100 + 100) / 300 = 0.983
     tr.cfg = TrainConfig(target_goal_rate=0.0)
     assert not tr._reached_target(st(100, 100))  # 0 switches the target off
+
+
+def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):
+    """Actor and critic gradients are clipped apart: rewards 10^4 times larger blow up the
+    critic's regression gradient but must leave the actor's (normalised-advantage) step alone."""
+    moved = []
+    for scale in (1.0, 1e4):
+        torch.manual_seed(0)
+        tr = Trainer(tiny(tmp_path / str(scale), eta1=0.0, entropy_coef=0.0), tmp_path / str(scale),
+                     progress=False)
+        buf, _ = tr.rollout()
+        buf["reward"].mul_(scale)
+        before = [p.detach().clone() for p in tr.actor.parameters()]
+        tr.learn(buf)
+        moved.append(sum(float((p - b).abs().sum()) for p, b in zip(tr.actor.parameters(), before)))
+    assert moved[0] > 0
+    assert moved[1] > 0.5 * moved[0], moved

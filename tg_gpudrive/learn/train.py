@@ -353,7 +353,10 @@ class Trainer:
                 bad |= ~torch.isfinite(loss)
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()  # under DDP the gradients are averaged over the ranks here
-                torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+                # actor and critic clipped apart: one joint norm lets the critic's large early
+                # regression gradients scale the policy's step down to nothing
+                torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
+                torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
                 self.opt.step()
                 for k, val in parts.items():
                     acc[k] = acc.get(k, 0.0) + val.detach()
@@ -467,6 +470,8 @@ class Trainer:
                 row[f"reward/{name}"] = v
             row["reward"] = float(buf["reward"].sum() / max(int(buf["mask"].sum()), 1))
             row["ranks"] = self.world
+            if self.sim.is_cuda:
+                row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
             if self.lead:
                 self._log(row)
             last = row
