@@ -111,13 +111,17 @@ class CentralCritic(nn.Module):
         self.value_head = mlp([2 * hidden, hidden, 1], last_act=False)
         self.cost_head = mlp([2 * hidden, hidden, quantiles], last_act=False)
 
-    def forward(self, obs: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """`rows`: the flat indices of mask's True entries, when the caller has them already
+        (finding them costs a host-device synchronisation)."""
         lead = obs.shape[:-2]
         C = obs.shape[-2]
         m = mask.reshape(-1, C)
         # encode only the agents that are there; padded slots stay zero and are masked as keys
         flat = obs.reshape(-1, obs.shape[-1])
-        rows = m.reshape(-1).nonzero(as_tuple=True)[0]
+        if rows is None:
+            rows = m.reshape(-1).nonzero(as_tuple=True)[0]
         enc = self.encoder(flat[rows])
         h = enc.new_zeros(flat.shape[0], self.attn.embed_dim).index_copy(0, rows, enc).reshape(-1, C, self.attn.embed_dim)
         # a world with no valid agent still needs one key to attend to

@@ -53,10 +53,13 @@ class PolicyHead:
         self.discrete = discrete
 
     def dist(self, out):
+        # no argument validation: it reads values back from the GPU (a sync per call), and
+        # non-finite outputs are caught once per rollout / update with a clear message instead
         if self.discrete:
-            return torch.distributions.Categorical(logits=out)
+            return torch.distributions.Categorical(logits=out, validate_args=False)
         mean, log_std = out
-        return torch.distributions.Independent(torch.distributions.Normal(mean, log_std.exp()), 1)
+        return torch.distributions.Independent(
+            torch.distributions.Normal(mean, log_std.exp(), validate_args=False), 1, validate_args=False)
 
     def kl(self, out_p, out_q) -> torch.Tensor:
         if self.discrete:
@@ -252,7 +255,7 @@ class Trainer:
             buf["obs"][t].copy_(obs)
             buf["mask"][t] = mask
             with self._amp():
-                buf["value"][t], buf["quant"][t] = self.critic(obs, mask)
+                buf["value"][t], buf["quant"][t] = self.critic(obs, mask, w_idx * C + c_idx)
             buf["prior"][t] = self.prior.context(sim, C)
             if self.head.discrete:
                 sim.actions_index[:, :C] = act.to(torch.int32)
@@ -397,7 +400,7 @@ class Trainer:
         obs = b["obs"]
         with self._amp():
             out = self.actor_fwd(obs[rows, c], c)
-            v, q = self.critic_fwd(obs[idx], mi)
+            v, q = self.critic_fwd(obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
         out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
         v, q = v.float(), q.float()
         d = self.head.dist(out)
