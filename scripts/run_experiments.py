@@ -96,8 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     cfg_path = Path(args.config)
     exp = yaml.safe_load(cfg_path.read_text())
     base = Path(exp["base"])
-    if not base.is_absolute():
-        base = (REPO_CONFIGS / "train" / base) if (REPO_CONFIGS / "train" / base).exists() else cfg_path.parent / base
+    if not base.is_absolute():  # beside the experiment config, in its configs/train/, or the repo's
+        tries = [cfg_path.parent / base, cfg_path.parent.parent / "train" / base, REPO_CONFIGS / "train" / base]
+        base = next((p for p in tries if p.exists()), tries[-1])
     out = Path(args.out)
     runs = plan(exp, args.set)
     updates = dict(a.split("=", 1) for _, sets in runs[:1] for a in sets).get("updates")

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 
+import numpy as np
+
 import torch
 import torch.multiprocessing as mp
 
@@ -86,3 +88,19 @@ def test_two_rank_run_checkpoints_and_resumes_with_one(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ck["world_size"] == 1 and ck["update"] == 3 and out["update"] == 3
+
+
+def test_shards_are_disjoint_cover_the_source_and_mix_scene_types():
+    from tg_gpudrive.data.sources import resolve_scenes
+    from tg_gpudrive.learn.distributed import ShardSource
+
+    src = resolve_scenes("procedural:all", n=60, seed=0)
+    shards = [ShardSource(src, r, 2) for r in range(2)]
+    got = [set(int(i) for i in s.indices) for s in shards]
+    assert got[0].isdisjoint(got[1]) and got[0] | got[1] == set(range(60))
+    assert len(shards[0]) + len(shards[1]) == 60
+    # scene i of procedural:all has type i % 6: every rank must see every type, in similar shares
+    for s in shards:
+        counts = np.bincount(s.indices % 6, minlength=6)
+        assert counts.min() >= 2, counts
+    assert shards[1].get(0).scene_id == src.get(int(shards[1].indices[0])).scene_id

@@ -74,20 +74,31 @@ def local_device(device: str) -> str:
 
 
 class ShardSource:
-    """Rank `r` of `w` sees scenes r, r + w, r + 2w, ... of `source`."""
+    """Rank `r` of `w` sees every w-th scene of a fixed shuffle of `source` (the same on all ranks).
+
+    Disjoint shards whose union is the source. The shuffle keeps them alike: sources are often
+    ordered by kind (procedural:all cycles six scene types, so plain r, r + w, ... gives rank 0 of 2
+    only three of them, with their own agent counts, and the other rank waits for it at every
+    gradient all-reduce)."""
+
+    SHUFFLE_SEED = 20_240_601
 
     def __init__(self, source, rank_: int, world: int):
+        import numpy as np
+
         self.source, self.rank, self.world = source, rank_, world
         self.name = f"{getattr(source, 'name', 'scenes')}[shard {rank_}/{world}]"
+        order = np.random.default_rng(self.SHUFFLE_SEED).permutation(len(source))
+        self.indices = order[rank_::world]
 
     def __len__(self) -> int:
-        return max(0, (len(self.source) - self.rank + self.world - 1) // self.world)
+        return len(self.indices)
 
     def get(self, i: int):
-        return self.source.get(self.rank + int(i) * self.world)
+        return self.source.get(int(self.indices[int(i)]))
 
     def get_many(self, indices):
-        idx = [self.rank + int(i) * self.world for i in indices]
+        idx = [int(self.indices[int(i)]) for i in indices]
         if hasattr(self.source, "get_many"):
             return self.source.get_many(idx)
         return [self.source.get(i) for i in idx]
