@@ -10,11 +10,15 @@ every agent at every step gets a distribution over its next action from
     neighbour CA     cross-attention over the partner rows of its observation
     self-attention   one transformer layer over the four tokens, then an MLP
 
-and returns logits over the engine's discrete (accel, curvature) grid. The
+and returns, for `action_space="discrete"`, logits over the engine's (accel,
+curvature) grid, or for `"continuous"` a `LaplaceMixture` (mixture.py) of
+`mixtures` factorised Laplace components over the 2-D (accel, curvature)
+action in engine units. The discrete head's weights are laid out as before
+the continuous head existed, so older checkpoints load unchanged. The
 observation already holds map and neighbours in the agent's frame, so the only
 extra input is the history window, kept by `HistoryBuffer` (W, A, H, F) and
-updated lazily from the simulator (`sync`). Only the discrete action space is
-supported; a continuous config is refused with a clear error.
+updated lazily from the simulator (`sync`). Bicycle dynamics only: a
+delta-local config is refused with a clear error.
 
 Observation rows are nearest-first, so the model reads at most `max_partners`
 partner rows and `max_roads` road rows: one set of weights works with any
@@ -39,6 +43,7 @@ import torch
 from torch import nn
 
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 
 HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
 HIST_DIM = len(HIST_FEATURES)
@@ -51,12 +56,27 @@ _ROAD_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 5.0, 7.0]
 _HIST_SCALE = [20.0, 5.0, 1.0, 20.0, 6.0, 0.3, 1.0]
 
 
-def require_discrete(cfg) -> None:
-    if cfg.action_space != "discrete" or cfg.dynamics != "bicycle":
+# continuous head: log Laplace scale, in units of the action box half-width, squashed into this range.
+# The floor (b >= 1.8 % of the box: 0.11 m/s^2, 0.0055 1/m by default, still 10x finer than a grid bin)
+# bounds the NLL's 1 / b gradients, which with a lower floor swamp the trunk and stall learning.
+_LOG_SCALE_MIN, _LOG_SCALE_MAX = -4.0, 1.0
+
+
+def require_bicycle(cfg) -> None:
+    if cfg.dynamics != "bicycle":
         raise NotImplementedError(
-            "the world model supports the discrete bicycle action grid only (action_space: discrete, "
-            f"dynamics: bicycle); got action_space={cfg.action_space}, dynamics={cfg.dynamics}. A mixture of "
-            "Laplace head for continuous actions is not implemented")
+            "the world model predicts bicycle actions (accel, curvature) only; got dynamics="
+            f"{cfg.dynamics} (action_space={cfg.action_space})")
+
+
+def check_action_space(model: "WorldModel", cfg) -> None:
+    """The model's head must match the simulator's action space (and its bicycle dynamics)."""
+    require_bicycle(cfg)
+    if model.action_space != cfg.action_space:
+        raise ValueError(
+            f"the world model predicts {model.action_space} actions but the simulator's action_space is "
+            f"{cfg.action_space}; train a model for it (train-world-model --set env.action_space="
+            f"{cfg.action_space})")
 
 
 def _mlp(i: int, d: int) -> nn.Sequential:
@@ -81,15 +101,29 @@ class _CrossAttention(nn.Module):
 
 
 class WorldModel(nn.Module):
-    """(obs rows (N, obs_dim), history (N, H, HIST_DIM)) -> logits (N, num_actions).
+    """(obs rows (N, obs_dim), history (N, H, HIST_DIM)) -> logits (N, num_actions) (discrete)
+    or a LaplaceMixture over (N, 2) actions (continuous).
 
-    `partner_k`, `road_k`: the engine layout of the observation rows (set with `set_layout`)."""
+    `partner_k`, `road_k`: the engine layout of the observation rows (set with `set_layout`).
+    `max_accel`, `max_curvature` (continuous): the action box; locations and scales are
+    predicted in units of its half-widths."""
 
     def __init__(self, *, num_actions: int = 91, hidden: int = 64, heads: int = 4, history: int = 10,
-                 max_partners: int = 8, max_roads: int = 32, partner_k: int = 8, road_k: int = 32):
+                 max_partners: int = 8, max_roads: int = 32, partner_k: int = 8, road_k: int = 32,
+                 action_space: str = "discrete", mixtures: int = 4, max_accel: float = 6.0,
+                 max_curvature: float = 0.3):
         super().__init__()
+        if action_space not in ("discrete", "continuous"):
+            raise ValueError(f"action_space: expected discrete or continuous, got {action_space!r}")
         self.hparams = dict(num_actions=num_actions, hidden=hidden, heads=heads, history=history,
                             max_partners=max_partners, max_roads=max_roads)
+        self.action_space, self.mixtures = action_space, mixtures
+        if action_space == "continuous":  # discrete checkpoints keep their old hparams
+            if mixtures < 1:
+                raise ValueError(f"mixtures must be >= 1, got {mixtures}")
+            self.hparams.update(action_space=action_space, mixtures=mixtures, max_accel=max_accel,
+                                max_curvature=max_curvature)
+        self.register_buffer("action_scale", torch.tensor([max_accel, max_curvature]), persistent=False)
         self.num_actions, self.history = num_actions, history
         self.max_partners, self.max_roads = max_partners, max_roads
         self.set_layout(partner_k, road_k)
@@ -107,7 +141,17 @@ class WorldModel(nn.Module):
         self.ca_map = _CrossAttention(d, heads)
         self.ca_agent = _CrossAttention(d, heads)
         self.self_attn = nn.TransformerEncoderLayer(d, heads, dim_feedforward=2 * d, dropout=0.0, batch_first=True)
-        self.head = nn.Sequential(nn.Linear(4 * d, 2 * d), nn.ReLU(), nn.Linear(2 * d, num_actions))
+        out = num_actions if action_space == "discrete" else mixtures * 5  # logit, 2 locations, 2 log-scales
+        self.head = nn.Sequential(nn.Linear(4 * d, 2 * d), nn.ReLU(), nn.Linear(2 * d, out))
+
+    @property
+    def discrete(self) -> bool:
+        return self.action_space == "discrete"
+
+    @property
+    def grad_scale(self) -> float:
+        """Typical gradient size of the NLL relative to the discrete head's (gradient clipping)."""
+        return 1.0 if self.discrete else math.exp(-_LOG_SCALE_MIN)
 
     def set_layout(self, partner_k: int, road_k: int) -> None:
         self.partner_k, self.road_k = int(partner_k), int(road_k)
@@ -118,7 +162,7 @@ class WorldModel(nn.Module):
         feats = torch.cat([h[..., :2], torch.cos(dyaw), torch.sin(dyaw), h[..., 3:]], dim=-1)
         return self.temporal_in(feats) + self.time_emb[-hist.shape[-2]:]
 
-    def forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor:
+    def forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor | LaplaceMixture:
         lead = obs.shape[:-1]
         obs = obs.reshape(-1, obs.shape[-1])
         hist = hist.reshape(-1, *hist.shape[-2:])
@@ -132,7 +176,23 @@ class WorldModel(nn.Module):
         m = self.ca_map(q + t, self.road_in(road / self.road_scale), road[..., 0] > 0.5)
         n = self.ca_agent(q + t + m, self.partner_in(part / self.partner_scale), part[..., 0] > 0.5)
         z = self.self_attn(torch.stack([q, t, m, n], dim=1))
-        return self.head(z.reshape(z.shape[0], -1)).reshape(*lead, self.num_actions)
+        raw = self.head(z.reshape(z.shape[0], -1))
+        if self.discrete:
+            return raw.reshape(*lead, self.num_actions)
+        K = self.mixtures
+        rest = raw[:, K:].reshape(-1, K, 4)
+        scale = self.action_scale.to(raw.dtype)
+        loc = rest[..., :2] * scale
+        span = _LOG_SCALE_MAX - _LOG_SCALE_MIN
+        log_scale = torch.log(scale) + _LOG_SCALE_MIN + span * torch.sigmoid(rest[..., 2:])
+        return LaplaceMixture(raw[:, :K].reshape(*lead, K), loc.reshape(*lead, K, 2), log_scale.reshape(*lead, K, 2))
+
+    def nll(self, out, target: torch.Tensor, label_smoothing: float = 0.0) -> torch.Tensor:
+        """Per-sample negative log-likelihood (nats; per 2-D action when continuous) of `target`:
+        grid indices (N,) or actions (N, 2) in engine units."""
+        if self.discrete:
+            return nn.functional.cross_entropy(out, target, reduction="none", label_smoothing=label_smoothing)
+        return -out.log_prob(target)
 
 
 # ----------------------------------------------------------------- history

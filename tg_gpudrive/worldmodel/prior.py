@@ -6,14 +6,22 @@
 The prior's context is the agent's history window in its current frame
 (H x 7 floats, 70 by default); the observation row the learner already stores
 supplies map and neighbours, so `distribution(context, obs)` recomputes the
-logits at update time instead of storing 91 of them per agent-step. The
+distribution at update time instead of storing 91 logits per agent-step. The
 history is synced from the simulator at each `context` call, so the trainer
 must call it every step (it does).
 
+Discrete: `distribution` returns logits and the trainer's categorical KL is
+exact. Continuous: it returns a `LaplaceMixture` (mixture.py). The trainer's
+`PolicyHead.kl` calls its `kl_from((mean, log_std))`, a closed-form variational
+upper bound on KL(Gaussian policy || mixture), exact for one component; read
+as a plain (mean, log_std) tuple it is the moment-matched Gaussian, so a
+Gaussian-only KL still gets a defined (unimodal) magnet.
+
 Checkpoints (`save_world_model` / `load_world_model`) hold the weights, the
-model's hyper-parameters and the action grid it was trained on; loading onto a
-simulator whose grid differs is an error. `load_shipped(sim)` loads the small
-model trained on procedural scenes that ships in the package (shipped.pt).
+model's hyper-parameters and the action grid (discrete) or box (continuous) it
+was trained on; loading onto a simulator whose action space, grid or box
+differs is an error. `load_shipped(sim)` loads the small discrete model trained
+on procedural scenes that ships in the package (shipped.pt).
 """
 
 from __future__ import annotations
@@ -23,12 +31,17 @@ from pathlib import Path
 import torch
 
 from tg_gpudrive.learn.prior import BehaviourPrior
-from tg_gpudrive.worldmodel.model import HIST_DIM, HistoryBuffer, WorldModel, require_discrete
+from tg_gpudrive.worldmodel.mixture import LaplaceMixture
+from tg_gpudrive.worldmodel.model import HIST_DIM, HistoryBuffer, WorldModel, check_action_space
 
 SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
 
 
 def grid_of(cfg) -> dict:
+    """What a checkpoint must agree on with the simulator: the grid (discrete; the dict older
+    checkpoints hold) or the action box (continuous)."""
+    if cfg.action_space == "continuous":
+        return {"action_space": "continuous", "max_accel": cfg.max_accel, "max_curvature": cfg.max_curvature}
     return {"accel_bins": cfg.accel_bins, "curvature_bins": cfg.curvature_bins, "max_accel": cfg.max_accel,
             "max_curvature": cfg.max_curvature}
 
@@ -58,7 +71,7 @@ def load_world_model(path: str | Path, sim=None, device: str | None = None) -> W
     model = WorldModel(**ck["hparams"])
     model.load_state_dict(ck["state_dict"])
     if sim is not None:
-        require_discrete(sim.cfg)
+        check_action_space(model, sim.cfg)
         want, have = ck["grid"], grid_of(sim.cfg)
         if want != have:
             raise ValueError(f"{path}: world model trained on the action grid {want}; the simulator has {have}")
@@ -78,13 +91,16 @@ class WorldModelPrior(BehaviourPrior):
     """The world model's next-action distribution as the CCE-MAPPO magnet.
 
     context(sim, C) -> (W, C, H * 7): the history window of the first C slots.
-    distribution(context, obs) -> logits (..., num_actions)."""
+    distribution(context, obs) -> logits (..., num_actions), or a LaplaceMixture (continuous)
+    whose KL from the Gaussian policy is the closed-form bound (`kl_samples` None) or a
+    Monte Carlo estimate with that many fixed draws."""
 
-    def __init__(self, model: WorldModel, sim=None):
+    def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None):
         if sim is not None:
-            require_discrete(sim.cfg)
+            check_action_space(model, sim.cfg)
             model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
         self.model = model
+        self.kl_samples = kl_samples
         self.history = HistoryBuffer(model.history)
 
     @property
@@ -102,14 +118,20 @@ class WorldModelPrior(BehaviourPrior):
         hist = context.reshape(*context.shape[:-1], self.model.history, HIST_DIM)
         # the magnet is a fixed target: no gradient flows into the world model
         with torch.no_grad():
-            return self.model(obs.float(), hist.float()).float()
+            out = self.model(obs.float(), hist.float())
+        if self.model.discrete:
+            return out.float()
+        return LaplaceMixture(out.logits.float(), out.loc.float(), out.log_scale.float(), self.kl_samples)
 
 
 class WorldModelDriver:
-    """`driver(sim)`: writes sampled world-model actions into `sim.actions_index` for the
-    background rows (`rows="background"`), every controlled row (`"controlled"`, e.g. to
-    drive a whole scene closed loop) or the policy's rows (`"policy"`). Call it once per
-    step, before `sim.step()`; other rows of the buffer are left as they are."""
+    """`driver(sim)`: writes sampled world-model actions for the background rows
+    (`rows="background"`), every controlled row (`"controlled"`, e.g. to drive a whole scene
+    closed loop) or the policy's rows (`"policy"`): grid indices into `sim.actions_index`
+    (discrete) or (accel, curvature), clipped to the action box, into `sim.actions[..., :2]`
+    (continuous). Call it once per step, before `sim.step()`; other rows are left as they are.
+    `greedy`: the arg-max bin, or the location of the most probable mixture component.
+    `temperature` divides the logits (and multiplies the Laplace scales)."""
 
     ROWS = ("background", "controlled", "policy")
 
@@ -124,7 +146,7 @@ class WorldModelDriver:
 
     @torch.no_grad()
     def __call__(self, sim) -> None:
-        require_discrete(sim.cfg)
+        check_action_space(self.model, sim.cfg)
         if self.gen is None or self.gen.device != sim.pos.device:
             self.gen = torch.Generator(device=sim.pos.device).manual_seed(self.seed)
         self.model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
@@ -140,10 +162,15 @@ class WorldModelDriver:
             return
         w, a = sel.nonzero(as_tuple=True)
         hist = self.history.features(sim)[w, a]
-        logits = self.model(sim.obs[w, a], hist)
+        out = self.model(sim.obs[w, a], hist)
+        if not self.model.discrete:
+            act = out.mode_loc() if self.greedy else out.sample(self.gen, self.temperature)
+            box = torch.tensor([sim.cfg.max_accel, sim.cfg.max_curvature], device=act.device, dtype=act.dtype)
+            sim.actions[w, a, :2] = torch.maximum(torch.minimum(act, box), -box).to(sim.actions.dtype)
+            return
         if self.greedy:
-            act = logits.argmax(-1)
+            act = out.argmax(-1)
         else:
-            p = torch.softmax(logits / self.temperature, -1)
+            p = torch.softmax(out / self.temperature, -1)
             act = torch.multinomial(p, 1, generator=self.gen)[:, 0]
         sim.actions_index[w, a] = act.to(sim.actions_index.dtype)
