@@ -23,8 +23,10 @@ from pathlib import Path
 
 import torch
 
-from tg_gpudrive.config import REPO_CONFIGS, TrainConfig, load_config
+from tg_gpudrive.config import TrainConfig, load_config
 from tg_gpudrive.learn.train import Trainer
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
 
 def run_variant(config: str, overrides: list[str], updates: int) -> dict:
@@ -56,7 +58,7 @@ def run_variant(config: str, overrides: list[str], updates: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", default=str(REPO_CONFIGS / "train" / "gpu.yaml"))
+    ap.add_argument("--config", default=str(CONFIGS / "train" / "gpu.yaml"))
     ap.add_argument("--updates", type=int, default=8)
     ap.add_argument("--variant", action="append", default=[], metavar="NAME:k=v,k=v",
                     help="a named set of overrides (repeatable); default: the config as it is")

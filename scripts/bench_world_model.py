@@ -26,8 +26,11 @@ import argparse
 import json
 import tempfile
 import time
+from pathlib import Path
 
 import torch
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
 
 def _sync(device: str) -> None:
@@ -116,14 +119,14 @@ def bench_inference(cfg, args, device: str) -> dict:
 
 
 def bench_prior(args, device: str) -> dict:
-    from tg_gpudrive.config import REPO_CONFIGS, TrainConfig, load_config
+    from tg_gpudrive.config import TrainConfig, load_config
     from tg_gpudrive.learn.train import Trainer
 
     overrides = [f"device={device}", *args.set]
     out = {}
     for prior in ("expert", "world_model"):
         extra = [f"prior={prior}"] + ([f"prior_model={args.model}"] if prior == "world_model" and args.model else [])
-        cfg = load_config(TrainConfig, args.train_config or REPO_CONFIGS / "train" / "small_cpu.yaml",
+        cfg = load_config(TrainConfig, args.train_config or CONFIGS / "train" / "small_cpu.yaml",
                           overrides + extra)
         with tempfile.TemporaryDirectory() as tmp:
             tr = Trainer(cfg, out_dir=tmp, progress=False)
@@ -177,12 +180,12 @@ def main(argv: list[str] | None = None) -> dict:
     if args.threads > 0:
         torch.set_num_threads(args.threads)
 
-    from tg_gpudrive.config import REPO_CONFIGS, load_config
+    from tg_gpudrive.config import load_config
     from tg_gpudrive.simulator import resolve_device
     from tg_gpudrive.worldmodel.train import WorldModelConfig
 
     device = resolve_device(args.device)
-    wm_cfg = load_config(WorldModelConfig, args.wm_config or REPO_CONFIGS / "worldmodel" / "small_cpu.yaml",
+    wm_cfg = load_config(WorldModelConfig, args.wm_config or CONFIGS / "worldmodel" / "small_cpu.yaml",
                          [f"device={args.device}", *args.wm_set])
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     res: dict = {"device": device, "gpu": torch.cuda.get_device_name(device) if device.startswith("cuda") else None,

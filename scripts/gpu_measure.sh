@@ -83,9 +83,9 @@ store10k)
     train --config "$CFG" --out "$RES/run" --nproc ${STORE_NPROC:-1} --set scenes=/tmp/store --set num_scenes="$N" \
     --set resample_every=5 --set checkpoint_every=5 --set target_goal_rate=${STORE_TARGET:-0} "${SETS[@]}" 2>&1 | bar 3
   for mode in ignore stop remove; do
-    timeout 60 python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \
+    timeout ${EVAL_SECONDS:-150} python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \
       --seed 50000 --num-scenes ${EVAL_N:-1024} --episodes ${EVAL_N:-1024} --worlds ${EVAL_N:-1024} \
-      --collision-mode $mode --json 2>/dev/null | tee "$RES/heldout_$mode.json"
+      --collision-mode $mode --json 2>"$RES/heldout_$mode.err" | tee "$RES/heldout_$mode.json"
   done
   ;;
 grid)

@@ -26,7 +26,8 @@ from pathlib import Path
 
 import yaml
 
-from tg_gpudrive.config import REPO_CONFIGS
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
+
 
 
 def _yaml(v) -> str:
@@ -84,7 +85,7 @@ def done(run: Path, updates: int | None) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", default=str(REPO_CONFIGS / "experiments" / "grid.yaml"))
+    ap.add_argument("--config", default=str(CONFIGS / "experiments" / "grid.yaml"))
     ap.add_argument("--out", default="runs/experiments")
     ap.add_argument("--batch", type=int, default=None, help="runs trained at once (default: the config's)")
     ap.add_argument("--set", action="append", default=[], help="extra train override for every run")
@@ -97,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     exp = yaml.safe_load(cfg_path.read_text())
     base = Path(exp["base"])
     if not base.is_absolute():  # beside the experiment config, in its configs/train/, or the repo's
-        tries = [cfg_path.parent / base, cfg_path.parent.parent / "train" / base, REPO_CONFIGS / "train" / base]
+        tries = [cfg_path.parent / base, cfg_path.parent.parent / "train" / base, CONFIGS / "train" / base]
         base = next((p for p in tries if p.exists()), tries[-1])
     out = Path(args.out)
     runs = plan(exp, args.set)
