@@ -103,7 +103,8 @@ def make_background_driver(sim: Simulator, background: str = "log", model: str |
                            seed: int = 0, option: str = "background_model") -> Policy | None:
     """None for log replay; else a `WorldModelDriver` of the background rows, with the checkpoint
     `model` (a world-model .pt or a train-world-model run directory) or the shipped model.
-    Only the discrete action grid is supported (the loader raises NotImplementedError otherwise)."""
+    The model's action space must match the simulator's (the loader raises ValueError otherwise;
+    the shipped model is discrete)."""
     if check_background(background) == "log":
         if model is not None:
             raise ValueError(f"{option}: only used with background world_model, got background log")
