@@ -113,6 +113,21 @@ def tracking_target(pos: wp.vec2, yaw: float, vel: wp.vec2, pos1: wp.vec2, yaw1:
     return yaw_t, wp.vec2(speed_t, 0.0)
 
 
+@wp.func
+def track_log(i: int, t: int, pos: wp.vec2, yaw: float, vel: wp.vec2, log_pos: wp.array2d(dtype=wp.vec2),
+              log_yaw: wp.array2d(dtype=float), log_vel: wp.array2d(dtype=wp.vec2),
+              log_valid: wp.array2d(dtype=wp.int32), dt: float, gain_long: float, gain_lat: float):
+    """`tracking_target` of agent i towards its log at t + 1, aiming at t + 2 where that is valid."""
+    has2 = int(0)
+    pos2 = log_pos[i, t + 1]
+    if t + 2 < log_pos.shape[1]:
+        if log_valid[i, t + 2] != 0:
+            has2 = 1
+            pos2 = log_pos[i, t + 2]
+    return tracking_target(pos, yaw, vel, log_pos[i, t + 1], log_yaw[i, t + 1], log_vel[i, t + 1], pos2, has2, dt,
+                           gain_long, gain_lat)
+
+
 @wp.kernel
 def expert_actions_kernel(
     # model
@@ -180,14 +195,8 @@ def expert_actions_kernel(
             yaw_t = log_yaw[i, t + 1]
             vel_t = log_vel[i, t + 1]
             if t >= init_step:
-                has2 = int(0)
-                pos2 = log_pos[i, t + 1]
-                if t + 2 < T:
-                    if log_valid[i, t + 2] != 0:
-                        has2 = 1
-                        pos2 = log_pos[i, t + 2]
-                yaw_t, vel_t = tracking_target(pos, yaw, vel, log_pos[i, t + 1], log_yaw[i, t + 1],
-                                               log_vel[i, t + 1], pos2, has2, dt, gain_long, gain_lat)
+                yaw_t, vel_t = track_log(i, t, pos, yaw, vel, log_pos, log_yaw, log_vel, log_valid, dt, gain_long,
+                                         gain_lat)
             a, k = bicycle_inverse(yaw, vel, yaw_t, vel_t, dt, max_accel, max_kappa)
             ia = nearest_bin(a, -max_accel, max_accel, n_accel)
             ik = nearest_bin(k, -max_kappa, max_kappa, n_kappa)
@@ -368,14 +377,8 @@ def corrective_expert_kernel(
         index_out[i] = -1
         return
     if dynamics == DYNAMICS_BICYCLE:
-        has2 = int(0)
-        pos2 = log_pos[i, t + 1]
-        if t + 2 < T:
-            if log_valid[i, t + 2] != 0:
-                has2 = 1
-                pos2 = log_pos[i, t + 2]
-        yaw_t, vel_t = tracking_target(pos[i], yaw[i], vel[i], log_pos[i, t + 1], log_yaw[i, t + 1],
-                                       log_vel[i, t + 1], pos2, has2, dt, gain_long, gain_lat)
+        yaw_t, vel_t = track_log(i, t, pos[i], yaw[i], vel[i], log_pos, log_yaw, log_vel, log_valid, dt, gain_long,
+                                 gain_lat)
         a, k = bicycle_inverse(yaw[i], vel[i], yaw_t, vel_t, dt, max_accel, max_kappa)
         action_out[i] = wp.vec3(a, k, 0.0)
         index_out[i] = nearest_bin(a, -max_accel, max_accel, n_accel) * n_kappa + nearest_bin(
