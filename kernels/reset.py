@@ -85,6 +85,7 @@ def finish_world_kernel(
     agents_per_world: int,
     init_step: int,
     controlled: wp.array(dtype=wp.int32),
+    background: wp.array(dtype=wp.int32),
     last_step: wp.array(dtype=wp.int32),  # (world,)
     agent_done: wp.array(dtype=wp.int32),
     auto_reset: int,
@@ -102,19 +103,30 @@ def finish_world_kernel(
         world_truncated_out[w] = 0
         return
     t = step[w] + 1
+    # the episode ends early once the policy's agents are all done; background-driven agents
+    # do not hold it open (they decide only in a world that has no policy agent)
     n_ctrl = int(0)
     n_done = int(0)
+    n_pol = int(0)
+    n_pol_done = int(0)
     for a in range(agents_per_world):
         i = w * agents_per_world + a
         if controlled[i] != 0:
             n_ctrl += 1
             if agent_done[i] != 0:
                 n_done += 1
+            if background[i] == 0:
+                n_pol += 1
+                if agent_done[i] != 0:
+                    n_pol_done += 1
     trunc = int(0)
     if t >= last_step[w]:
         trunc = 1
     end = trunc
-    if n_ctrl > 0 and n_done == n_ctrl:
+    if n_pol > 0:
+        if n_pol_done == n_pol:
+            end = 1
+    elif n_ctrl > 0 and n_done == n_ctrl:
         end = 1
     world_ended_out[w] = end
     world_reset_out[w] = end * auto_reset
@@ -233,8 +245,8 @@ def launch_respond_and_finish(model, state) -> None:
                       state.ep_cost, state.ep_min_dist, state.ep_steps],
               outputs=[state.terminated])
     wp.launch(finish_world_kernel, dim=model.num_worlds, device=model.device,
-              inputs=[model.max_agents, model.init_step, model.controlled, model.last_step, state.agent_done,
-                      model.auto_reset, state.step, state.world_done],
+              inputs=[model.max_agents, model.init_step, model.controlled, model.background, model.last_step,
+                      state.agent_done, model.auto_reset, state.step, state.world_done],
               outputs=[state.world_ended, state.world_reset, state.world_truncated, state.episode_count])
     _reset_agents(model, state, force=0)
 

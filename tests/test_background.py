@@ -180,3 +180,35 @@ def test_bad_background_values_are_clear_errors(tmp_path):
         TGVectorEnv([scene], config=cfg, background_model="model.pt")
     with pytest.raises(FileNotFoundError, match="background_model: no world-model checkpoint"):
         TGVectorEnv([scene], config=cfg, background="world_model", background_model=tmp_path / "nope.pt")
+
+
+def test_episode_ends_when_the_policy_agents_are_done_not_the_background(device):
+    """Agent 0 (the policy's) reaches the end of a 20-step log; agent 1 (background) drives on to
+    step 40. The episode must end with agent 0, at step 20; with agent 1 as the policy's too it
+    runs on until agent 1 is done."""
+    from tg_gpudrive.scene import make_scene
+
+    T = 41
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    pos[:, :, 0] = 10 * t
+    pos[1, :, 1] = 20.0
+    vel = np.zeros((2, T, 2))
+    vel[:, :, 0] = 10.0
+    valid = np.ones((2, T), bool)
+    valid[0, 21:] = False
+    scene = make_scene(pos, np.zeros((2, T)), log_vel=vel, log_valid=valid, length=4.0, width=2.0)
+    cfg = EngineConfig(max_agents=4, road_k=8, partner_k=2, init_steps=1, goal_behaviour="remove",
+                       auto_reset=False)
+    ends = []
+    for background in ([False, True], [False, False]):
+        sim = Simulator([scene], cfg, device, controlled=[np.array([True, not background[1]])],
+                        background=[np.array(background)])
+        sim.reset()
+        for step in range(T):
+            sim.use_expert_actions()
+            sim.step()
+            if int(sim.world_ended[0]):
+                ends.append(int(sim.world_step[0]))
+                break
+    assert ends[0] <= 21 < ends[1], ends
