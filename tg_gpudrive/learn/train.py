@@ -12,7 +12,11 @@ on (T, W, C, ...) blocks. Per agent i the actor minimises
 (losses.cce_mappo_actor_loss); the centralised critic regresses the reward
 lambda-returns; the quantile critic learns the distribution of the discounted
 cost-to-go; lambda >= 0 rises while CVaR_alpha of that distribution, averaged
-over the agents' states, exceeds `cost_limit`.
+over the agents' states, exceeds `cost_limit` (set it above the logged drivers'
+own level, or the constraint is infeasible and lambda grows without bound).
+Actor and critic share one Adam optimiser but their gradients are clipped
+apart. The update reads values back from the GPU once, at its end (the row
+selections of the live agents are the only other host syncs).
 
 Checkpoints are atomic (write, then rename) and hold everything a resume needs
 to continue exactly: weights, optimisers, lambda, RNG states, counters, the
