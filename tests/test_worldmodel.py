@@ -337,6 +337,50 @@ def test_continuous_driver_writes_finite_in_range_actions(heldout, wm_cfg):
     assert torch.isfinite(sim.actions).all()
 
 
+def test_temperature_shrinks_the_sampled_spread(heldout, wm_cfg):
+    """Hand-checkable: a Laplace(0, b) draw has E|x| = b; at temperature T the scale is b T, so
+    E|x| = b T. Two components with weights 1/4, 3/4 at T = 1/2 get weights 1/16 : 9/16, i.e.
+    0.1 / 0.9. T = 0 is the most probable component's location, with no randomness."""
+    n = 200_000
+    b = torch.tensor([0.5, 0.01], dtype=torch.float64)
+    one = LaplaceMixture(torch.zeros(n, 1, dtype=torch.float64), torch.zeros(n, 1, 2, dtype=torch.float64),
+                         b.log().expand(n, 1, 2))
+    for T in (1.0, 0.3, 0.1):
+        spread = one.sample(torch.Generator().manual_seed(0), temperature=T).abs().mean(0)
+        np.testing.assert_allclose(spread.numpy(), (b * T).numpy(), rtol=0.02)
+    two = LaplaceMixture(torch.tensor([0.0, np.log(3.0)], dtype=torch.float64).expand(n, 2),
+                         torch.tensor([[-1.0, 0.0], [1.0, 0.0]], dtype=torch.float64).expand(n, 2, 2),
+                         torch.full((n, 2, 2), np.log(0.01), dtype=torch.float64))
+    for T, w_right in ((1.0, 0.75), (0.5, 0.9)):
+        x = two.sample(torch.Generator().manual_seed(1), temperature=T)
+        assert float((x[:, 0] > 0).double().mean()) == pytest.approx(w_right, abs=0.01)
+    assert torch.equal(two.sample(temperature=0.0), two.mode_loc())
+    with pytest.raises(ValueError):
+        two.sample(temperature=-1.0)
+    # the driver: continuous defaults to CONTINUOUS_TEMPERATURE, discrete to 1, T = 0 is greedy
+    cfg = _cont_cfg(wm_cfg)
+    torch.manual_seed(0)
+    model = build_model(dataclasses.replace(cfg, hidden=16)).eval()
+    assert WorldModelDriver(model).temperature == WorldModelDriver.CONTINUOUS_TEMPERATURE < 1.0
+    assert WorldModelDriver(WorldModel(hidden=16)).temperature == 1.0
+    spread = {}
+    for T in (1.0, 0.1, 0.0):
+        sim = _continuous_sim(heldout[:2], cfg)
+        sim.reset()
+        WorldModelDriver(model, rows="background", temperature=T, seed=0)(sim)
+        bg = (sim.background != 0) & (sim.present != 0)
+        with torch.no_grad():
+            hb = WorldModelDriver(model).history
+            hb.sync(sim)
+            w, a = bg.nonzero(as_tuple=True)
+            mode = model(sim.obs[w, a], hb.features(sim)[w, a]).mode_loc()
+        box = torch.tensor([cfg.env.max_accel, cfg.env.max_curvature])
+        spread[T] = float(((sim.actions[bg][:, :2] - mode.clamp(-box, box)) / box).abs().mean())
+    print(f"\ndriver spread around the mode (box units): T=1 {spread[1.0]:.4f}, T=0.1 {spread[0.1]:.4f}, "
+          f"T=0 {spread[0.0]:.2e}")
+    assert spread[0.0] < 1e-6 and spread[0.1] < 0.5 * spread[1.0]
+
+
 def test_continuous_magnet_kl_is_the_mixture_estimate(wm_cfg, tmp_path):
     from tg_gpudrive.learn.train import Trainer
 

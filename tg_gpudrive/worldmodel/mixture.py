@@ -3,6 +3,7 @@
     mix = LaplaceMixture(logits, loc, log_scale)
     mix.log_prob(x)            # (...,) log-density of actions x (..., D)
     mix.sample(gen)            # (..., D)
+    mix.sample(gen, temperature=0.1)   # sharper: logits / T, Laplace scales * T (0: mode_loc)
     mix.kl_from((mean, log_std))   # upper bound on KL(N(mean, std) || mix), differentiable in mean and log_std
 
 Fields (K components, D = 2 action dimensions, engine units m/s^2 and 1/m):
@@ -93,7 +94,14 @@ class LaplaceMixture(tuple):
         return torch.gather(self.loc, -2, k[..., None, None].expand(*k.shape, 1, self.loc.shape[-1]))[..., 0, :]
 
     def sample(self, generator: torch.Generator | None = None, temperature: float = 1.0) -> torch.Tensor:
-        """(..., D) draws; `temperature` divides the logits and multiplies the scales."""
+        """(..., D) draws at `temperature` T: each component is tempered, w_k^(1/T) L_k(x)^(1/T) up to
+        normalisation, which for a Laplace is the same Laplace with its scale b times T; so T divides
+        the logits and multiplies the scales, T = 1 is the model, T < 1 sharpens both the choice of
+        component and the spread around it, and T = 0 is `mode_loc()` (no randomness)."""
+        if temperature < 0:
+            raise ValueError(f"temperature must be >= 0, got {temperature}")
+        if temperature == 0:
+            return self.mode_loc()
         lead, K, D = self.logits.shape[:-1], self.logits.shape[-1], self.loc.shape[-1]
         p = torch.softmax(self.logits.reshape(-1, K) / temperature, -1)
         k = torch.multinomial(p, 1, generator=generator).view(*lead, 1, 1).expand(*lead, 1, D)
