@@ -56,15 +56,17 @@ sweep)
   wait
   python3 - "$RES" <<'PY'
 import csv, pathlib, sys
+# goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
+# rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
 for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
     rows = list(csv.DictReader((d / "metrics.csv").open()))
-    g = [float(r["goal_rate"]) for r in rows if r["goal_rate"] not in ("", "nan")] or [0.0]
-    win = [sum(g[i:i + 5]) / 5 for i in range(max(len(g) - 4, 1))]
-    best = max(range(len(win)), key=win.__getitem__)
+    done = [r for r in rows[-10:] if r["goal_rate"] not in ("", "nan")]
+    n = sum(float(r["episodes"]) for r in done) or float("nan")
+    rate = lambda k: sum(float(r[k]) * float(r["episodes"]) for r in done) / n  # noqa: E731
     last = rows[-1]
-    print(f"{d.name}: {len(rows)} updates, goal last5 {win[-1]:.3f}, best5 {win[best]:.3f} (evals {best + 1}-{best + 5} of {len(g)}), "
-          f"coll {float(last['collision_rate']):.2f} off {float(last['offroad_rate']):.2f} "
-          f"ent {float(last['entropy']):.2f} klp {float(last['kl/prior']):.2f} wall {float(last['wall_s']):.0f}s")
+    print(f"{d.name}: {len(rows)} updates, goal {rate('goal_rate'):.3f} coll {rate('collision_rate'):.3f} "
+          f"off {rate('offroad_rate'):.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
+          f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} wall {float(last['wall_s']):.0f}s")
 PY
   ;;
 ttq)

@@ -271,8 +271,6 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
 
 
 def cmd_evaluate(args) -> int:
-    import torch
-
     from tg_gpudrive.config import TrainConfig, from_dict
     from tg_gpudrive.rollout import builtin_policy, run_rollout
 
@@ -280,11 +278,10 @@ def cmd_evaluate(args) -> int:
     if args.checkpoint:
         from tg_gpudrive.learn.train import load_policy
 
-        path = Path(args.checkpoint)
-        path = path / "checkpoint.pt" if path.is_dir() else path
-        if not path.exists():
-            raise FileNotFoundError(f"--checkpoint: no checkpoint at {path}")
-        ck = torch.load(path, map_location="cpu", weights_only=False)
+        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
+
+        path = checkpoint_path(args.checkpoint, "--checkpoint")
+        ck = load_checkpoint(path, "--checkpoint")
         cfg = from_dict(TrainConfig, ck["config"], str(path)).env
         if args.collision_mode:
             cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import random
 import time
 from pathlib import Path
@@ -36,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
 from tg_gpudrive.config import TrainConfig, to_dict
 from tg_gpudrive.control import control_masks
 from tg_gpudrive.learn import distributed as dist_util
@@ -96,7 +96,7 @@ def make_prior(cfg: TrainConfig, sim: Simulator):
 
 def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
     """A `policy(sim)` callable from a training checkpoint (used by evaluate and render)."""
-    ck = torch.load(Path(path), map_location=sim.device, weights_only=False)
+    ck = load_checkpoint(path, "checkpoint", map_location=sim.device)
     from tg_gpudrive.config import from_dict
 
     cfg = from_dict(TrainConfig, ck["config"], str(path))
@@ -139,13 +139,7 @@ class Trainer:
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
         torch.backends.cuda.matmul.allow_tf32 = True
-        ck = None
-        if resume is not None:
-            path = Path(resume)
-            path = path / "checkpoint.pt" if path.is_dir() else path
-            if not path.exists():
-                raise FileNotFoundError(f"--resume: no checkpoint at {path}")
-            ck = torch.load(path, map_location="cpu", weights_only=False)
+        ck = None if resume is None else load_checkpoint(resume)
         self._seed(cfg.seed + self.rank)
         self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
         if self.world > 1:
@@ -219,7 +213,6 @@ class Trainer:
         cfg, sim = self.cfg, self.sim
         T, W, C = cfg.rollout_steps, sim.num_worlds, max(sim.max_controlled, 1)
         dev = self.device
-        slots = torch.arange(C, device=dev)
         buf = self._buffers(T, W, C)
         stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev), "alive": torch.zeros((), device=dev),
                  "episodes": torch.zeros((), device=dev), "goal": torch.zeros((), device=dev),
@@ -247,9 +240,7 @@ class Trainer:
             else:
                 a = out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=dev)
             act = buf["act"][t]
-            act.zero_()
-            if self.head.discrete:
-                act.fill_(self._noop)
+            act.fill_(self._noop if self.head.discrete else 0.0)  # rows that do not act
             act[w_idx, c_idx] = a.to(act.dtype)
             buf["logp"][t][w_idx, c_idx] = d.log_prob(a)
             if self.head.discrete:
@@ -549,10 +540,7 @@ class Trainer:
         }
 
     def save(self) -> Path:
-        path = self.out / "checkpoint.pt"
-        tmp = path.with_suffix(".pt.tmp")
-        torch.save(self.state_dict(), tmp)
-        os.replace(tmp, path)
+        path = save_atomic(self.state_dict(), self.out / "checkpoint.pt")
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
 

@@ -48,15 +48,11 @@ def grid_of(cfg) -> dict:
 
 def save_world_model(model: WorldModel, path: str | Path, env_cfg, extra: dict | None = None) -> Path:
     """Weights + hyper-parameters + action grid; written atomically."""
-    import os
+    from tg_gpudrive.checkpoint import save_atomic
 
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save({"hparams": model.hparams, "grid": grid_of(env_cfg),
-                "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-                **(extra or {})}, tmp)
-    os.replace(tmp, path)
-    return path
+    return save_atomic({"hparams": model.hparams, "grid": grid_of(env_cfg),
+                        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+                        **(extra or {})}, path)
 
 
 def load_world_model(path: str | Path, sim=None, device: str | None = None) -> WorldModel:

@@ -71,7 +71,6 @@ import csv
 import dataclasses
 import json
 import math
-import os
 import random
 import sys
 import time
@@ -80,6 +79,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
 from tg_gpudrive.config import ConfigError, EngineConfig, apply_overrides, from_dict, load_yaml, to_dict
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.worldmodel.model import HistoryBuffer, WorldModel, require_bicycle
@@ -406,13 +406,7 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
     out.mkdir(parents=True, exist_ok=True)
     device = "cuda:0" if cfg.device == "cuda" else cfg.device
     random.seed(cfg.seed), np.random.seed(cfg.seed), torch.manual_seed(cfg.seed)
-    ck = None
-    if resume is not None:
-        path = Path(resume)
-        path = path / "checkpoint.pt" if path.is_dir() else path
-        if not path.exists():
-            raise FileNotFoundError(f"--resume: no checkpoint at {path}")
-        ck = torch.load(path, map_location="cpu", weights_only=False)
+    ck = None if resume is None else load_checkpoint(resume)
     t0 = time.perf_counter()
     train_scenes, val_scenes = load_scene_split(cfg)
     kw = dict(history=cfg.history, max_partners=cfg.max_partners, max_roads=cfg.max_roads,
@@ -460,9 +454,7 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
                           "state_dict": model.state_dict()},
                 "opt": opt.state_dict(), "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
                 "step": step, "wall": state["wall"], "config": to_dict(cfg), "closed_loop_done": closed_loop_done}
-        tmp = out / "checkpoint.pt.tmp"
-        torch.save(ckpt, tmp)
-        os.replace(tmp, out / "checkpoint.pt")
+        save_atomic(ckpt, out / "checkpoint.pt")
         save_world_model(model, out / "model.pt", cfg.env, {"config": to_dict(cfg), "step": step})
 
     def on_step(step: int, loss: float) -> None:
