@@ -264,10 +264,12 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
     distributed.init(rank, world, port, cfg.device)
     try:
         out = train_main(cfg, out_dir=out_dir, resume=resume, progress=rank == 0)
-        if rank == 0:
-            result.put(out)
-    finally:
-        distributed.cleanup()
+    except BaseException:
+        distributed.cleanup(together=False)
+        raise
+    distributed.cleanup()
+    if rank == 0:
+        result.put(out)
 
 
 def cmd_evaluate(args) -> int:

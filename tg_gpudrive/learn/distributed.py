@@ -104,6 +104,16 @@ class ShardSource:
         return [self.source.get(i) for i in idx]
 
 
-def cleanup() -> None:
+def cleanup(together: bool = True) -> None:
+    """Tear the group down together: every rank waits at a barrier first, and the trainer's DDP
+    wrappers (which hold the group) are collected before it goes. A rank that destroyed its gloo
+    group while rank 0 was still writing the final checkpoint could abort at exit (seen once in CI
+    as SIGABRT, "terminate called without an active exception"). A rank leaving on an error
+    passes together=False: its peers may never reach the barrier."""
     if is_dist():
+        import gc
+
+        gc.collect()
+        if together:
+            dist.barrier()
         dist.destroy_process_group()
