@@ -61,6 +61,7 @@ class ReportOptions:
     top: int = 3  # critical scenarios exported per run
     device: str | None = None  # default: the run's config device
     frame_size: int = 320
+    progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
 
 
 # ------------------------------------------------------------------ helpers
@@ -126,14 +127,21 @@ def _gap_game_sim(cfg, scenes, masks, device):
                      controlled=[m for m in masks for _ in range(k)])
 
 
-def _evaluate(label, sim, policy, logged, opts, gap_game=None) -> tuple[dict, object]:
+def _evaluate(label, sim, policy, logged, opts, gap_game=None, bar=None) -> tuple[dict, object]:
+    """Rollouts, fidelity, diversity and risk of one policy, then its CCE-gap; advances `bar` by one."""
+    if bar is not None:
+        bar.set_postfix_str(f"{label}: rollouts")
     gen = record_rollouts(sim, policy, opts.seeds, label=label)
     risk = rk.episode_risk(gen)
     res = {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
            "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=opts.top)}
     if gap_game is not None:
+        if bar is not None:
+            bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} x {opts.br_iters} best-response updates)")
         res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
                                     eval_rounds=opts.br_rounds)
+    if bar is not None:
+        bar.update(1)
     return res, gen
 
 
@@ -312,7 +320,10 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
         raise ValueError("report: give at least one run directory")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    from tqdm import tqdm
+
     threads = torch.get_num_threads()
+    bar = tqdm(total=len(runs) + 2, desc="report", unit="policy", disable=not opts.progress)  # + 2 baselines
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
     try:
         for i, run in enumerate(runs):
@@ -331,21 +342,23 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             if i == 0:  # baselines on the first run's scenes and engine
                 logged_all = logged
                 res, gen = _evaluate("log replay (expert)", sim, expert_policy, logged, opts,
-                                     lambda s: ex.SimGame(gsim, expert_policy))
+                                     lambda s: ex.SimGame(gsim, expert_policy), bar)
                 results.append(res)
                 generated_all[res["label"]] = gen
                 gaps[res["label"]] = res["cce_gap"]
                 if cfg.env.action_space == "discrete":
                     pp = prior_policy(sim)
                     res, gen = _evaluate("behaviour prior", sim, pp, logged, opts,
-                                         lambda s: ex.SimGame(gsim, prior_policy(gsim)))
+                                         lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar)
                     results.append(res)
                     generated_all[res["label"]] = gen
                     gaps[res["label"]] = res["cce_gap"]
+                else:  # no behaviour-prior baseline for continuous actions
+                    bar.total -= 1
             policy = load_policy(ckpt, sim)
             gpolicy = load_policy(ckpt, gsim)
             actor = ex.load_actor(ckpt, gsim)
-            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor))
+            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar)
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
             results.append(res)
@@ -363,6 +376,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                 c["file"] = str(f.relative_to(out))
     finally:
         torch.set_num_threads(threads)
+        bar.close()
     plot_grid(cells, out / "grid.png")
     plot_multipliers(curves, out / "multipliers.png")
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
