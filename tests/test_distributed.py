@@ -50,15 +50,12 @@ def _ddp_worker(rank, world, port, out, result):
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import Trainer
 
-    distributed.init(rank, world, port, "cpu")
-    try:
+    with distributed.process_group(rank, world, port, "cpu"):
         tr = Trainer(tiny_cfg(out / "ddp"), progress=False)
         half = torch.arange(rank * G // 2, (rank + 1) * G // 2)
         gr = grads_of(tr, half)
         if rank == 0:
             result.put([x.numpy() for x in gr])
-    finally:
-        distributed.cleanup()
 
 
 def test_ddp_gradients_equal_single_process_union(tmp_path):

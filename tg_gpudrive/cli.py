@@ -261,13 +261,8 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import train_main
 
-    distributed.init(rank, world, port, cfg.device)
-    try:
+    with distributed.process_group(rank, world, port, cfg.device):
         out = train_main(cfg, out_dir=out_dir, resume=resume, progress=rank == 0)
-    except BaseException:
-        distributed.cleanup(together=False)
-        raise
-    distributed.cleanup()
     if rank == 0:
         result.put(out)
 

@@ -12,6 +12,7 @@ multicast setting (NCCL_NVLS_ENABLE) is left as the environment has it.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 
@@ -117,3 +118,16 @@ def cleanup(together: bool = True) -> None:
         if together:
             dist.barrier()
         dist.destroy_process_group()
+
+
+@contextlib.contextmanager
+def process_group(rank_: int, world: int, port: int, device: str):
+    """`with process_group(r, w, port, device):` one spawned rank's group, torn down together on
+    success and at once on an error (so a failing rank never waits at the barrier for its peers)."""
+    init(rank_, world, port, device)
+    try:
+        yield
+    except BaseException:
+        cleanup(together=False)
+        raise
+    cleanup()
