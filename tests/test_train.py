@@ -198,6 +198,6 @@ def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):
         buf["reward"].mul_(scale)
         before = [p.detach().clone() for p in tr.actor.parameters()]
         tr.learn(buf)
-        moved.append(sum(float((p - b).abs().sum()) for p, b in zip(tr.actor.parameters(), before)))
+        moved.append(sum(float((p.detach() - b).abs().sum()) for p, b in zip(tr.actor.parameters(), before)))
     assert moved[0] > 0
     assert moved[1] > 0.5 * moved[0], moved
