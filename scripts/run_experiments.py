@@ -63,6 +63,10 @@ def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> 
             continue
         metrics = list(csv.DictReader(path.open()))[-tail:]
         kv = dict(a.split("=", 1) for a in sets)
+        cfg_path = out / name / "config.json"  # the run's resolved config: baselines inherit beta / alpha
+        if cfg_path.exists():
+            cfg = json.loads(cfg_path.read_text())
+            kv = {"env.beta": str(cfg["env"]["beta"]), "alpha": str(cfg["alpha"]), **kv}
         row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),
                "updates": int(metrics[-1]["update"]) if metrics else 0}
         for k in FLEX_COLUMNS:

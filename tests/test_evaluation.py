@@ -255,3 +255,10 @@ def test_flexibility_table_averages_the_last_updates(tmp_path):
     assert rows[0]["lambda"] == pytest.approx((3 + 4 + 5 + 6 + 7) / 5)  # updates 3..7, lambda = update
     assert rows[0]["cvar"] == pytest.approx(2 * 5.0)
     assert "| beta2.0_alpha0.5 | 2.0 | 0.5 | 7 | 5.000 |" in (tmp_path / "flexibility.md").read_text()
+    # a baseline names no cell: its beta / alpha come from the run's own config.json
+    base = tmp_path / "mappo"
+    base.mkdir()
+    (base / "metrics.csv").write_text("\n".join(lines) + "\n")
+    (base / "config.json").write_text(json.dumps({"alpha": 0.5, "env": {"beta": 4.0}}))
+    rows = mod.flexibility(tmp_path, [("mappo", ["eta1=0.0"])], tail=5)
+    assert rows[0]["beta"] == "4.0" and rows[0]["alpha"] == "0.5"
