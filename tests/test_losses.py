@@ -17,6 +17,7 @@ from tg_gpudrive.learn.losses import (
     LagrangeMultiplier,
     categorical_kl,
     cce_mappo_actor_loss,
+    cost_quantile_targets,
     cvar_from_quantiles,
     gae,
     gaussian_kl,
@@ -203,6 +204,20 @@ def test_quantile_huber_loss_matches_numpy(device, kappa):
     close(got, _quantile_huber_numpy(pred, target, kappa), atol=1e-12)
     got_m = quantile_huber_loss(t(pred, device, torch.float64), t(target, device, torch.float64), kappa, t(mask, device, torch.bool))
     close(got_m, _quantile_huber_numpy(pred, target, kappa, mask), atol=1e-12)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_cost_quantile_targets_hand_case_and_support(device):
+    # ret_c 5, next quantiles [0, 10, 200] (mean 70): spread [-70, -60, 130]
+    # unclamped 5 + 0.99 * spread = [-64.3, -54.4, 133.7]; the support at gamma 0.99 is [0, 100]
+    got = cost_quantile_targets(t([5.0, 5.0], device), t([[0.0, 10.0, 200.0], [0.0, 10.0, 200.0]], device),
+                                t([0.0, 1.0], device), 0.99)
+    close(got[0], [0.0, 0.0, 100.0])
+    close(got[1], [5.0, 5.0, 5.0])  # episode over: the return alone
+    # inside the support [0, 10] (gamma 0.9) nothing changes: 2 + 0.9 * ([1, 3] - 2)
+    close(cost_quantile_targets(t([2.0], device), t([[1.0, 3.0]], device), t([0.0], device), 0.9), [[1.1, 2.9]])
+    # at gamma 0.5 the support is [0, 2]: 2 + 0.5 * ([1, 3] - 2) = [1.5, 2.5] -> [1.5, 2]
+    close(cost_quantile_targets(t([2.0], device), t([[1.0, 3.0]], device), t([0.0], device), 0.5), [[1.5, 2.0]])
 
 
 def test_quantile_midpoints():

@@ -316,12 +316,11 @@ class Trainer:
         adv_r, ret_r = L.gae(buf["reward"], buf["value"], buf["done"], cfg.gamma, cfg.gae_lambda)
         cost_v = buf["quant"].mean(-1)
         adv_c, ret_c = L.gae(buf["cost"], cost_v, buf["done"], cfg.gamma, cfg.gae_lambda)
-        # quantile targets: the cost lambda-return for the location, the next state's quantile
-        # spread for the shape (a distributional TD(lambda) heuristic, see the module docstring)
-        spread = buf["quant"][1:] - cost_v[1:, ..., None]
-        q_target = ret_c[..., None] + cfg.gamma * (1 - buf["done"][..., None]) * spread
+        q_target = L.cost_quantile_targets(ret_c, buf["quant"][1:], buf["done"], cfg.gamma)
         mask = buf["mask"]
-        cvar = L.cvar_from_quantiles(buf["quant"][:-1], cfg.alpha)
+        # the constraint reads the critic inside the cost-to-go's support as well
+        quant = buf["quant"][:-1].clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+        cvar = L.cvar_from_quantiles(quant, cfg.alpha)
         if cfg.per_agent_lambda:
             cnt = mask.sum((0, 1)).clamp(min=1)
             jc = torch.zeros(cfg.env.max_agents, device=self.device)
