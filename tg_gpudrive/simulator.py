@@ -77,6 +77,7 @@ class Simulator:
             self.state = State(self.model, self.cfg)
             self.control = Control(self.model)
         self._graph = None
+        self._corr = None  # corrective_expert's output buffers, allocated on first use
         self._steps_run = 0
         self._make_views()
         rep = self.model.report
@@ -227,9 +228,8 @@ class Simulator:
         actions, computed once along the log) this steers an agent that has drifted back to its
         log: the same tracking controller, evaluated where the agent is now (kernels/dynamics.py).
         The tensors are reused by the next call."""
-        n = self.model.num_slots
-        if getattr(self, "_corr", None) is None or self._corr[0].shape[0] != n:
-            dev = self.model.device
+        if self._corr is None:
+            n, dev = self.model.num_slots, self.model.device
             self._corr = (wp.zeros(n, dtype=wp.vec3, device=dev), wp.zeros(n, dtype=wp.int32, device=dev))
         W, A = self.num_worlds, self.max_agents
         with wp.ScopedDevice(self.device):

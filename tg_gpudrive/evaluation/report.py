@@ -127,21 +127,17 @@ def _gap_game_sim(cfg, scenes, masks, device):
                      controlled=[m for m in masks for _ in range(k)])
 
 
-def _evaluate(label, sim, policy, logged, opts, gap_game=None, bar=None) -> tuple[dict, object]:
+def _evaluate(label, sim, policy, logged, opts, gap_game, bar) -> tuple[dict, object]:
     """Rollouts, fidelity, diversity and risk of one policy, then its CCE-gap; advances `bar` by one."""
-    if bar is not None:
-        bar.set_postfix_str(f"{label}: rollouts")
+    bar.set_postfix_str(f"{label}: rollouts")
     gen = record_rollouts(sim, policy, opts.seeds, label=label)
     risk = rk.episode_risk(gen)
     res = {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
            "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=opts.top)}
-    if gap_game is not None:
-        if bar is not None:
-            bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} x {opts.br_iters} best-response updates)")
-        res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
-                                    eval_rounds=opts.br_rounds)
-    if bar is not None:
-        bar.update(1)
+    bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} x {opts.br_iters} best-response updates)")
+    res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
+                                eval_rounds=opts.br_rounds)
+    bar.update(1)
     return res, gen
 
 
@@ -323,8 +319,15 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     from tqdm import tqdm
 
     threads = torch.get_num_threads()
-    bar = tqdm(total=len(runs) + 2, desc="report", unit="policy", disable=not opts.progress)  # + 2 baselines
+    discrete = _run_config(runs[0]).env.action_space == "discrete"  # the behaviour-prior baseline needs it
+    bar = tqdm(total=len(runs) + 1 + discrete, desc="report", unit="policy", disable=not opts.progress)
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
+
+    def keep(res: dict, gen) -> None:
+        results.append(res)
+        generated_all[res["label"]] = gen
+        gaps[res["label"]] = res["cce_gap"]
+
     try:
         for i, run in enumerate(runs):
             cfg = _run_config(run)
@@ -341,29 +344,18 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             label = run.name
             if i == 0:  # baselines on the first run's scenes and engine
                 logged_all = logged
-                res, gen = _evaluate("log replay (expert)", sim, expert_policy, logged, opts,
-                                     lambda s: ex.SimGame(gsim, expert_policy), bar)
-                results.append(res)
-                generated_all[res["label"]] = gen
-                gaps[res["label"]] = res["cce_gap"]
-                if cfg.env.action_space == "discrete":
-                    pp = prior_policy(sim)
-                    res, gen = _evaluate("behaviour prior", sim, pp, logged, opts,
-                                         lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar)
-                    results.append(res)
-                    generated_all[res["label"]] = gen
-                    gaps[res["label"]] = res["cce_gap"]
-                else:  # no behaviour-prior baseline for continuous actions
-                    bar.total -= 1
+                keep(*_evaluate("log replay (expert)", sim, expert_policy, logged, opts,
+                                lambda s: ex.SimGame(gsim, expert_policy), bar))
+                if discrete:
+                    keep(*_evaluate("behaviour prior", sim, prior_policy(sim), logged, opts,
+                                    lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar))
             policy = load_policy(ckpt, sim)
             gpolicy = load_policy(ckpt, gsim)
             actor = ex.load_actor(ckpt, gsim)
             res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar)
+            keep(res, gen)
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
-            results.append(res)
-            generated_all[label] = gen
-            gaps[label] = res["cce_gap"]
             curves[label] = _read_metrics(run)
             res["train_tail"] = _tail_means(curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
             if res["kind"] == "CCE-MAPPO":

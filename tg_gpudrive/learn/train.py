@@ -314,13 +314,12 @@ class Trainer:
         cfg = self.cfg
         T, W, C = buf["reward"].shape
         adv_r, ret_r = L.gae(buf["reward"], buf["value"], buf["done"], cfg.gamma, cfg.gae_lambda)
-        cost_v = buf["quant"].mean(-1)
-        adv_c, ret_c = L.gae(buf["cost"], cost_v, buf["done"], cfg.gamma, cfg.gae_lambda)
-        q_target = L.cost_quantile_targets(ret_c, buf["quant"][1:], buf["done"], cfg.gamma)
+        # the critic is read inside the cost-to-go's support (GAE bootstrap, targets, constraint)
+        quant = buf["quant"].clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+        adv_c, ret_c = L.gae(buf["cost"], quant.mean(-1), buf["done"], cfg.gamma, cfg.gae_lambda)
+        q_target = L.cost_quantile_targets(ret_c, quant[1:], buf["done"], cfg.gamma)
         mask = buf["mask"]
-        # the constraint reads the critic inside the cost-to-go's support as well
-        quant = buf["quant"][:-1].clamp(0.0, L.cost_to_go_bound(cfg.gamma))
-        cvar = L.cvar_from_quantiles(quant, cfg.alpha)
+        cvar = L.cvar_from_quantiles(quant[:-1], cfg.alpha)
         if cfg.per_agent_lambda:
             cnt = mask.sum((0, 1)).clamp(min=1)
             jc = torch.zeros(cfg.env.max_agents, device=self.device)
