@@ -5,7 +5,10 @@ Rewards are named, weighted terms (REWARD_TERMS, in this order in the
 this step (`alive`) earn anything; every other row is zero.
 
     goal_progress   m      decrease of the distance to the goal (TrafficGamer's distance term)
-    goal_reached    0/1    the agent came within `goal_radius` of its goal this step
+    goal_reached    0/1    the agent came within `goal_radius` of its goal this step, on the road:
+                           an agent that crossed a road edge earlier in the episode (or does so
+                           now) has left the road, and a goal reached off the road is not a goal
+                           (for the reward, the episode's goal flag and every goal rate)
     collision       0/1    its box overlaps another present agent's box
     offroad         0/1    its box crosses a road edge
     lane_deviation  m      distance to the nearest lane centerline, capped
@@ -40,6 +43,7 @@ def reward_kernel(
     lane_dist: wp.array(dtype=float),
     nearest: wp.array(dtype=float),
     ep_goal: wp.array(dtype=wp.int32),
+    ep_offroad: wp.array(dtype=wp.int32),
     goal_dist: wp.array(dtype=float),  # in: distance before the step; out: after
     # out
     goal_event_out: wp.array(dtype=wp.int32),
@@ -57,7 +61,7 @@ def reward_kernel(
         return
     d = wp.length(goal[i] - pos[i])
     ev = int(0)
-    if d < goal_radius and ep_goal[i] == 0:
+    if d < goal_radius and ep_goal[i] == 0 and offroad[i] == 0 and ep_offroad[i] == 0:
         ev = 1
     goal_event_out[i] = ev
     t0 = goal_dist[i] - d
@@ -86,5 +90,5 @@ def launch_reward(model, state, cfg) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
               inputs=[cfg.goal_radius, cfg.beta, r.speed_limit, r.lane_cap, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
-                      state.nearest, state.ep_goal, state.goal_dist],
+                      state.nearest, state.ep_goal, state.ep_offroad, state.goal_dist],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

@@ -5,6 +5,7 @@
 # On 2 x H200 two stages run side by side, one per GPU (GPU=0 / GPU=1):
 #   a         CUDA tests + engine / env / store benchmarks
 #   perf      training throughput per config (scripts/bench_train.py), then the world-model bench
+#   quality   CCE-MAPPO and plain PPO (QUALITY_VARIANTS) trained for QUALITY_SECONDS each, held-out rates
 #   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
 #             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
@@ -32,6 +33,34 @@ cli() { python3 -m tg_gpudrive.cli "$@"; }
 bar() { tr '\r' '\n' | grep -v '^\s*$' | grep -E 'reached|update|Error|error' | tail -${1:-3}; }
 pack() { find "$RES" -name 'checkpoint.pt*' -size +4M -delete; tar czf "$OUT/$stage.tgz" -C /tmp/res "$stage"; }
 
+slim() {
+  # slim checkpoints (weights + config, a few MB) so they come back and load in evaluate / report
+  python3 - "$RES" <<'PY'
+import sys, torch, pathlib
+for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
+    ck = torch.load(p, map_location="cpu", weights_only=False)
+    torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
+PY
+}
+
+summarize() {
+  python3 - "$RES" <<'PY'
+import csv, pathlib, sys
+# goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
+# rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
+for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
+    rows = list(csv.DictReader((d / "metrics.csv").open()))
+    done = [r for r in rows[-10:] if r["goal_rate"] not in ("", "nan")]
+    n = sum(float(r["episodes"]) for r in done) or float("nan")
+    rate = lambda k: sum(float(r[k]) * float(r["episodes"]) for r in done) / n  # noqa: E731
+    last = rows[-1]
+    print(f"{d.name}: {len(rows)} updates, goal {rate('goal_rate'):.3f} coll {rate('collision_rate'):.3f} "
+          f"off {rate('offroad_rate'):.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
+          f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} (max {float(last.get('lambda_max') or 0):.2f}) "
+          f"cvar {float(last['cvar']):.2f} budget {float(last.get('cost_budget') or 0):.2f} wall {float(last['wall_s']):.0f}s")
+PY
+}
+
 case "$stage" in
 a)
   python3 -m pytest -q -p no:cacheprovider "$R"/tests/test_kernels.py "$R"/tests/test_engine.py \
@@ -54,20 +83,23 @@ sweep)
       > "$RES/$name.log" 2>&1 &
   done
   wait
-  python3 - "$RES" <<'PY'
-import csv, pathlib, sys
-# goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
-# rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
-for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
-    rows = list(csv.DictReader((d / "metrics.csv").open()))
-    done = [r for r in rows[-10:] if r["goal_rate"] not in ("", "nan")]
-    n = sum(float(r["episodes"]) for r in done) or float("nan")
-    rate = lambda k: sum(float(r[k]) * float(r["episodes"]) for r in done) / n  # noqa: E731
-    last = rows[-1]
-    print(f"{d.name}: {len(rows)} updates, goal {rate('goal_rate'):.3f} coll {rate('collision_rate'):.3f} "
-          f"off {rate('offroad_rate'):.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
-          f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} wall {float(last['wall_s']):.0f}s")
-PY
+  summarize
+  ;;
+quality)
+  # variants side by side on one GPU, each stopped after QUALITY_SECONDS of its own training
+  # wall-clock (they share the GPU: a run alone gets more updates in the same time), then
+  # held-out rates (procedural seed 90000, never used in training) per collision mode
+  cli simulate --scenes procedural:merge --worlds 4 --device cuda --json > /dev/null 2>&1  # compile once
+  for v in ${QUALITY_VARIANTS:-cce: ppo:eta1=0,constraint=false}; do
+    name=${v%%:*}; kv=${v#*:}
+    python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/$name" --set time_limit_s=${QUALITY_SECONDS:-300} \
+      --set checkpoint_every=50 "${SETS[@]}" $(for x in ${kv//,/ }; do echo --set $x; done) > "$RES/$name.log" 2>&1 &
+  done
+  wait
+  summarize
+  slim
+  timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs $(ls -d "$RES"/*/) ${QUALITY_BASELINES:-constant random} \
+    --modes ${QUALITY_MODES:-ignore} --num-scenes ${EVAL_N:-1024} --out "$RES/heldout.jsonl" 2>"$RES/heldout.err" | tail -30
   ;;
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
@@ -93,13 +125,7 @@ store10k)
 grid)
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
     --set updates=${GRID_UPDATES:-60} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
-  # slim checkpoints (weights + config) so the report's inputs come back too
-  python3 - "$RES" <<'PY'
-import sys, torch, pathlib
-for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
-PY
+  slim
   timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --report-only \
     "${SETS[@]}" 2>&1 | tail -3
   ;;

@@ -286,6 +286,25 @@ def test_goal_reached_term(device):
     assert sim.reward_terms[0, 0, 1].item() == 0.0
 
 
+def test_goal_reached_off_the_road_is_not_a_goal(device):
+    """A road edge lies across the path 1 m ahead; the goal is 2.5 m ahead. The car crosses the
+    edge on the first step and is within the goal radius on the second: no goal, ever, in
+    that episode (reward term, event and the episode flag the rates read)."""
+    pos = np.zeros((1, T, 2))
+    pos[0, :, 0] = np.arange(T) * 1.0
+    edge = (RoadType.ROAD_EDGE, np.array([[INIT + 1.0, -5.0], [INIT + 1.0, 5.0]]))
+    sc = make_scene(pos, np.zeros((1, T)), goal=np.array([[INIT + 3.5, 0.0]]), roads=[edge])
+    sim = Simulator([sc], cfg(action_space="continuous", control="all_agents", goal_behaviour="continue"), device)
+    sim.reset()
+    sim.step(torch.zeros((1, 32, 2), device=device))  # 1 m on: the 4.5 m box straddles the edge
+    assert sim.offroad[0, 0].item() == 1
+    for _ in range(3):  # 1.5, 0.5, 0.5 m from the goal: inside the 2 m radius, but it left the road
+        sim.step(torch.zeros((1, 32, 2), device=device))
+        assert sim.reward_terms[0, 0, 1].item() == 0.0 and sim.goal_event[0, 0].item() == 0
+    assert sim.offroad[0, 0].item() == 0  # past the edge now: only the episode's flag remembers
+    assert sim.ep_goal[0, 0].item() == 0 and sim.ep_offroad[0, 0].item() == 1
+
+
 # --------------------------------------------------------------- observations
 def test_observation_frames_and_nearest_k_match_numpy(device, rng):
     roads = [(RoadType.LANE, rng.uniform(-30, 30, (6, 2))), (RoadType.ROAD_EDGE, rng.uniform(-30, 30, (8, 2))),

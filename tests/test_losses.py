@@ -19,6 +19,7 @@ from tg_gpudrive.learn.losses import (
     cce_mappo_actor_loss,
     cost_quantile_targets,
     cvar_from_quantiles,
+    cvar_gae,
     gae,
     gaussian_kl,
     kl_estimate,
@@ -207,17 +208,40 @@ def test_quantile_huber_loss_matches_numpy(device, kappa):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_cost_quantile_targets_hand_case_and_support(device):
-    # ret_c 5, next quantiles [0, 10, 200] (mean 70): spread [-70, -60, 130]
-    # unclamped 5 + 0.99 * spread = [-64.3, -54.4, 133.7]; the support at gamma 0.99 is [0, 100]
-    got = cost_quantile_targets(t([5.0, 5.0], device), t([[0.0, 10.0, 200.0], [0.0, 10.0, 200.0]], device),
-                                t([0.0, 1.0], device), 0.99)
-    close(got[0], [0.0, 0.0, 100.0])
-    close(got[1], [5.0, 5.0, 5.0])  # episode over: the return alone
-    # inside the support [0, 10] (gamma 0.9) nothing changes: 2 + 0.9 * ([1, 3] - 2)
-    close(cost_quantile_targets(t([2.0], device), t([[1.0, 3.0]], device), t([0.0], device), 0.9), [[1.1, 2.9]])
-    # at gamma 0.5 the support is [0, 2]: 2 + 0.5 * ([1, 3] - 2) = [1.5, 2.5] -> [1.5, 2]
-    close(cost_quantile_targets(t([2.0], device), t([[1.0, 3.0]], device), t([0.0], device), 0.5), [[1.5, 2.0]])
+def test_cost_quantile_targets_are_the_distributional_bellman_target(device):
+    """Hand-computed: gamma 0.5 (support [0, 2]), costs [1, 0, 1, 1], the episode ends after
+    step 2, target-network quantiles q(o_t) = [t, 2t]."""
+    c, d = t([1.0, 0.0, 1.0, 1.0], device), t([0.0, 0.0, 1.0, 0.0], device)
+    q = t([[0.0, 0.0], [1.0, 2.0], [2.0, 4.0], [3.0, 6.0], [4.0, 8.0]], device)
+    # one step: c_t + 0.5 (1 - d_t) q_j(o_{t+1}); row 3: 1 + 0.5 [4, 8] = [3, 5] -> clamped to 2
+    close(cost_quantile_targets(c, q, d, 0.5, 1), [[1.5, 2.0], [1.0, 2.0], [1.0, 1.0], [2.0, 2.0]])
+    # two steps: row 0: 1 + 0.5 * 0 + 0.25 [2, 4]; row 1: 0 + 0.5 * 1, then the episode ends;
+    # row 3 reaches the rollout's end after one step and bootstraps there
+    close(cost_quantile_targets(c, q, d, 0.5, 2), [[1.5, 2.0], [0.5, 0.5], [1.0, 1.0], [2.0, 2.0]])
+    # ten steps: row 0 sums 1 + 0 + 0.25 * 1 and stops at the episode's end
+    close(cost_quantile_targets(c, q, d, 0.5, 10), [[1.25, 1.25], [0.5, 0.5], [1.0, 1.0], [2.0, 2.0]])
+    # the spread of the next state's distribution is kept, not recentred on a mean return
+    got = cost_quantile_targets(t([0.0], device), t([[0.0, 0.0], [1.0, 9.0]], device), t([0.0], device), 0.9)
+    close(got, [[0.9, 8.1]])
+    with pytest.raises(ValueError):
+        cost_quantile_targets(c, q[:-1], d, 0.5)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_cvar_gae_uses_the_cvar_of_the_quantiles(device):
+    """Two states with the same mean cost-to-go (2) but different tails: alpha 0 sees no
+    difference, alpha 0.5 does. One step, gamma 0.5, lam 1, c_0 = 0, not done:
+    A = 0.5 CVaR(o_1) - CVaR(o_0)."""
+    q0 = [2.0, 2.0]  # CVaR_0 = CVaR_0.5 = 2
+    q1 = [0.0, 4.0]  # CVaR_0 = 2, CVaR_0.5 = 4
+    quant = t([[q0], [q1]], device)  # (T+1 = 2, B = 1, N = 2)
+    c, d = t([[0.0]], device), t([[0.0]], device)
+    adv0, v0 = cvar_gae(c, quant, d, 0.0, 0.5, 1.0)
+    adv5, v5 = cvar_gae(c, quant, d, 0.5, 0.5, 1.0)
+    close(v0, [[2.0], [2.0]])
+    close(v5, [[2.0], [4.0]])
+    close(adv0, [[0.5 * 2.0 - 2.0]])
+    close(adv5, [[0.5 * 4.0 - 2.0]])
 
 
 def test_quantile_midpoints():
@@ -317,38 +341,31 @@ def test_cvar_gradient_flows_to_quantiles():
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_lagrange_multiplier_direction_and_non_negativity(device):
-    up = LagrangeMultiplier(init_value=1.0, lr=0.05).to(device)
-    close(up.value, 1.0, atol=1e-6)
-    values = [up.update(torch.tensor(2.0, device=device), 1.0).item() for _ in range(20)]  # violated
-    assert all(b > a for a, b in zip([1.0] + values[:-1], values))
-
-    down = LagrangeMultiplier(init_value=1.0, lr=0.5).to(device)
-    values = [down.update(0.2, 1.0).item() for _ in range(300)]  # satisfied: pushed towards 0
-    assert all(b < a for a, b in zip([1.0] + values[:-1], values))
-    assert min(values) >= 0.0 and values[-1] < 1e-2
-
-    # the loss gradient itself: descent raises raw iff violated
-    lm = LagrangeMultiplier(init_value=0.5).to(device)
-    lm.loss(3.0, 1.0).backward()
-    assert lm.raw.grad.item() < 0
-    lm.raw.grad = None
-    lm.loss(0.0, 1.0).backward()
-    assert lm.raw.grad.item() > 0
+def test_lagrange_multiplier_is_projected_gradient_ascent(device):
+    lm = LagrangeMultiplier(init_value=1.0, lr=0.05).to(device)
+    close(lm.value, 1.0)
+    close(lm.update(torch.tensor(3.0, device=device), 1.0), 1.1)  # 1 + 0.05 * (3 - 1)
+    close(lm.update(torch.tensor(11.0, device=device), 1.0), 1.6)  # the step grows with the violation
+    close(lm.update(0.0, 1.0), 1.55)  # satisfied: falls by lr * slack
+    for _ in range(100):
+        lm.update(0.0, 1.0)
+    close(lm.value, 0.0)  # projected at 0, never negative
+    with pytest.raises(ValueError):
+        LagrangeMultiplier(init_value=-1.0)
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_lagrange_multiplier_per_agent(device):
     lm = LagrangeMultiplier(init_value=2.0, lr=0.1, shape=(3,)).to(device)
-    constraint = torch.tensor([5.0, 1.0, 0.0], device=device, requires_grad=True)  # detached inside
-    new = lm.update(constraint, 1.0)
-    assert new.shape == (3,) and new[0] > 2.0 and new[2] < 2.0
-    close(new[1], 2.0, atol=1e-6)  # exactly on the budget: no gradient, Adam does not move
+    constraint = torch.tensor([5.0, 1.0, 0.0], device=device, requires_grad=True)
+    close(lm.update(constraint, 1.0), [2.4, 2.0, 1.9])  # each agent by its own violation
     assert constraint.grad is None
     with pytest.raises(ValueError):
-        lm.loss(torch.zeros(8, 3, device=device), 1.0)
-    with pytest.raises(ValueError):
-        LagrangeMultiplier(init_value=0.0)
+        lm.update(torch.zeros(8, 3, device=device), 1.0)
+    # lambda is state that checkpoints carry
+    other = LagrangeMultiplier(shape=(3,))
+    other.load_state_dict(lm.state_dict())
+    close(other.value, [2.4, 2.0, 1.9])
 
 
 # --------------------------------------------------------------------------- KL divergences

@@ -201,3 +201,26 @@ def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):
         moved.append(sum(float((p.detach() - b).abs().sum()) for p, b in zip(tr.actor.parameters(), before)))
     assert moved[0] > 0
     assert moved[1] > 0.5 * moved[0], moved
+
+
+def test_logged_cost_cvar_is_the_tail_of_the_logs_cost_to_go():
+    """Two logged cars side by side 3 m apart all episode (beta 4 m): cost 1 at every step, so
+    the cost-to-go after k steps left is (1 - gamma^k) / (1 - gamma), the same for both cars;
+    CVaR_0.5 is the mean of the upper half of those values."""
+    from tg_gpudrive.learn.train import logged_cost_cvar
+    from tg_gpudrive.scene import make_scene
+
+    T = 41
+    pos = np.zeros((2, T, 2))
+    pos[:, :, 0] = np.arange(T) * 1.0
+    pos[1, :, 1] = 3.0
+    goal = np.array([[500.0, 0.0], [500.0, 3.0]])  # never reached
+    sc = make_scene(pos, np.zeros((2, T)), log_vel=np.tile([10.0, 0.0], (2, T, 1)), goal=goal)
+    sim = Simulator([sc], EngineConfig(max_agents=4, init_steps=1, beta=4.0, partner_k=2, road_k=4), "cpu")
+    gamma, L_ = 0.9, sim.episode_length
+    ctg = np.array([(1 - gamma**k) / (1 - gamma) for k in range(1, L_ + 1)] * 2)
+    tail = np.sort(ctg)[len(ctg) // 2:]
+    assert len(ctg) % 2 == 0
+    got = float(logged_cost_cvar(sim, 0.5, gamma))
+    assert got == pytest.approx(tail.mean(), rel=1e-4)
+    assert float(logged_cost_cvar(sim, 0.0, gamma)) == pytest.approx(ctg.mean(), rel=1e-4)

@@ -125,19 +125,22 @@ class TrainConfig:
     eta1: float = 0.05
     eta2: float = 20.0
     alpha: float = 0.5  # CVaR level of the cost critic (lower: less risk-averse)
-    cost_limit: float = 2.0  # budget on CVaR_alpha of the discounted cost-to-go
-    lambda_init: float = 0.1
-    lambda_lr: float = 0.05
-    per_agent_lambda: bool = False  # one multiplier per controlled slot
+    cost_limit: float = 1.0  # budget on CVaR_alpha of the discounted cost-to-go (see cost_limit_mode)
+    cost_limit_mode: str = "logs"  # logs: cost_limit x the logged drivers' own CVaR; absolute: cost_limit itself
+    lambda_init: float = 0.0
+    lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
+    per_agent_lambda: bool = True  # one multiplier per controlled slot (TrafficGamer's lambda_i)
     constraint: bool = True  # false: no CVaR constraint (lambda = 0), i.e. plain MAPPO with eta1 = 0
     quantiles: int = 64
-    prior: str = "expert"  # expert | world_model
+    cost_nstep: int = 8  # steps of the cost critic's distributional Bellman target (1: the one-step target)
+    prior: str = "world_model"  # world_model | expert: the magnet
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model
     prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
     prior_floor: float = 0.05  # expert prior (discrete): uniform share mixed in, bounds log p and keeps entropy
     prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
     # bookkeeping
+    time_limit_s: float = 0.0  # stop (and save) once this much training wall-clock has passed (0: off)
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)
     checkpoint_every: int = 10
     out_dir: str = "runs/train"
@@ -147,6 +150,12 @@ class TrainConfig:
             raise ConfigError(f"control: expected vehicles, nearest_conflict or ids, got {self.control!r}")
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
+        if self.cost_limit_mode not in ("logs", "absolute"):
+            raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
+        if self.cost_nstep < 1:
+            raise ConfigError(f"cost_nstep: expected >= 1, got {self.cost_nstep}")
+        if self.cost_limit < 0 or self.lambda_init < 0 or self.lambda_lr < 0:
+            raise ConfigError("cost_limit, lambda_init and lambda_lr must be >= 0")
         if self.prior not in ("expert", "world_model"):
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:

@@ -53,6 +53,8 @@ __all__ = [
     "quantile_midpoints",
     "quantile_huber_loss",
     "cvar_from_quantiles",
+    "cvar_gae",
+    "cost_quantile_targets",
     "LagrangeMultiplier",
     "categorical_kl",
     "gaussian_kl",
@@ -227,32 +229,59 @@ def cost_to_go_bound(gamma: float, max_cost: float = 1.0) -> float:
 
 
 def cost_quantile_targets(
-    ret_c: torch.Tensor,
-    quant_next: torch.Tensor,
+    cost: torch.Tensor,
+    quant: torch.Tensor,
     done: torch.Tensor,
     gamma: float,
+    nstep: int = 1,
     max_cost: float = 1.0,
 ) -> torch.Tensor:
-    """Targets of the cost critic's quantiles (a distributional TD(lambda) heuristic).
+    """Distributional Bellman targets of the cost critic's quantiles (QR-DQN; n-step as in Rainbow).
 
-    ==========  ========  =====================================================
-    name        shape     meaning
-    ==========  ========  =====================================================
-    ret_c       (...)     cost lambda-return (the target's location)
-    quant_next  (..., N)  the critic's quantiles at the next state
-    done        (...)     1 where the episode ended after this step
-    returns     (..., N)  one target per quantile row
-    ==========  ========  =====================================================
+    ==========  ============  ================================================
+    name        shape         meaning
+    ==========  ============  ================================================
+    cost        (T, ...)      c_t, the cost received after acting at step t
+    quant       (T+1, ..., N) quantiles q_j(o_t) of the target network (the critic as
+                              it was when the rollout was collected); row T: o_T
+    done        (T, ...)      1 where the episode ended after step t
+    returns     (T, ..., N)   target atoms z_j for every step t
+    ==========  ============  ================================================
 
-        target_i = ret_c + gamma * (1 - done) * (q_i(s') - mean_j q_j(s'))
-
-    clamped to the support [0, max_cost / (1 - gamma)] of a discounted sum of per-step costs
-    in [0, max_cost] (the engine's cost is an indicator: max_cost = 1). Without the clamp the
-    spread term bootstraps on itself: short grid runs on the GPU reached CVaR_0.875 of 147 where
-    no trajectory can exceed 100 at gamma = 0.99, and that tail drove the multiplier.
+    nstep = 1 is the one-step target z_j = c_t + gamma (1 - d_t) q_j(o_{t+1}). With n
+    steps, z_j = sum_{k<m} gamma^k c_{t+k} + gamma^m q_j(o_{t+m}), m = min(n, T - t),
+    and the sum and the bootstrap stop at the first episode end: the same distributional
+    Bellman operator applied m times with the sampled costs, which moves cost information
+    n steps per update instead of one. Every predicted quantile regresses on all N atoms
+    (quantile_huber_loss), so the critic learns the distribution of the discounted
+    cost-to-go, spread included. Atoms are clamped to the support [0, max_cost / (1 - gamma)]
+    of a discounted sum of per-step costs in [0, max_cost] (the engine's cost is an
+    indicator: max_cost = 1), so an early critic's overshoot cannot feed on itself.
     """
-    spread = quant_next - quant_next.mean(-1, keepdim=True)
-    target = ret_c[..., None] + gamma * (1 - done[..., None]) * spread
+    T = cost.shape[0]
+    if quant.shape[0] != T + 1:
+        raise ValueError(f"quant must have T+1 = {T + 1} rows, got {quant.shape[0]}")
+    if nstep < 1:
+        raise ValueError(f"nstep must be >= 1, got {nstep}")
+    not_done = 1.0 - done.to(cost.dtype)
+    acc = torch.zeros_like(cost)  # sum of discounted costs so far
+    disc = torch.ones_like(cost)  # gamma^k while the episode goes on, 0 after it ended
+    target = torch.zeros_like(quant[:-1])
+    for k in range(nstep):
+        t_k = torch.arange(T, device=cost.device) + k  # step consumed by row t at offset k
+        inside = t_k < T
+        if not bool(inside.any()):
+            break
+        tk = t_k.clamp(max=T - 1)
+        shape = (T,) + (1,) * (cost.dim() - 1)
+        inside_f = inside.to(cost.dtype).reshape(shape)
+        acc = acc + inside_f * disc * cost[tk]
+        disc_next = disc * gamma * not_done[tk]
+        # rows whose window ends here bootstrap from o_{t+k+1}: the last offset, or the rollout's end
+        ends = inside & ((t_k == T - 1) | torch.full_like(inside, k == nstep - 1))
+        e = ends.to(cost.dtype).reshape(shape)
+        target = target + e[..., None] * (acc[..., None] + disc_next[..., None] * quant[tk + 1])
+        disc = torch.where(inside.reshape(shape), disc_next, disc)
     return target.clamp(0.0, cost_to_go_bound(gamma, max_cost))
 
 
@@ -294,69 +323,87 @@ def cvar_from_quantiles(quantiles: torch.Tensor, alpha: float | torch.Tensor) ->
     return torch.where(tail > 0, cvar, q[..., -1])
 
 
+@torch.no_grad()
+def cvar_gae(
+    costs: torch.Tensor,
+    quantiles: torch.Tensor,
+    dones: torch.Tensor,
+    alpha: float | torch.Tensor,
+    gamma: float,
+    lam: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cost advantages from CVaR_alpha of the quantile critic, so the risk level reaches the actor.
+
+    ==========  ============  ================================================
+    name        shape         meaning
+    ==========  ============  ================================================
+    costs       (T, ...)      c_t
+    quantiles   (T+1, ..., N) cost quantiles of o_t; row T is the bootstrap o_T
+    dones       (T, ...)      the episode ended after step t
+    advantages  (T, ...)      returned: GAE over the CVaR values
+    cvar        (T+1, ...)    returned: CVaR_alpha(Z(o_t)), the constraint's per-state value
+    ==========  ============  ================================================
+
+        delta_t = c_t + gamma (1 - d_t) CVaR_alpha(Z(o_{t+1})) - CVaR_alpha(Z(o_t)),
+        A_t     = sum_k (gamma lam)^k delta_{t+k}   (cut at episode ends)
+
+    With alpha = 0 this is the ordinary GAE of the mean cost-to-go; a higher alpha
+    weighs states by their cost tail, so two actions with the same expected cost but a
+    riskier outcome get different advantages.
+    """
+    cvar = cvar_from_quantiles(quantiles, alpha)
+    adv, _ = gae(costs, cvar, dones, gamma, lam)
+    return adv, cvar
+
+
 # --------------------------------------------------------------------------- Lagrangian
 
 
-def _inverse_softplus(y: float) -> float:
-    # log(exp(y) - 1), written to stay finite for large y.
-    return y + math.log(-math.expm1(-y))
-
-
 class LagrangeMultiplier(torch.nn.Module):
-    """Non-negative Lagrange multiplier(s) lambda = softplus(raw) for a cost constraint.
+    """Non-negative Lagrange multiplier(s) of a cost constraint, raised by plain gradient ascent.
 
     The constrained problem max R s.t. g <= budget has Lagrangian
-    R - lambda (g - budget); the multiplier ascends on (g - budget). ``loss``
-    is written so that plain gradient *descent* on it does that ascent:
+    R - lambda (g - budget); its dual step is projected gradient ascent,
 
-        loss = -sum( lambda * (g - budget).detach() )
+        lambda <- max(0, lambda + lr * (g - budget)),
 
-    so d loss / d raw = -sigmoid(raw) (g - budget): lambda grows while the
-    constraint is violated (g > budget) and shrinks otherwise, never below 0.
-
-    ``shape`` gives one multiplier per entry (e.g. ``(num_agents,)``), so all
-    agents' multipliers update in one call; ``constraint_value`` must then
-    broadcast to that shape (one estimate per multiplier, e.g. the batch mean
-    of each agent's cost CVaR), never to a larger batch. ``update`` runs one
-    step of its own Adam optimizer; create the optimizer's device state by
-    moving the module with ``.to(device)`` before the first ``update``.
+    so the step grows with the violation (an Adam step would not: it normalises the
+    gradient away) and lambda falls back to 0 once the constraint holds with room.
+    ``shape`` gives one multiplier per entry (e.g. ``(num_agents,)``: TrafficGamer's
+    lambda_i per agent); ``constraint_value`` must broadcast to that shape (one
+    estimate per multiplier, e.g. each agent's mean CVaR over its states), never to a
+    larger batch. lambda lives in a buffer: it is state, not a parameter of any loss.
     """
 
-    def __init__(self, init_value: float = 1.0, lr: float = 1e-2, shape: tuple[int, ...] = ()):
+    def __init__(self, init_value: float = 0.0, lr: float = 1e-2, shape: tuple[int, ...] = ()):
         super().__init__()
-        if not init_value > 0:
-            raise ValueError(f"init_value must be > 0 (lambda = softplus(raw) is never 0), got {init_value}")
-        self.raw = torch.nn.Parameter(torch.full(tuple(shape), _inverse_softplus(float(init_value))))
+        if not init_value >= 0:
+            raise ValueError(f"init_value must be >= 0, got {init_value}")
+        if not lr >= 0:
+            raise ValueError(f"lr must be >= 0, got {lr}")
+        self.register_buffer("lam", torch.full(tuple(shape), float(init_value)))
         self.lr = lr
-        self.optimizer = torch.optim.Adam([self.raw], lr=lr)
 
     @property
     def value(self) -> torch.Tensor:
-        """lambda = softplus(raw) >= 0, shape ``shape``, with gradient to ``raw``."""
-        return F.softplus(self.raw)
+        """lambda >= 0, shape ``shape``."""
+        return self.lam
 
     def forward(self) -> torch.Tensor:
-        return self.value
+        return self.lam
 
-    def loss(self, constraint_value: torch.Tensor | float, budget: torch.Tensor | float) -> torch.Tensor:
-        """-sum(lambda * (constraint_value - budget).detach()); descend to update lambda."""
-        violation = (
-            torch.as_tensor(constraint_value, dtype=self.raw.dtype, device=self.raw.device)
-            - torch.as_tensor(budget, dtype=self.raw.dtype, device=self.raw.device)
-        ).detach()
-        if torch.broadcast_shapes(violation.shape, self.raw.shape) != self.raw.shape:
+    @torch.no_grad()
+    def update(self, constraint_value: torch.Tensor | float, budget: torch.Tensor | float) -> torch.Tensor:
+        """One projected ascent step; returns the new lambda."""
+        violation = (torch.as_tensor(constraint_value, dtype=self.lam.dtype, device=self.lam.device)
+                     - torch.as_tensor(budget, dtype=self.lam.dtype, device=self.lam.device))
+        if torch.broadcast_shapes(violation.shape, self.lam.shape) != self.lam.shape:
             raise ValueError(
                 f"constraint_value - budget has shape {tuple(violation.shape)}, which does not broadcast "
-                f"to the multiplier shape {tuple(self.raw.shape)}; reduce over the batch first"
+                f"to the multiplier shape {tuple(self.lam.shape)}; reduce over the batch first"
             )
-        return -(self.value * violation).sum()
-
-    def update(self, constraint_value: torch.Tensor | float, budget: torch.Tensor | float) -> torch.Tensor:
-        """One Adam step on ``loss``; returns the new lambda (detached)."""
-        self.optimizer.zero_grad(set_to_none=True)
-        self.loss(constraint_value, budget).backward()
-        self.optimizer.step()
-        return self.value.detach()
+        self.lam.add_(self.lr * violation).clamp_(min=0.0)
+        return self.lam.clone()
 
 
 # --------------------------------------------------------------------------- KL divergences

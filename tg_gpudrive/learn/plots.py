@@ -8,7 +8,7 @@ from pathlib import Path
 PANELS = (
     ("rates", ("goal_rate", "collision_rate", "offroad_rate")),
     ("reward terms (per agent-step)", None),  # every reward/* column
-    ("cost and risk", ("cost", "cvar", "cost_return")),
+    ("cost and risk", ("cost", "cvar", "cost_budget")),
     ("Lagrange multiplier", ("lambda",)),
     ("KL terms", ("kl/prior", "kl/prev")),
     ("entropy", ("entropy",)),

@@ -35,6 +35,13 @@ class BehaviourPrior:
     def distribution(self, context: torch.Tensor, obs: torch.Tensor):
         raise NotImplementedError
 
+    def state_dict(self) -> dict:
+        """What an exact resume needs besides the simulator (a stateless prior: nothing)."""
+        return {}
+
+    def load_state_dict(self, sim: Simulator, state: dict) -> None:
+        pass
+
 
 class ExpertPrior(BehaviourPrior):
     """Discretised Gaussian around the logged action (discrete), or a Gaussian on it (continuous).

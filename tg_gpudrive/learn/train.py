@@ -123,6 +123,41 @@ def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
     return policy
 
 
+@torch.no_grad()
+def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor:
+    """CVaR_alpha of the logged drivers' discounted cost-to-go: what the constraint's budget is
+    measured against (`cost_limit_mode: logs`).
+
+    Replays the expert (inverse-dynamics actions of the logs) for one episode in every world
+    and computes, for every controlled agent and step it was driven, the discounted cost-to-go
+    G_t = c_t + gamma G_{t+1} to the end of its episode; returns the mean of the upper
+    (1 - alpha) tail of those values (a scalar tensor). Over a mixture of states this is at
+    least the mean over states of their own CVaR_alpha, the estimate the multipliers compare
+    with the budget, so a budget of 1 x this is one the logs themselves satisfy. Leaves the
+    simulator to be reset by the caller."""
+    sim.reset()
+    C = max(sim.max_controlled, 1)
+    steps = sim.episode_length
+    cost = torch.zeros((steps, sim.num_worlds, C), device=sim.reward.device)
+    live = torch.zeros_like(cost, dtype=torch.bool)
+    first = torch.ones(sim.num_worlds, dtype=torch.bool, device=cost.device)  # still in its first episode
+    for t in range(steps):
+        sim.use_expert_actions()
+        live[t] = (sim.active[:, :C] != 0) & sim.policy_agents[:, :C] & first[:, None]
+        sim.step()
+        cost[t] = sim.cost[:, :C] * live[t]
+        first &= sim.world_ended == 0
+    ctg = torch.zeros_like(cost)
+    run = torch.zeros_like(cost[0])
+    for t in range(steps - 1, -1, -1):
+        run = (cost[t] + gamma * run) * live[t]  # a step the agent did not act cuts the sum
+        ctg[t] = run
+    vals = ctg[live]
+    if vals.numel() == 0:
+        return torch.zeros((), device=cost.device)
+    return L.cvar_from_quantiles(vals.sort().values, alpha)
+
+
 # ------------------------------------------------------------------- trainer
 class Trainer:
     def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
@@ -173,10 +208,16 @@ class Trainer:
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
+        self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled below
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0
+        if ck is not None and "cost_budget" in ck:
+            self.budget.fill_(float(ck["cost_budget"]))
+        elif cfg.cost_limit_mode == "logs":
+            self.logged_cvar = dist_util.all_reduce_mean(logged_cost_cvar(self.sim, cfg.alpha, cfg.gamma))
+            self.budget = cfg.cost_limit * self.logged_cvar
         self.sim.reset()
         if ck is not None:
             self._load(ck, exact)
@@ -314,22 +355,26 @@ class Trainer:
         cfg = self.cfg
         T, W, C = buf["reward"].shape
         adv_r, ret_r = L.gae(buf["reward"], buf["value"], buf["done"], cfg.gamma, cfg.gae_lambda)
-        # the critic is read inside the cost-to-go's support (GAE bootstrap, targets, constraint)
+        # the critic as it was during the rollout is the cost critic's target network (hard update once
+        # per PPO update); it is read inside the cost-to-go's support (targets, advantages, constraint)
         quant = buf["quant"].clamp(0.0, L.cost_to_go_bound(cfg.gamma))
-        adv_c, ret_c = L.gae(buf["cost"], quant.mean(-1), buf["done"], cfg.gamma, cfg.gae_lambda)
-        q_target = L.cost_quantile_targets(ret_c, quant[1:], buf["done"], cfg.gamma)
+        adv_c, cvar = L.cvar_gae(buf["cost"], quant, buf["done"], cfg.alpha, cfg.gamma, cfg.gae_lambda)
+        q_target = L.cost_quantile_targets(buf["cost"], quant, buf["done"], cfg.gamma, cfg.cost_nstep)
         mask = buf["mask"]
-        cvar = L.cvar_from_quantiles(quant[:-1], cfg.alpha)
-        if cfg.per_agent_lambda:
-            cnt = mask.sum((0, 1)).clamp(min=1)
-            jc = torch.zeros(cfg.env.max_agents, device=self.device)
-            jc[:C] = (cvar * mask).sum((0, 1)) / cnt
-        else:
-            jc = L.masked_mean(cvar, mask)
-        jc = dist_util.all_reduce_mean(jc)  # one constraint estimate, so lambda stays equal on all ranks
+        # the constraint per agent slot: the mean over its live states of CVaR_alpha(Z(o))
+        cnt = mask.sum((0, 1))
+        jc = torch.zeros(cfg.env.max_agents, device=self.device)
+        jc[:C] = (cvar[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
+        seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=self.device)
+        seen[:C] = cnt > 0
+        jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0  # equal lambdas on all ranks
+        if not cfg.per_agent_lambda:  # one multiplier for all: the mean over the slots that had agents
+            jc = (jc * seen).sum() / seen.sum().clamp(min=1)
         lam_before = self.lagrange.value.detach().clone()
         if cfg.constraint:
-            self.lagrange.update(jc, cfg.cost_limit)
+            # a slot without agents in this rollout keeps its multiplier
+            step = jc if not cfg.per_agent_lambda else torch.where(seen, jc, self.budget)
+            self.lagrange.update(step, self.budget)
         else:
             lam_before = torch.zeros_like(lam_before)
         lam = lam_before[:C] if cfg.per_agent_lambda else lam_before
@@ -365,9 +410,11 @@ class Trainer:
                 f"{acc['loss/value'] / n_mb:.4g}, cost quantiles {acc['loss/cost_quantile'] / n_mb:.4g}); stopped "
                 f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
         out = {k: v / max(n_mb, 1) for k, v in acc.items()}
-        out["cvar"] = float(jc.mean())
-        out["lambda"] = float(self.lagrange.value.mean().detach()) if cfg.constraint else 0.0
-        out["cost_return"] = float(L.masked_mean(ret_c, mask))
+        out["cvar"] = float(L.masked_mean(cvar[:-1], mask))
+        lam_now = self.lagrange.value[seen] if cfg.per_agent_lambda else self.lagrange.value
+        out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
+        out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
+        out["cost_budget"] = float(self.budget)
         return out
 
     def flatten(self, buf, adv_r, adv_c, ret_r, q_target) -> dict:
@@ -477,8 +524,14 @@ class Trainer:
                                 coll=f"{row['collision_rate']:.2f}", off=f"{row['offroad_rate']:.2f}",
                                 lam=f"{row['lambda']:.2f}")
             reached = self._reached_target(stats)
-            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached):
+            out_of_time = 0 < cfg.time_limit_s <= self.wall
+            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
+                              or out_of_time):
                 self.save()
+            if out_of_time and not reached:
+                if bar is not None:
+                    bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}")
+                break
             if reached:
                 last["target_reached_s"] = self.wall
                 if self.lead:
@@ -530,11 +583,11 @@ class Trainer:
         return {
             "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
             "opt": self.opt.state_dict(),
-            "lagrange": self.lagrange.state_dict(), "lagrange_opt": self.lagrange.optimizer.state_dict(),
+            "lagrange": self.lagrange.state_dict(), "cost_budget": float(self.budget),
             "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "rng": rng,
             "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
             "world_size": self.world,
-            "engine": self.sim.snapshot(),
+            "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
         }
 
     def save(self) -> Path:
@@ -545,7 +598,6 @@ class Trainer:
     def _load(self, ck: dict, exact: bool) -> None:
         self.opt.load_state_dict(ck["opt"])
         self.lagrange.load_state_dict(ck["lagrange"])
-        self.lagrange.optimizer.load_state_dict(ck["lagrange_opt"])
         self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
         if not exact:
             # another process count: weights, optimiser, lambda and counters carry over; episodes
@@ -561,6 +613,7 @@ class Trainer:
         if "cuda" in rng and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(rng["cuda"])
         self.sim.restore(ck["engine"])
+        self.prior.load_state_dict(self.sim, ck.get("prior", {}))
         self._trim_csv()
 
     def _trim_csv(self) -> None:

@@ -263,6 +263,16 @@ class HistoryBuffer:
         self._fill_from_log(sim, refill)
         self._last = step.clone()
 
+    def state_dict(self) -> dict:
+        """The window and the step it was synced at (for an exact resume mid-episode)."""
+        return {} if self.raw is None else {"raw": self.raw.clone(), "last": self._last.clone()}
+
+    def load_state_dict(self, sim, state: dict) -> None:
+        self._bind(sim)
+        if state:
+            self.raw.copy_(state["raw"])
+            self._last.copy_(state["last"])
+
     def features(self, sim, rows: slice | None = None) -> torch.Tensor:
         """(W, A', H, HIST_DIM) window in each agent's current frame (`rows`: slot slice, default all)."""
         rows = rows or slice(None)

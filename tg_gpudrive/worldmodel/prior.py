@@ -103,6 +103,12 @@ class WorldModelPrior(BehaviourPrior):
     def context_dim(self) -> int:
         return self.model.history * HIST_DIM
 
+    def state_dict(self) -> dict:
+        return self.history.state_dict()
+
+    def load_state_dict(self, sim, state: dict) -> None:
+        self.history.load_state_dict(sim, state)
+
     @torch.no_grad()
     def context(self, sim, num_controlled: int) -> torch.Tensor:
         self.model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
