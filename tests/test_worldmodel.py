@@ -164,7 +164,7 @@ def test_magnet_kl_uses_the_world_model(shipped, tmp_path):
 
     cfg = dataclasses.replace(load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml"), num_worlds=2,
                               num_scenes=2, rollout_steps=4, updates=1, epochs=1, minibatches=1, hidden=32,
-                              quantiles=8, out_dir=str(tmp_path))
+                              quantiles=8, out_dir=str(tmp_path), prior="expert")
     tr = Trainer(cfg, progress=False)
     start = (tr.sim.snapshot(), copy.deepcopy(tr.actor.state_dict()), copy.deepcopy(tr.critic.state_dict()),
              copy.deepcopy(tr.opt.state_dict()), copy.deepcopy(tr.lagrange.state_dict()), tr.gen.get_state())
@@ -187,8 +187,11 @@ def test_magnet_kl_uses_the_world_model(shipped, tmp_path):
         return tr.learn(b)
 
     kl_expert = learn(buf)["kl/prior"]
-    tr.prior = prior
-    kl_wm = learn(dict(buf, prior=ctx))["kl/prior"]
+    # the discrete magnet is stored as logits per live row and step, as the rollout does
+    m = buf["mask"]
+    wm_logits = torch.zeros(T, W, C, tr.sim.num_actions)
+    wm_logits[m] = prior.distribution(ctx[m], buf["obs"][m])
+    kl_wm = learn(dict(buf, prior=wm_logits))["kl/prior"]
     # one epoch, one minibatch: the reported KL is KL(pi_init || prior) over the live rows
     tr.actor.load_state_dict(start[1])
     m = buf["mask"]

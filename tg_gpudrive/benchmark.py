@@ -33,18 +33,18 @@ def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: in
     for _ in range(warmup):  # module load and graph capture happen here
         sim.step()
     if sim.is_cuda:
-        torch.cuda.synchronize(device)
+        torch.cuda.synchronize(sim.device)
     t0 = time.perf_counter()
     for _ in range(steps):
         sim.step()
     if sim.is_cuda:
-        torch.cuda.synchronize(device)
+        torch.cuda.synchronize(sim.device)
     dt = time.perf_counter() - t0
     slots = worlds * cfg.max_agents
     row = {
         "worlds": worlds,
         "agents": cfg.max_agents,
-        "device": device,
+        "device": sim.device,  # the resolved name ("auto" -> cpu / cuda:0)
         "graph": sim._graph is not None,
         "steps": steps,
         "agent_steps_per_s": slots * steps / dt,
@@ -55,7 +55,7 @@ def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: in
         "build_s": build_s,
     }
     if sim.is_cuda:
-        row["gpu_mem_mb"] = wp.get_mempool_used_mem_current(device) / 2**20
+        row["gpu_mem_mb"] = wp.get_mempool_used_mem_current(sim.device) / 2**20
     return row
 
 
@@ -70,14 +70,16 @@ def run_benchmark(scenes, worlds_list, cfg: EngineConfig, device: str, steps: in
 
 def main(args) -> int:
     from tg_gpudrive.data.sources import resolve_scenes
+    from tg_gpudrive.simulator import resolve_device
 
+    device = resolve_device(args.device, flag="--device")  # the rows name the device that ran
     cfg = dataclasses.replace(args.engine_config, control="all_agents",
                               use_graph=not args.no_graph)
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
     scenes = [src.get(i) for i in range(min(len(src), args.num_scenes))]
-    worlds = args.worlds or ([1, 64, 1024, 4096, 8192, 16384] if args.device.startswith("cuda")
+    worlds = args.worlds or ([1, 64, 1024, 4096, 8192, 16384] if device.startswith("cuda")
                              else [1, 64, 256])
-    for row in run_benchmark(scenes, worlds, cfg, args.device, args.steps):
+    for row in run_benchmark(scenes, worlds, cfg, device, args.steps):
         row["scenes"] = args.scenes
         if args.json:
             print(json.dumps(row), flush=True)

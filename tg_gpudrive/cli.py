@@ -10,7 +10,10 @@
     tg-gpudrive report    --runs runs/grid/* --out report/
 
 Every subcommand takes the engine config (`--env-config`, default
-configs/env/default.yaml, plus `--set key=value` overrides).
+configs/env/default.yaml, plus `--set key=value` overrides). The device is
+`--device auto` unless given (train: the config's `device`, also auto by
+default): cuda when Warp and torch see one, else cpu; JSON reports name the
+device that ran, and asking for CUDA where there is none exits 2 in one line.
 """
 
 from __future__ import annotations
@@ -33,7 +36,8 @@ def _engine_args(p: argparse.ArgumentParser) -> None:
                    help="engine YAML (default: configs/env/default.yaml)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override an engine config key, e.g. --set beta=3 --set reward.collision=-2")
-    p.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    p.add_argument("--device", default="auto",
+                   help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
     p.add_argument("--seed", type=int, default=0)
 
 
@@ -98,7 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
-    who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory)")
+    who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
+                                          "(the policy packaged with tg_gpudrive)")
     who.add_argument("--policy", choices=["expert", "random", "constant"])
     _scene_args(p)
     _engine_args(p)
@@ -113,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--policy", default="expert",
-                   help="expert | random | constant | a training checkpoint (checkpoint.pt or its run directory)")
+                   help="expert | random | constant | shipped (the packaged policy) | a training checkpoint "
+                        "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
     p.add_argument("--steps", type=int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
@@ -224,6 +230,7 @@ def cmd_benchmark(args) -> int:
 def cmd_train(args) -> int:
     from tg_gpudrive.config import TrainConfig, load_yaml, from_dict, apply_overrides
     from tg_gpudrive.learn.train import train_main
+    from tg_gpudrive.simulator import resolve_device
 
     if args.resume:  # the run's own config, then any new overrides
         cfg_path = Path(args.resume) / "config.json"
@@ -231,6 +238,7 @@ def cmd_train(args) -> int:
     else:
         data = load_yaml(args.config)
     cfg = from_dict(TrainConfig, apply_overrides(data, args.set), args.config)
+    resolve_device(cfg.device, flag="device")  # CUDA without one: a one-line error before any process starts
     out_dir = args.out or args.resume
     if args.nproc > 1:
         import torch.multiprocessing as mp
@@ -247,6 +255,7 @@ def cmd_train(args) -> int:
 
         distributed.init_from_env(cfg.device)  # a torchrun launch: join its process group
         out = train_main(cfg, out_dir=out_dir, resume=args.resume, progress=True)
+        out.setdefault("device", distributed.local_device(cfg.device))  # the one that ran ("auto" resolved)
         distributed.cleanup()
     if args.json:
         print(json.dumps(out))
@@ -263,6 +272,7 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
 
     with distributed.process_group(rank, world, port, cfg.device):
         out = train_main(cfg, out_dir=out_dir, resume=resume, progress=rank == 0)
+        out.setdefault("device", distributed.local_device(cfg.device))  # rank 0's, "auto" resolved
     if rank == 0:
         result.put(out)
 
@@ -275,24 +285,27 @@ def cmd_evaluate(args) -> int:
     if args.checkpoint:
         from tg_gpudrive.learn.train import load_policy
 
-        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
+        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
 
-        path = checkpoint_path(args.checkpoint, "--checkpoint")
+        path = checkpoint_path(args.checkpoint, "--checkpoint")  # a file, a run directory or "shipped"
         ck = load_checkpoint(path, "--checkpoint")
-        cfg = from_dict(TrainConfig, ck["config"], str(path)).env
-        if args.collision_mode:
-            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
+        trained = from_dict(TrainConfig, ck["config"], str(path))
     else:
         cfg = _engine_config(args)
     worlds = args.worlds or min(args.episodes, 256)
     scenes = _load_scenes(args, worlds)
+    if args.checkpoint:  # the engine it was trained in, with a slot for every agent of the scenes
+        cfg = policy_engine_config(trained, scenes)
+        if args.collision_mode:
+            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
     sim, background = _simulator_with_background(args, cfg, scenes)
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background)
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": cfg.collision_mode,
-                "scenes": args.scenes, **_background_report(args, cfg)})
+                "scenes": args.scenes, "max_agents": sim.max_agents,
+                "agents_dropped": sim.model.report.total_truncated, **_background_report(args, cfg)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -302,8 +315,6 @@ def cmd_evaluate(args) -> int:
 
 def cmd_render(args) -> int:
     import time
-
-    import torch
 
     from tg_gpudrive.render import mp4_backend, render_episode
     from tg_gpudrive.rollout import builtin_policy
@@ -331,11 +342,13 @@ def cmd_render(args) -> int:
 
     checkpoint = None
     if args.policy not in ("expert", "random", "constant"):
-        checkpoint = Path(args.policy)
-        checkpoint = checkpoint / "checkpoint.pt" if checkpoint.is_dir() else checkpoint
-        if not checkpoint.is_file():
-            raise FileNotFoundError(f"--policy: expected expert, random, constant or a checkpoint path; "
-                                    f"no file at {checkpoint}")
+        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+
+        try:  # a file, a run directory or "shipped"
+            checkpoint = checkpoint_path(args.policy, "--policy")
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") \
+                from None
         try:  # the learner is optional here: import it only for checkpoints
             from tg_gpudrive.learn.train import load_policy
         except ModuleNotFoundError as e:
@@ -346,15 +359,17 @@ def cmd_render(args) -> int:
             return 2
         from tg_gpudrive.config import TrainConfig, from_dict
 
-        ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
-        cfg = from_dict(TrainConfig, ck["config"], str(checkpoint)).env  # the engine it was trained in
-        if args.collision_mode:
-            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
+        trained = from_dict(TrainConfig, load_checkpoint(checkpoint, "--policy")["config"], str(checkpoint))
     else:
         cfg = _engine_config(args)
 
+    scenes = _load_scenes(args, worlds)
+    if checkpoint is not None:  # the engine it was trained in, with a slot for every agent of the scenes
+        cfg = policy_engine_config(trained, scenes)
+        if args.collision_mode:
+            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
     cfg = dataclasses.replace(cfg, auto_reset=False)  # keep the episode's final state for the last frame
-    sim = Simulator(_load_scenes(args, worlds), cfg, args.device)
+    sim = Simulator(scenes, cfg, args.device)
     policy = (load_policy(checkpoint, sim, args.deterministic) if checkpoint is not None
               else builtin_policy(args.policy, args.seed, sim.device))
     t0 = time.perf_counter()
@@ -398,6 +413,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
+        if getattr(args, "device", None) is not None:  # "auto" made concrete; CUDA without one fails here
+            from tg_gpudrive.simulator import resolve_device
+
+            args.device = resolve_device(args.device, flag="--device")
         return COMMANDS[args.command](args)
     except (ConfigError, ValueError, FileNotFoundError) as e:
         print(f"tg-gpudrive {args.command}: error: {e}", file=sys.stderr)

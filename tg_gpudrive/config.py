@@ -103,7 +103,7 @@ class TrainConfig:
     control: str = "vehicles"  # vehicles | nearest_conflict | ids
     control_k: int = 5  # nearest_conflict: how many
     control_ids: list[int] = dataclasses.field(default_factory=list)
-    device: str = "cpu"
+    device: str = "auto"  # auto (cuda when Warp and torch see one, else cpu) | cpu | cuda | cuda:N
     seed: int = 0
     # PPO
     updates: int = 100

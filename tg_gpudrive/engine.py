@@ -80,6 +80,11 @@ class BuildReport:
 
 
 # ------------------------------------------------------------------ selection
+def agents_needed(scene: Scene) -> int:
+    """Slots `scene` needs to keep every agent: those valid at some step (the ones `select_slots` keeps)."""
+    return int(scene.log_valid.any(axis=1).sum())
+
+
 def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
     """Indices of the agents that get slots, most relevant first.
 
@@ -201,7 +206,7 @@ class Model:
             if abs(sc.dt - self.dt) > 1e-9:
                 raise SceneError(sc.scene_id, "dt", f"all scenes of a batch need one dt; {sc.dt} != {self.dt}")
             idx = select_slots(sc, A, cfg.init_steps)
-            dropped = int(sc.log_valid.any(1).sum()) - len(idx)
+            dropped = agents_needed(sc) - len(idx)
             if dropped > 0:
                 log.info("scene %s: %d agents beyond max_agents=%d were dropped (least relevant first)",
                          sc.scene_id, dropped, A)

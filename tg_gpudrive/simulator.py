@@ -19,6 +19,7 @@ outcomes of the finished episode are kept in the `final_*` tensors.
 from __future__ import annotations
 
 import logging
+import re
 from typing import Sequence
 
 import numpy as np
@@ -45,24 +46,56 @@ _VIEWS_WA = ("present", "alive", "active", "agent_done", "removed", "collided", 
 _VIEWS_W = ("world_reset", "world_ended", "world_done", "world_truncated", "episode_count")
 
 
-def resolve_device(device: str | torch.device | None) -> str:
-    """'cpu', 'cuda' or 'cuda:N' -> the Warp/torch device string; a clear error without CUDA."""
-    d = str(device or "cpu")
-    if d == "cuda":
-        d = "cuda:0"
-    if d.startswith("cuda"):
+def cuda_unavailable() -> str | None:
+    """Why the engine cannot run on CUDA here (None: it can). It needs a device Warp sees (the
+    kernels) and a CUDA build of torch (every tensor is a zero-copy torch view of a Warp array)."""
+    try:
         wp.init()
         if not wp.is_cuda_available():
-            raise RuntimeError(f"device {d!r} requested but Warp sees no CUDA device")
-    elif d != "cpu":
-        raise ValueError(f"device: expected cpu, cuda or cuda:N, got {device!r}")
+            return "no CUDA device is visible (Warp sees none)"
+    except Exception as e:  # pragma: no cover - driver probing failed: as good as no device
+        return f"no CUDA device is usable (Warp: {e})"
+    if not torch.cuda.is_available():
+        return "torch sees no CUDA device (a CPU-only torch build?)"
+    return None
+
+
+def cuda_available() -> bool:
+    """Whether device "auto" means CUDA here."""
+    return cuda_unavailable() is None
+
+
+def resolve_device(device: str | torch.device | None = "auto", flag: str | None = None) -> str:
+    """'auto' (or None), 'cpu', 'cuda' or 'cuda:N' -> the Warp/torch device name, 'cpu' or 'cuda:N'.
+
+    'auto' is cuda:0 where CUDA is usable (`cuda_unavailable`), else cpu, so the same call works on a
+    laptop and on a GPU node. Asking for CUDA where it is not usable is a one-line ValueError, raised
+    before anything is built; `flag` names the option in its message (the CLI passes "--device")."""
+    d = "auto" if device is None else str(device).strip().lower()
+    name, instead = ((f"{flag} {device}", f"use {flag} cpu or auto") if flag
+                     else (f"device={str(device)!r}", "use device='cpu' or 'auto'"))
+    if d == "auto":
+        return "cpu" if cuda_unavailable() else "cuda:0"
+    if d == "cpu":
+        return d
+    d = "cuda:0" if d == "cuda" else d
+    if not re.fullmatch(r"cuda:\d+", d):
+        raise ValueError(f"{name}: expected auto, cpu, cuda or cuda:N")
+    why = cuda_unavailable()
+    if why:
+        raise ValueError(f"{name}: {why}; {instead}")
+    n = wp.get_cuda_device_count()
+    if int(d[5:]) >= n:
+        raise ValueError(f"{name}: only {n} CUDA device(s) visible (cuda:0 to cuda:{n - 1})")
     return d
 
 
 class Simulator:
-    def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "cpu",
+    def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "auto",
                  controlled: Sequence[np.ndarray] | None = None, background: Sequence[np.ndarray] | None = None):
-        """`controlled` / `background`: per scene, (N,) bool masks over its agents. Controlled agents
+        """`device`: "auto" (cuda:0 when CUDA is usable, else cpu), "cpu", "cuda" or "cuda:N"
+        (`resolve_device`; `self.device` is the resolved name). `controlled` / `background`: per
+        scene, (N,) bool masks over its agents. Controlled agents
         are the policy's; background agents are integrated from the same action buffers but driven
         by a background model (reactive traffic); all others replay their logs."""
         self.cfg = config or EngineConfig()

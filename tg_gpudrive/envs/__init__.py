@@ -2,7 +2,7 @@
 
     import tg_gpudrive.envs  # registers the ids below
     env = gymnasium.make("tg_gpudrive/SingleAgent-v0", scenes="procedural:merge")
-    vec = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=64, scenes="procedural:all", device="cuda")
+    vec = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=64, scenes="procedural:all", device="auto")
 
 (or ``gymnasium.make("tg_gpudrive.envs:tg_gpudrive/SingleAgent-v0", ...)``, which imports this module.)
 
@@ -14,7 +14,9 @@
 
 For make_vec, `num_envs` is the number of worlds; the env's own `num_envs`
 is worlds x max_agents rows. The PettingZoo env (parallel.TGParallelEnv) has
-no gymnasium id. The env classes (and torch) load on first use.
+no gymnasium id. The env classes (and torch) load on first use. Every env
+takes ``device=``: "auto" (the default: cuda:0 when CUDA is usable, else
+cpu), "cpu", "cuda" or "cuda:N"; asking for CUDA without one is a ValueError.
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ from tg_gpudrive.envs.vector import (
     single_observation_space,
 )
 from tg_gpudrive.rollout import check_background
+from tg_gpudrive.simulator import resolve_device
 
 
 class TGParallelEnv(ParallelEnv):
@@ -58,12 +59,13 @@ class TGParallelEnv(ParallelEnv):
                 "is_parallelizable": True}
 
     def __init__(self, scenes="procedural:all", scene_index: int = 0, config: ConfigLike = None,
-                 overrides: OverridesLike = None, continuous: bool | None = None, device: str = "cpu",
+                 overrides: OverridesLike = None, continuous: bool | None = None, device: str = "auto",
                  seed: int = 0, controlled: np.ndarray | None = None, render_mode: str | None = None,
                  background: str = "log", background_model=None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         check_background(background)
+        device = resolve_device(device)  # a CUDA request without CUDA fails here, before the scene loads
         self.render_mode = render_mode
         self.cfg = make_config(config, overrides, continuous)
         self.discrete = self.cfg.action_space == "discrete"

@@ -43,7 +43,7 @@ from tg_gpudrive.envs.vector import (
 )
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.simulator import Simulator, resolve_device
 
 
 class EpisodeWorld:
@@ -146,7 +146,8 @@ class TGSingleAgentEnv(gymnasium.Env):
         agent: the scene's agent index to control (default: the SDC when it can be controlled,
             else the first vehicle the engine would control).
         config / overrides / continuous: as for TGVectorEnv (`continuous=True`: Box actions).
-        device: engine device ("cpu" is usually fastest for a single scene).
+        device: engine device: "auto" (default: cuda:0 when CUDA is usable, else cpu), "cpu", "cuda"
+            or "cuda:N" ("cpu" is usually fastest for a single scene).
         seed: offset of procedural scene seeds; also seeds a "random" `other_policy`.
         other_policy: None (others replay the log), a `policy(sim)` callable, or "expert",
             "constant", "random"; the others it drives are those `config.control` selects.
@@ -165,7 +166,7 @@ class TGSingleAgentEnv(gymnasium.Env):
 
     def __init__(self, scenes="procedural:all", scene_index: int = 0, agent: int | None = None,
                  config: ConfigLike = None, overrides: OverridesLike = None, continuous: bool | None = None,
-                 device: str = "cpu", seed: int = 0, other_policy=None, render_mode: str | None = None,
+                 device: str = "auto", seed: int = 0, other_policy=None, render_mode: str | None = None,
                  background: str = "log", background_model=None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
@@ -176,8 +177,8 @@ class TGSingleAgentEnv(gymnasium.Env):
         self.render_mode = render_mode
         self.cfg = make_config(config, overrides, continuous)
         self.source = scene_source(scenes, seed)
-        self.device = device
-        self.other_policy = resolve_policy(other_policy, seed, device)
+        self.device = resolve_device(device)  # "auto" -> cpu / cuda:0, before anything is built
+        self.other_policy = resolve_policy(other_policy, seed, self.device)
         self.observation_space = single_observation_space(obs_dim(self.cfg))
         self.action_space = single_action_space(self.cfg)
         self.discrete = self.cfg.action_space == "discrete"

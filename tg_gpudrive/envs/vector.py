@@ -76,7 +76,7 @@ from gymnasium.vector.utils import batch_space
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.simulator import Simulator, resolve_device
 
 ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
 OverridesLike = Sequence[str] | Mapping[str, Any] | None
@@ -194,7 +194,7 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         num_worlds: worlds W (default: len(scenes), or 1 for a spec).
         config: EngineConfig, a mapping of its fields, or a YAML path; `overrides` on top of it.
         continuous: set the config's action_space (None: keep it).
-        device: "cpu", "cuda" or "cuda:N".
+        device: "auto" (default: cuda:0 when CUDA is usable, else cpu), "cpu", "cuda" or "cuda:N".
         seed: offset of procedural scene seeds (the engine itself is deterministic).
         controlled: optional per-scene bool masks over the scene's agents (Simulator's `controlled`).
         background: who drives the other eligible vehicles: "log" (replay) or "world_model".
@@ -206,12 +206,13 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
 
     def __init__(self, scenes="procedural:all", num_worlds: int | None = None, config: ConfigLike = None,
-                 overrides: OverridesLike = None, continuous: bool | None = None, device: str = "cpu",
+                 overrides: OverridesLike = None, continuous: bool | None = None, device: str = "auto",
                  seed: int = 0, controlled: Sequence[np.ndarray] | None = None, strict: bool = False,
                  render_mode: str | None = None, render_worlds: Sequence[int] = (0,), background: str = "log",
                  background_model: str | Path | None = None):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        device = resolve_device(device)  # a CUDA request without CUDA fails here, before scenes load
         self.background = check_background(background)
         self.cfg = make_config(config, overrides, continuous)
         self.metadata = dict(self.metadata, autoreset_mode=AutoresetMode.SAME_STEP if self.cfg.auto_reset

@@ -5,11 +5,15 @@
 For every run directory (holding checkpoint.pt, config.json, metrics.csv as
 `learn.train.Trainer` writes them) the run's policy drives the first
 `scenes` scenes of its own scene source (same control selection), once per
-rollout seed; the logs of those worlds are the reference. Baselines on the
-first run's scenes: log replay (the closed-loop inverse-dynamics expert of the
-engine) and the behaviour prior alone (actions sampled from the expert prior,
-learn/prior.py, discrete action spaces). A run counts as plain MAPPO when its
-config switches the magnet, the proximal term and the constraint off
+rollout seed, with a slot for every agent of those scenes
+(checkpoint.policy_engine_config); the logs of those worlds are the reference.
+A run may also be a checkpoint file, or `shipped` (the packaged policy,
+tg_gpudrive/policies/shipped.pt): config from the checkpoint, no training
+curves. Baselines on the first run's scenes: log replay (the closed-loop
+inverse-dynamics expert of the engine) and the behaviour prior alone (actions
+sampled from the expert prior, learn/prior.py, discrete action spaces). A
+run counts as plain MAPPO when its config switches the magnet, the proximal
+term and the constraint off
 (eta1 = 0, eta2 = inf, constraint = false; see
 configs/experiments/grid.yaml), else as CCE-MAPPO.
 
@@ -59,7 +63,7 @@ class ReportOptions:
     br_lr: float = 3e-4
     br_rounds: int = 1  # evaluation batches of J_pi and J_br
     top: int = 3  # critical scenarios exported per run
-    device: str | None = None  # default: the run's config device
+    device: str | None = "auto"  # auto (cuda when one is visible, else cpu) | cpu | cuda:N; None: the run's config
     frame_size: int = 320
     progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
 
@@ -72,6 +76,21 @@ def _run_config(run: Path):
     if not path.exists():
         raise FileNotFoundError(f"{run}: no config.json (not a training run directory?)")
     return from_dict(TrainConfig, json.loads(path.read_text()), str(path))
+
+
+def _run_files(run: Path):
+    """(TrainConfig, checkpoint path) of a run: a run directory (config.json, checkpoint.pt), a checkpoint
+    file or "shipped", the packaged policy (checkpoint.checkpoint_path; the config from the checkpoint)."""
+    from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
+    from tg_gpudrive.config import TrainConfig, from_dict
+
+    if run.is_dir():
+        ckpt = run / "checkpoint.pt"
+        if not ckpt.exists():
+            raise FileNotFoundError(f"{run}: no checkpoint.pt")
+        return _run_config(run), ckpt
+    ckpt = checkpoint_path(str(run), "--runs")
+    return from_dict(TrainConfig, load_checkpoint(ckpt, "--runs")["config"], str(ckpt)), ckpt
 
 
 def run_kind(cfg) -> str:
@@ -306,9 +325,10 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
 # --------------------------------------------------------------------- main
 def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOptions | None = None) -> dict:
     """Evaluate the runs and the baselines, write the report files (FILES) into `out`; return the summary."""
+    from tg_gpudrive.checkpoint import policy_engine_config
     from tg_gpudrive.learn.train import load_policy
     from tg_gpudrive.rollout import expert_policy
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.simulator import Simulator, resolve_device
 
     opts = options or ReportOptions()
     runs = [Path(r) for r in runs]
@@ -319,7 +339,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     from tqdm import tqdm
 
     threads = torch.get_num_threads()
-    discrete = _run_config(runs[0]).env.action_space == "discrete"  # the behaviour-prior baseline needs it
+    discrete = _run_files(runs[0])[0].env.action_space == "discrete"  # the behaviour-prior baseline needs it
     bar = tqdm(total=len(runs) + 1 + discrete, desc="report", unit="policy", disable=not opts.progress)
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
 
@@ -330,14 +350,12 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
 
     try:
         for i, run in enumerate(runs):
-            cfg = _run_config(run)
-            ckpt = run / "checkpoint.pt"
-            if not ckpt.exists():
-                raise FileNotFoundError(f"{run}: no checkpoint.pt")
-            device = opts.device or ("cuda:0" if cfg.device == "cuda" else cfg.device)
+            cfg, ckpt = _run_files(run)
+            device = resolve_device(opts.device or cfg.device, flag="--device")
             if device == "cpu":
                 torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
             scenes, masks = _scenes(cfg, opts.scenes)
+            cfg = dataclasses.replace(cfg, env=policy_engine_config(cfg, scenes))  # a slot for every agent
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
             gsim = _gap_game_sim(cfg, scenes, masks, device)
@@ -393,7 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tg-gpudrive report", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     d = ReportOptions()
-    p.add_argument("--runs", nargs="+", required=True, help="training run directories")
+    p.add_argument("--runs", nargs="+", required=True,
+                   help="training run directories (or checkpoint files; shipped: the packaged policy)")
     p.add_argument("--out", default="report", help="output directory")
     p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes per run")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), help="rollout seeds")
@@ -401,7 +420,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds))
     p.add_argument("--br-lr", type=float, default=d.br_lr)
     p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
-    p.add_argument("--device", default=None, help="default: each run's config device")
+    p.add_argument("--device", default="auto",
+                   help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
     return p
 
 

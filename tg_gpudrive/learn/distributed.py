@@ -52,22 +52,32 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def _kind(device: str) -> str:
+    """A config's device with "auto" made concrete: "cuda" when CUDA is usable, else "cpu"."""
+    if device != "auto":
+        return device
+    from tg_gpudrive.simulator import cuda_available
+
+    return "cuda" if cuda_available() else "cpu"
+
+
 def init_from_env(device: str) -> bool:
     """Join the group torchrun describes in the environment; False when not launched that way."""
     if is_dist() or int(os.environ.get("WORLD_SIZE", "1")) <= 1:
         return is_dist()
-    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    dist.init_process_group("nccl" if _kind(device).startswith("cuda") else "gloo")
     return True
 
 
 def init(rank_: int, world: int, port: int, device: str) -> None:
     os.environ.setdefault("MASTER_ADDR", "127.0.0.1")
     os.environ["MASTER_PORT"] = str(port)
-    dist.init_process_group("nccl" if device.startswith("cuda") else "gloo", rank=rank_, world_size=world)
+    dist.init_process_group("nccl" if _kind(device).startswith("cuda") else "gloo", rank=rank_, world_size=world)
 
 
 def local_device(device: str) -> str:
-    """cuda -> cuda:<local rank> under a process group; cpu stays cpu."""
+    """cuda -> cuda:<local rank> under a process group; cpu stays cpu; auto is one of them."""
+    device = _kind(device)
     if device.startswith("cuda") and is_dist():
         local = int(os.environ.get("LOCAL_RANK", rank()))
         return f"cuda:{local}"

@@ -95,7 +95,10 @@ def make_prior(cfg: TrainConfig, sim: Simulator):
 
 
 def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
-    """A `policy(sim)` callable from a training checkpoint (used by evaluate and render)."""
+    """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
+
+    `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
+    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
     ck = load_checkpoint(path, "checkpoint", map_location=sim.device)
     from tg_gpudrive.config import from_dict
 
@@ -204,6 +207,7 @@ class Trainer:
         e = cfg.env
         self._noop = (e.accel_bins // 2) * e.curvature_bins + e.curvature_bins // 2  # zero accel and curvature
         self.prior = make_prior(cfg, self.sim)
+        self.prior_logits = self.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
@@ -292,7 +296,14 @@ class Trainer:
             buf["mask"][t] = mask
             with self._amp():
                 buf["value"][t], buf["quant"][t] = self.critic(obs, mask, w_idx * C + c_idx)
-            buf["prior"][t] = self.prior.context(sim, C)
+            if self.prior_logits:
+                # the discrete magnet's logits, once per live row and step (bf16 on GPU): computing
+                # them per minibatch and epoch instead doubled the update time with the world model
+                ctx = self.prior.context(sim, C)
+                with self._amp():
+                    buf["prior"][t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
+            elif self.cfg.eta1 > 0:
+                buf["prior"][t] = self.prior.context(sim, C)
             if self.head.discrete:
                 sim.actions_index[:, :C] = act.to(torch.int32)
             else:
@@ -340,12 +351,18 @@ class Trainer:
             "done": torch.zeros((T, W, C), device=dev),
             "value": torch.zeros((T + 1, W, C), device=dev),
             "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
-            "prior": torch.zeros((T, W, C, getattr(self.prior, "context_dim", 4)), device=dev),
+            "prior": torch.zeros((T, W, C, self._prior_dim()), device=dev),
         }
         buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
                       else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)))
         self._buf, self._buf_key = buf, key
         return buf
+
+    def _prior_dim(self) -> int:
+        """Per row and step: the magnet's logits (discrete), its context (continuous), nothing (eta1 0)."""
+        if self.cfg.eta1 <= 0:
+            return 0
+        return self.sim.num_actions if self.prior_logits else getattr(self.prior, "context_dim", 4)
 
     def _act_dim(self) -> int:
         return 2 if self.cfg.env.dynamics == "bicycle" else 3
@@ -446,10 +463,14 @@ class Trainer:
         d = self.head.dist(out)
         logp = d.log_prob(b["act"][rows, c])
         ent = d.entropy()
-        prior_out = self.prior.distribution(b["prior"][rows, c], obs[rows, c].float())
         old = b["old"]
         old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
-        kl_prior = self.head.kl(out, prior_out)
+        if cfg.eta1 <= 0:  # plain MAPPO: no magnet to evaluate
+            kl_prior = torch.zeros_like(logp)
+        else:
+            prior_out = b["prior"][rows, c] if self.prior_logits else \
+                self.prior.distribution(b["prior"][rows, c], obs[rows, c].float())
+            kl_prior = self.head.kl(out, prior_out)
         kl_prev = self.head.kl(out, old_out)
         lam_rows = lam[c] if cfg.per_agent_lambda else lam
         loss_pi, st = L.cce_mappo_actor_loss(

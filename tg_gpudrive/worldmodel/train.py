@@ -95,7 +95,7 @@ class WorldModelConfig:
     num_scenes: int = 96  # training scenes: source indices [0, num_scenes)
     val_scenes: int = 12  # held out: the next val_scenes indices
     num_worlds: int = 16  # worlds simulated at once while collecting
-    device: str = "cpu"
+    device: str = "auto"  # auto (cuda when Warp and torch see one, else cpu) | cpu | cuda | cuda:N
     seed: int = 0
     # model
     hidden: int = 64
@@ -402,9 +402,11 @@ def fit(model: WorldModel, data: dict, *, steps: int, batch_size: int, lr: float
 def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                       progress: bool = True) -> dict:
     """Collect, fit, log, checkpoint; returns the last metrics with `out_dir` and `model` paths."""
+    from tg_gpudrive.simulator import resolve_device
+
     out = Path(out_dir or resume or cfg.out_dir)
+    device = resolve_device(cfg.device, flag="device")  # before anything is written or built
     out.mkdir(parents=True, exist_ok=True)
-    device = "cuda:0" if cfg.device == "cuda" else cfg.device
     random.seed(cfg.seed), np.random.seed(cfg.seed), torch.manual_seed(cfg.seed)
     ck = None if resume is None else load_checkpoint(resume)
     t0 = time.perf_counter()
