@@ -31,7 +31,7 @@ def synthetic_batch(trainer) -> dict:
     obs[..., 10] = 1.0  # first partner row present
     obs[..., 10 + trainer.cfg.env.partner_k * 10] = 1.0  # first road row present
     act = torch.randint(0, A, (G, C), generator=g)
-    prior = torch.cat([torch.randn(G, C, 3, generator=g) * 0.1, torch.ones(G, C, 1)], -1)
+    prior = torch.randn(G, C, A, generator=g)  # the discrete magnet's logits, as the rollout stores them
     return {"obs": obs, "act": act, "logp": torch.randn(G, C, generator=g) - 4, "mask": torch.ones(G, C, dtype=torch.bool),
             "prior": prior, "adv_r": torch.randn(G, C, generator=g), "adv_c": torch.randn(G, C, generator=g),
             "ret_r": torch.randn(G, C, generator=g), "q_target": torch.randn(G, C, 8, generator=g),
@@ -41,7 +41,7 @@ def synthetic_batch(trainer) -> dict:
 def grads_of(trainer, idx) -> list[torch.Tensor]:
     b = synthetic_batch(trainer)
     trainer.opt.zero_grad()
-    loss, _ = trainer.minibatch_loss(b, idx, torch.tensor(0.3))
+    loss, _ = trainer.minibatch_loss(b, idx, torch.full((4,), 0.3))  # one multiplier per slot
     loss.backward()
     return [p.grad.clone() for p in trainer.params]
 
