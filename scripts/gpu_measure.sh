@@ -98,7 +98,7 @@ quality)
   wait
   summarize
   slim
-  timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs $(ls -d "$RES"/*/) ${QUALITY_BASELINES:-constant random} \
+  [ "${QUALITY_EVAL:-1}" = 0 ] || timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs $(ls -d "$RES"/*/) ${QUALITY_BASELINES:-constant random} \
     --modes ${QUALITY_MODES:-ignore} --num-scenes ${EVAL_N:-1024} --out "$RES/heldout.jsonl" 2>"$RES/heldout.err" | tail -30
   ;;
 ttq)

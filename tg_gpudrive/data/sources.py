@@ -10,6 +10,8 @@ specs (`SPEC_FORMS`):
     <file>.json            one GPUDrive processed WOMD JSON
     <file> *tfrecord*      one raw WOMD TFRecord (all its scenes, read at resolve time)
     <dir>                  every *.json / *tfrecord* file under it, recursively
+    mix:<spec>=<w>,...     worlds filled from several of the above in proportion to the
+                           weights (`MixedSource`), e.g. "mix:procedural:all=0.7,tests/data=0.3"
 
 File sources are for quick looks: each JSON is parsed on first use (a small LRU
 cache keeps recent ones); pack large sets with `store.convert` for training.
@@ -18,11 +20,17 @@ Loaders and the generator are imported lazily so this module imports alone.
 
 from __future__ import annotations
 
+import logging
+import math
 from collections import OrderedDict
 from pathlib import Path
 from typing import Callable, Sequence
 
+import numpy as np
+
 from tg_gpudrive.scene import Scene
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PROCEDURAL_SCENES = 10_000
 SPEC_FORMS = (
@@ -33,12 +41,15 @@ SPEC_FORMS = (
     "a GPUDrive .json file",
     "a WOMD .tfrecord file (or a name containing 'tfrecord')",
     "a directory of such files",
+    "mix:<spec>=<weight>,<spec>=<weight>,... (any of the above; a weight may be omitted for 1)",
 )
 
 
 def _spec_error(spec: str, why: str) -> ValueError:
     forms = "\n  ".join(SPEC_FORMS)
-    return ValueError(f"scene spec {spec!r}: {why}; accepted forms:\n  {forms}")
+    err = ValueError(f"scene spec {spec!r}: {why}; accepted forms:\n  {forms}")
+    err.why = why  # the reason alone, for one-line messages about a part of a mix: spec
+    return err
 
 
 class SceneSource:
@@ -196,17 +207,263 @@ class FileSource(SceneSource):
         return scene
 
 
+class MixedSource(SceneSource):
+    """Several sources behind one index space, so uniform index draws mix them by weight.
+
+    `parts` are (source, weight) pairs (weights > 0, normalised here); `counts[k]` (default
+    ``len(source)``, at most that) is how many distinct scenes part k contributes: its scenes
+    ``0 .. counts[k] - 1``.
+
+    Index layout: ``len(mix)`` is the size V of a *virtual* index space. Part k owns
+    ``slots[k]`` of the V indices, proportional to its normalised weight (to whole slots, so
+    within 1/V) and never fewer than ``counts[k]``; slot j of part k maps to its scene
+    ``j % counts[k]``, so a small real set is repeated to fill its share. The slots of all parts
+    are interleaved evenly (slot j of part k sits at (j + 0.5) / slots[k] of the way through
+    [0, V), ties to the earlier part), so any prefix ``range(m)`` is mixed in nearly the same
+    proportions too. What it is for: a sampler that draws indices uniformly (`SceneSampler`,
+    `ShardSource`) then fills worlds in the requested proportions: exactly per pass over the V
+    indices without replacement, in expectation with replacement; readers that take the first
+    m indices (evaluation, benchmark) get a mix rather than only the first part.
+
+    What it must not do: be taken for V distinct scenes (``num_distinct`` is that; a sampler's
+    ``visited`` counts slots, so every repeat of a small set counts); depend on anything but
+    (parts, weights, counts), with no shuffling or randomness of its own: a sampler's resume
+    state records only V and its position, so the same spec, n and seed must map each index to
+    the same scene after a restart (shuffling is the sampler's job); materialise scenes up front.
+
+    Every scene handed out has ``metadata["scenario_type"]`` (per-type episode rates group on
+    it): scenes without one get `default_type` ("womd": real scenes; the loaders set it
+    already), set on the scene's own metadata dict.
+    """
+
+    def __init__(self, parts: Sequence[tuple[SceneSource, float]], counts: Sequence[int] | None = None,
+                 name: str | None = None, default_type: str = "womd"):
+        if not parts:
+            raise ValueError("a scene mix needs at least one part")
+        self.parts = [src for src, _ in parts]
+        raw = [float(w) for _, w in parts]
+        if not all(math.isfinite(w) and w > 0 for w in raw):
+            raise ValueError(f"scene mix weights must be positive numbers, got {raw}")
+        total = sum(raw)
+        self.weights = [w / total for w in raw]
+        counts = [len(src) for src in self.parts] if counts is None else [int(c) for c in counts]
+        if len(counts) != len(self.parts):
+            raise ValueError(f"scene mix: {len(counts)} counts for {len(self.parts)} parts")
+        for src, c in zip(self.parts, counts):
+            if not 1 <= c <= len(src):
+                raise ValueError(f"scene mix part {src.name!r}: count {c} outside [1, {len(src)}]")
+        self.counts = counts
+        self.default_type = default_type
+        self.slots = self._slots(self.weights, counts)
+        # (V,) part of each virtual index and the part's scene it maps to
+        part = np.concatenate([np.full(c, k, np.int64) for k, c in enumerate(self.slots)])
+        j = np.concatenate([np.arange(c, dtype=np.int64) for c in self.slots])
+        where = np.concatenate([(np.arange(c) + 0.5) / c for c in self.slots])
+        order = np.lexsort((part, where))
+        self._part = part[order]
+        self._local = j[order] % np.asarray(counts, np.int64)[self._part]
+        self.name = name or "mix:" + ",".join(f"{s.name}={w:.4g}" for s, w in zip(self.parts, self.weights))
+
+    @staticmethod
+    def _slots(weights: Sequence[float], counts: Sequence[int]) -> list[int]:
+        """Whole slots per part: proportional to `weights` (largest remainder), each >= its count.
+
+        V is the smallest size that holds every count, or a slightly larger one (up to 2x, at
+        most 2,000 more) whose shares match the weights better: exactly when the weights allow
+        (0.75 / 0.25 over 2 real and 38 procedural scenes: V = 52, not 51)."""
+        def at(v: int) -> tuple[float, list[int]]:
+            exact = [v * w for w in weights]
+            slots = [max(c, math.floor(x + 1e-9)) for c, x in zip(counts, exact)]
+            rest = v - sum(slots)
+            for k in sorted(range(len(slots)), key=lambda k: (slots[k] - exact[k], k))[:max(rest, 0)]:
+                slots[k] += 1
+            return max(abs(s / sum(slots) - w) for s, w in zip(slots, weights)), slots
+
+        v0 = max(math.ceil(c / w - 1e-9) for c, w in zip(counts, weights))
+        best = at(v0)
+        for v in range(v0 + 1, v0 + min(v0, 2000) + 1):
+            if best[0] < 1e-9:
+                break
+            cand = at(v)
+            if cand[0] < best[0] - 1e-12:
+                best = cand
+        return best[1]
+
+    @property
+    def num_distinct(self) -> int:
+        """Distinct scenes behind the V indices (sum of the parts' counts)."""
+        return sum(self.counts)
+
+    def __len__(self) -> int:
+        return len(self._part)
+
+    def locate(self, i: int) -> tuple[int, int]:
+        """(part number, scene index within that part) of virtual index `i`."""
+        i = self._check(i)
+        return int(self._part[i]), int(self._local[i])
+
+    def _label(self, scene: Scene) -> Scene:
+        if "scenario_type" not in scene.metadata:
+            scene.metadata["scenario_type"] = self.default_type
+        return scene
+
+    def get(self, i: int) -> Scene:
+        k, j = self.locate(i)
+        return self._label(self.parts[k].get(j))
+
+    def get_many(self, indices: Sequence[int]) -> list[Scene]:
+        """Scenes for `indices`, fetched part by part (through the part's `get_many` when it has one)."""
+        where = [self.locate(i) for i in indices]
+        out: list[Scene | None] = [None] * len(where)
+        for k, src in enumerate(self.parts):
+            pos = [p for p, (kk, _) in enumerate(where) if kk == k]
+            if not pos:
+                continue
+            local = [where[p][1] for p in pos]
+            got = src.get_many(local) if hasattr(src, "get_many") else [src.get(j) for j in local]
+            for p, sc in zip(pos, got):
+                out[p] = self._label(sc)
+        return out
+
+    def describe(self) -> list[str]:
+        """One line per part: weight, distinct scenes, share of the index space."""
+        v = len(self)
+        return [f"{src.name}: weight {w:.3g}, {c} distinct scene(s) of {len(src)}, {s}/{v} index slots "
+                f"({s / v:.1%})" for src, w, c, s in zip(self.parts, self.weights, self.counts, self.slots)]
+
+
+def _split_top(text: str) -> list[str]:
+    """`text` split on commas outside brackets and quotes."""
+    parts, depth, quote, cur = [], 0, "", []
+    for ch in text:
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch in "([{":
+            depth += 1
+        elif ch in ")]}":
+            depth = max(depth - 1, 0)
+        elif ch == "," and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+            continue
+        cur.append(ch)
+    parts.append("".join(cur))
+    return parts
+
+
+def _mix_part(part: str, spec: str) -> tuple[str, float]:
+    """(sub-spec, weight) of one `spec=weight` part; the weight is the text after the last '='."""
+    def bad(why: str) -> ValueError:
+        return ValueError(f"scene spec {spec!r}: mix part {part!r}: {why}")
+
+    text, weight = part.strip(), 1.0
+    if not text:
+        raise bad("empty part")
+    if "=" in text:
+        head, tail = text.rsplit("=", 1)
+        try:
+            w = float(tail)
+        except ValueError:
+            w = None
+        if w is not None:
+            if not (math.isfinite(w) and w > 0):
+                raise bad(f"weight {tail.strip()!r} must be a positive number")
+            text, weight = head.strip(), w
+        elif not Path(text).expanduser().exists():  # a path may hold '=' (then the weight is 1)
+            raise bad(f"weight {tail.strip()!r} is not a number" if tail.strip() else "empty weight")
+    text = text.strip().strip("'\"").strip()
+    if not text:
+        raise bad("empty scene spec")
+    if text.lower().startswith("mix:"):
+        raise bad("a mix cannot hold another mix")
+    return text, weight
+
+
+def _allocate(n: int, weights: Sequence[float], caps: Sequence[int | None]) -> list[int]:
+    """Split `n` scenes over parts by weight: a part with a cap gets at most that and the rest goes
+    to the others (largest remainder); every part gets at least one."""
+    counts, active, left = [0] * len(weights), list(range(len(weights))), n
+    while active:
+        tw = sum(weights[k] for k in active)
+        full = [k for k in active if caps[k] is not None and caps[k] <= left * weights[k] / tw]
+        if not full:
+            break
+        for k in full:
+            counts[k] = caps[k]
+            left -= caps[k]
+        active = [k for k in active if k not in full]
+    if active and left > 0:
+        tw = sum(weights[k] for k in active)
+        exact = {k: left * weights[k] / tw for k in active}
+        for k in active:
+            counts[k] = math.floor(exact[k])
+        for k in sorted(active, key=lambda k: (counts[k] - exact[k], k))[:left - sum(counts[k] for k in active)]:
+            counts[k] += 1
+    for k in range(len(counts)):
+        if counts[k] == 0:  # a part too light for a whole scene still gets one, from the largest
+            big = max(range(len(counts)), key=lambda i: counts[i])
+            if counts[big] > 1:
+                counts[big] -= 1
+            counts[k] = 1
+    return counts
+
+
+def _resolve_mix(spec: str, body: str, n: int | None, seed: int) -> MixedSource:
+    if not body.strip():
+        raise ValueError(f"scene spec {spec!r}: empty mix (expected mix:<spec>=<weight>,...)")
+    parsed = [_mix_part(p, spec) for p in _split_top(body)]
+    sources = []
+    for part, (sub, _) in zip(_split_top(body), parsed):
+        try:
+            sources.append(resolve_scenes(sub, n=n, seed=seed))
+        except ValueError as e:  # StoreError and SceneError are ValueErrors too
+            why = getattr(e, "why", None) or str(e).splitlines()[0]
+            raise ValueError(f"scene spec {spec!r}: mix part {part.strip()!r}: {why}") from None
+    total = sum(w for _, w in parsed)
+    weights = [w / total for _, w in parsed]
+    procedural = [isinstance(s, ProceduralSource) for s in sources]
+    if n is None:
+        counts = [len(s) for s in sources]
+    else:
+        counts = _allocate(int(n), weights, [None if p else len(s) for s, p in zip(sources, procedural)])
+        for (sub, _), s, w, c, p in zip(parsed, sources, weights, counts, procedural):
+            want = round(int(n) * w)
+            if not p and c < want:
+                log.warning("scene mix: %r has %d scene(s) for its share of %d (of num_scenes=%d); the "
+                            "other parts contribute the rest, and its scenes repeat to keep weight %.3g",
+                            sub, c, want, int(n), w)
+        if sum(counts) != int(n):
+            log.warning("scene mix %r: %d distinct scenes in all for num_scenes=%d", spec, sum(counts), int(n))
+    offset = 0  # procedural parts take consecutive seed ranges, so no two parts share a seed
+    for k, (s, p) in enumerate(zip(sources, procedural)):
+        if p:
+            sources[k] = ProceduralSource(s.types, counts[k], seed + offset, s.params, name=s.name)
+            offset += counts[k]
+    mix = MixedSource(list(zip(sources, weights)), counts)
+    for line in mix.describe():
+        log.info("scene mix: %s", line)
+    return mix
+
+
 def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSource:
     """The `SceneSource` named by `spec` (see module docstring / `SPEC_FORMS`).
 
     `n` caps the number of scenes (procedural default: 10,000 distinct seeds);
     `seed` offsets the procedural seeds and is unused by file and store specs.
+    For ``mix:`` specs `n` caps the distinct scenes of all parts together: each part gets
+    about n * weight, a file or store part at most what it holds (the rest goes to the
+    others), and `len()` is the size of the virtual index space (`MixedSource`); a bad
+    part, weight or empty mix is a one-line ValueError naming the part.
     Raises ValueError for an unknown spec or generator type, or a directory
     without scene files; StoreError / SceneError for a bad store or file.
     """
     spec = str(spec).strip()
     if n is not None and int(n) <= 0:
         raise ValueError(f"scene spec {spec!r}: n must be positive, got {n}")
+    if spec.lower().startswith("mix:"):
+        return _resolve_mix(spec, spec[4:], n, seed)
     if spec.lower().startswith("procedural:"):
         kind = spec.split(":", 1)[1].strip().lower()
         try:
