@@ -148,25 +148,37 @@ def test_train_and_evaluate_cli(tmp_path, capsys):
     assert "unknown key 'nope'" in capsys.readouterr().err
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 18: 30 updates on 8 CPU worlds do not learn. Measured 2026-11-23: plain PPO keeps entropy "
-    "4.4 at goal 0.00-0.05; the bare expert magnet (eta1 0.5) collapses to entropy 0 with off-road 1.0; "
-    "the world-model magnet reaches goal 0.05. Before, this test passed on a policy collapsed to the "
-    "constant action (issue 18), which is no longer counted as goals once a goal off the road is none."))
 def test_small_cpu_config_learns(tmp_path):
-    """The shipped small CPU config must lift the policy well above the untrained one.
+    """The README's CPU config learns to drive, on the road, and does not collapse.
 
-    Measured (2-core CPU, ~90 s): the first finished episodes (near-uniform sampled policy) reach the
-    goal 0.03-0.11 of the time and leave the road 0.94-0.98; after 30 updates goal 0.27-0.30,
-    off-road 0.19-0.24, collisions 0.25-0.32 -> 0.08-0.11. A broken or untrained learner stays at the
-    first figures; the thresholds sit halfway."""
+    Measured (2-core CPU, 2026-11-23, ~70 s): the first finished episodes (near-uniform policy)
+    reach the goal 0.02 of the time and leave the road 0.97; after 30 updates goal 0.43, off-road
+    0.10, collision 0.00, entropy ~0.5. On 16 held-out merges (seed 90000) the trained policy must
+    beat the built-in constant and random policies on goal rate and on off-road; a policy collapsed
+    to one action (entropy ~0, or the constant policy's rates) fails."""
+    from tg_gpudrive.data.sources import resolve_scenes
+    from tg_gpudrive.learn.train import load_policy
+    from tg_gpudrive.rollout import builtin_policy, run_rollout
+
     cfg = dataclasses.replace(load_config(TrainConfig, SMALL), out_dir=str(tmp_path))
     Trainer(cfg, tmp_path, progress=False).train()
     r = [x for x in rows(tmp_path) if x["goal_rate"] not in ("", "nan")]
     first, last = r[0], r[-1]
     assert float(first["goal_rate"]) < 0.15 and float(first["offroad_rate"]) > 0.7
-    assert float(last["goal_rate"]) >= float(first["goal_rate"]) + 0.12, (first, last)
-    assert float(last["offroad_rate"]) <= 0.45, last
+    assert float(last["offroad_rate"]) <= float(first["offroad_rate"]) - 0.4, (first, last)  # off-road falls
+    assert float(last["entropy"]) > 0.1, last  # not collapsed to one action
+
+    src = resolve_scenes("procedural:merge", n=16, seed=90000)
+    scenes = [src.get(i) for i in range(16)]
+    rates = {}
+    for name in ("trained", "constant", "random"):
+        sim = Simulator(scenes, cfg.env, "cpu")
+        pol = load_policy(tmp_path, sim) if name == "trained" else builtin_policy(name, 0, "cpu")
+        rates[name] = run_rollout(sim, pol, sim.episode_length)
+    t = rates["trained"]
+    for base in ("constant", "random"):
+        b = rates[base]
+        assert t["goal_rate"] > b["goal_rate"] and t["offroad_rate"] < b["offroad_rate"], (rates, base)
 
 
 def test_nan_in_the_loss_itself_is_caught(tmp_path):
