@@ -203,6 +203,39 @@ def test_magnet_kl_uses_the_world_model(shipped, tmp_path):
     assert kl_wm == pytest.approx(float(want), rel=1e-3, abs=1e-4)
 
 
+def test_magnet_kl_of_the_trainer_matches_a_hand_computed_case(tmp_path):
+    """A world model whose head ignores its inputs and puts probability 1/2 on the no-op bin and
+    1/180 on each of the other 90, against a uniform policy over the 91 bins:
+
+        KL(pi || p) = sum_k (1/91) (log(1/91) - log p_k)
+                    = -log 91 - (log 0.5 + 90 log(1/180)) / 91   (~= 0.6330)
+
+    which the trainer must report as kl/prior (one epoch, one minibatch: computed before the step)."""
+    from tg_gpudrive.learn.train import Trainer
+
+    cfg = dataclasses.replace(load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml"), num_worlds=2,
+                              num_scenes=2, rollout_steps=4, updates=1, epochs=1, minibatches=1, hidden=32,
+                              quantiles=8, out_dir=str(tmp_path), prior="world_model", eta1=0.5)
+    tr = Trainer(cfg, progress=False)
+    n = tr.sim.num_actions
+    noop = (cfg.env.accel_bins // 2) * cfg.env.curvature_bins + cfg.env.curvature_bins // 2
+    p = torch.full((n,), 0.5 / (n - 1))
+    p[noop] = 0.5
+    wm = WorldModel(num_actions=n, hidden=16, heads=2, history=4, partner_k=cfg.env.partner_k,
+                    road_k=cfg.env.road_k)
+    with torch.no_grad():
+        wm.head[-1].weight.zero_()
+        wm.head[-1].bias.copy_(p.log())
+        tr.actor.head_w.zero_()
+        tr.actor.head_b.zero_()  # uniform policy
+    tr.prior = WorldModelPrior(wm.eval(), tr.sim)
+    buf, _ = tr.rollout()
+    assert bool(buf["mask"].any())
+    got = tr.learn(buf)["kl/prior"]
+    want = -np.log(91) - (np.log(0.5) + 90 * np.log(0.5 / 90)) / 91
+    assert n == 91 and got == pytest.approx(want, rel=1e-4)
+
+
 # ------------------------------------------------------------------ continuous head
 def _cont_cfg(wm_cfg) -> WorldModelConfig:
     return dataclasses.replace(wm_cfg, env=dataclasses.replace(wm_cfg.env, action_space="continuous"))
