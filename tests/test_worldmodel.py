@@ -208,7 +208,7 @@ def test_magnet_kl_of_the_trainer_matches_a_hand_computed_case(tmp_path):
     1/180 on each of the other 90, against a uniform policy over the 91 bins:
 
         KL(pi || p) = sum_k (1/91) (log(1/91) - log p_k)
-                    = -log 91 - (log 0.5 + 90 log(1/180)) / 91   (~= 0.6330)
+                    = -log 91 - (log 0.5 + 90 log(1/180)) / 91   (~= 0.6326)
 
     which the trainer must report as kl/prior (one epoch, one minibatch: computed before the step)."""
     from tg_gpudrive.learn.train import Trainer
