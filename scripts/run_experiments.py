@@ -115,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
         for i in range(0, len(todo), batch):
             procs = []
             for name, sets in todo[i:i + batch]:
+                # an unfinished cell is trained again from the start in its own directory
                 cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--config", str(base), "--out",
-                       str(out / name)] + [x for s in sets for x in ("--set", s)]
+                       str(out / name), "--overwrite"] + [x for s in sets for x in ("--set", s)]
                 print(" ".join(cmd), flush=True)
                 if not args.dry_run:
                     (out / name).mkdir(parents=True, exist_ok=True)

@@ -241,3 +241,49 @@ def test_logged_cost_cvar_is_the_tail_of_the_logs_cost_to_go():
     got = float(logged_cost_cvar(sim, 0.5, gamma))
     assert got == pytest.approx(tail.mean(), rel=1e-4)
     assert float(logged_cost_cvar(sim, 0.0, gamma)) == pytest.approx(ctg.mean(), rel=1e-4)
+
+
+def test_a_run_directory_holds_one_run(tmp_path, capsys):
+    """A second train into the same directory goes to NAME-2 and says so; --overwrite replaces the
+    run; --resume of a missing run is an error that creates nothing."""
+    run = tmp_path / "run"
+    small = ["--config", str(SMALL), "--set", "updates=1", "--set", "num_worlds=2", "--set", "rollout_steps=4",
+             "--set", "hidden=16", "--set", "quantiles=4", "--json"]
+    assert cli.main(["train", "--out", str(run), *small]) == 0
+    assert cli.main(["train", "--out", str(run), *small]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["out_dir"] == str(tmp_path / "run-2") and len(rows(run)) == 1 and len(rows(tmp_path / "run-2")) == 1
+    assert cli.main(["train", "--out", str(run), "--overwrite", *small]) == 0
+    assert len(rows(run)) == 1 and not (tmp_path / "run-3").exists()
+    capsys.readouterr()
+    missing = tmp_path / "nothing"
+    assert cli.main(["train", "--config", str(SMALL), "--resume", str(missing)]) == 2
+    assert "no run to continue" in capsys.readouterr().err and not missing.exists()
+
+
+def test_windowed_rates_are_episode_weighted_and_never_nan():
+    from tg_gpudrive.learn.plots import windowed_rates
+
+    nan = float("nan")
+    r = [{"episodes": 0, "goal_rate": nan, "collision_rate": nan, "offroad_rate": nan},
+         {"episodes": 10, "goal_rate": 0.5, "collision_rate": 0.1, "offroad_rate": 0.2},
+         {"episodes": 0, "goal_rate": nan, "collision_rate": nan, "offroad_rate": nan},
+         {"episodes": 30, "goal_rate": 1.0, "collision_rate": 0.0, "offroad_rate": 0.0}]
+    assert windowed_rates(r[:1]) is None  # no episode yet: nothing to show, not NaN
+    assert windowed_rates(r[:3]) == pytest.approx({"goal_rate": 0.5, "collision_rate": 0.1, "offroad_rate": 0.2})
+    # (10 x 0.5 + 30 x 1.0) / 40, and the window drops the oldest rows
+    assert windowed_rates(r)["goal_rate"] == pytest.approx(0.875)
+    assert windowed_rates(r, window=1)["goal_rate"] == pytest.approx(1.0)
+    csv_rows = [{k: str(v) for k, v in x.items()} for x in r]  # as metrics.csv gives them
+    assert windowed_rates(csv_rows)["collision_rate"] == pytest.approx(0.025)
+
+
+def test_evaluate_names_agent_and_scene_episodes(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert cli.main(["train", "--config", str(SMALL), "--out", str(run), "--set", "updates=1", "--set",
+                     "num_worlds=2", "--set", "rollout_steps=4", "--set", "hidden=16", "--set", "quantiles=4"]) == 0
+    capsys.readouterr()
+    assert cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "3",
+                     "--worlds", "3", "--json"]) == 0
+    ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert ev["scene_episodes"] == 3 and ev["agent_episodes"] == ev["episodes"] > 3

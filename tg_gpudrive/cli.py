@@ -90,6 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3")
     p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR exactly")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the run already in the run directory (default: a new directory NAME-2, ...)")
     p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
     p.add_argument("--nproc", type=int, default=1,
                    help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
@@ -212,7 +214,7 @@ def cmd_simulate(args) -> int:
 
 def _print_rates(out: dict) -> None:
     for k, v in out.items():
-        if k != "per_type":
+        if k not in ("per_type", "episodes"):  # "episodes" is printed by name: agent_episodes
             print(f"{k:>22}: {v:.4g}" if isinstance(v, float) else f"{k:>22}: {v}")
     for name, r in out.get("per_type", {}).items():
         print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
@@ -233,6 +235,8 @@ def cmd_train(args) -> int:
     from tg_gpudrive.simulator import resolve_device
 
     if args.resume:  # the run's own config, then any new overrides
+        if not (Path(args.resume) / "checkpoint.pt").is_file() and not Path(args.resume).is_file():
+            raise FileNotFoundError(f"--resume: no run to continue at {args.resume} (no checkpoint.pt)")
         cfg_path = Path(args.resume) / "config.json"
         data = json.loads(cfg_path.read_text()) if cfg_path.exists() else load_yaml(args.config)
     else:
@@ -240,6 +244,8 @@ def cmd_train(args) -> int:
     cfg = from_dict(TrainConfig, apply_overrides(data, args.set), args.config)
     resolve_device(cfg.device, flag="device")  # CUDA without one: a one-line error before any process starts
     out_dir = args.out or args.resume
+    if not args.resume:
+        out_dir = str(_fresh_run_dir(Path(out_dir or cfg.out_dir), args.overwrite))
     if args.nproc > 1:
         import torch.multiprocessing as mp
 
@@ -264,6 +270,28 @@ def cmd_train(args) -> int:
               f"collision {out.get('collision_rate', float('nan')):.3f}  "
               f"offroad {out.get('offroad_rate', float('nan')):.3f}  lambda {out['lambda']:.3f}")
     return 0
+
+
+RUN_FILES = ("metrics.csv", "checkpoint.pt", "config.json", "curves.png", "target.json")
+
+
+def _fresh_run_dir(path: Path, overwrite: bool) -> Path:
+    """A run directory belongs to one run: `path` if it holds no run, else (without --overwrite)
+    the first free `path-2`, `path-3`, ... , said on stderr; with --overwrite the old run's files go."""
+    if not any((path / f).exists() for f in RUN_FILES):
+        return path
+    if overwrite:
+        for f in RUN_FILES:
+            (path / f).unlink(missing_ok=True)
+        print(f"tg-gpudrive train: --overwrite: replacing the run in {path}", file=sys.stderr)
+        return path
+    k = 2
+    while any((path.with_name(f"{path.name}-{k}") / f).exists() for f in RUN_FILES):
+        k += 1
+    new = path.with_name(f"{path.name}-{k}")
+    print(f"tg-gpudrive train: {path} holds an earlier run; this run goes to {new} "
+          f"(--overwrite replaces it, --resume {path} continues it)", file=sys.stderr)
+    return new
 
 
 def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result) -> None:
@@ -302,7 +330,8 @@ def cmd_evaluate(args) -> int:
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
-    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background)
+    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background,
+                      desc="evaluate")
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": cfg.collision_mode,
                 "scenes": args.scenes, "max_agents": sim.max_agents,
                 "agents_dropped": sim.model.report.total_truncated, **_background_report(args, cfg)})

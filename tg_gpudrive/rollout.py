@@ -134,6 +134,7 @@ class EpisodeStats:
         n = len(self.type_names)
         self.sums = {k: torch.zeros(n, dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
         self.speed_sum = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
+        self.scene_episodes = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
         self.alive_steps = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
 
     def _add(self, rows: torch.Tensor, goal, collided, offroad, cost, min_dist, ret, steps) -> None:
@@ -149,6 +150,7 @@ class EpisodeStats:
         self.speed_sum += (s.speed * alive).sum()
         self.alive_steps += alive.sum()
         rows = (s.world_ended[:, None] != 0) & s.policy_agents
+        self.scene_episodes += rows.any(1).sum()
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
                   s.final_return, s.final_steps)
 
@@ -156,6 +158,7 @@ class EpisodeStats:
         """Count episodes still running (used when a rollout ends before any episode did)."""
         s = self.sim
         rows = s.policy_agents & (s.ep_steps > 0)
+        self.scene_episodes += rows.any(1).sum()
         self._add(rows, s.ep_goal, s.ep_collided, s.ep_offroad, s.ep_cost, s.ep_min_dist, s.ep_return, s.ep_steps)
 
     def summary(self) -> dict:
@@ -174,6 +177,9 @@ class EpisodeStats:
             }
 
         out = rates(tot)
+        # "episodes" counts agent-episodes (one per policy agent and episode), the unit of every rate
+        out["agent_episodes"] = out["episodes"]
+        out["scene_episodes"] = int(self.scene_episodes)
         out["mean_speed"] = float(self.speed_sum / self.alive_steps.clamp(min=1))
         if len(self.type_names) > 1:
             out["per_type"] = {name: rates({k: float(v[i]) for k, v in self.sums.items()})
@@ -182,7 +188,7 @@ class EpisodeStats:
 
 
 def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False,
-                background: Policy | None = None) -> dict:
+                background: Policy | None = None, desc: str = "simulate") -> dict:
     """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed.
 
     `background`: a driver of the background rows (`make_background_driver`), run after the policy."""
@@ -192,7 +198,7 @@ def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = Fal
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=steps, desc="simulate", unit="step", leave=False)
+        bar = tqdm(total=steps, desc=desc, unit="step", leave=False)
     if sim.is_cuda:
         torch.cuda.synchronize(sim.device)
     t0 = time.perf_counter()

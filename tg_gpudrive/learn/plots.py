@@ -1,12 +1,37 @@
-"""Training curves as a PNG (metrics.csv -> curves.png)."""
+"""Training curves as a PNG (metrics.csv -> curves.png), and the windowed rates people read.
+
+Per-update rates are noisy and often undefined (no episode ended in that update), so every
+place a person reads rates (the progress bar, the rates panel of curves.png) shows them
+episode-weighted over the last `RATE_WINDOW` updates (`windowed_rates`), as BENCHMARKS.md does.
+"""
 
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
+from typing import Sequence
+
+RATE_WINDOW = 10  # updates
+RATE_KEYS = ("goal_rate", "collision_rate", "offroad_rate")
+
+
+def windowed_rates(rows: Sequence[dict], window: int = RATE_WINDOW) -> dict[str, float] | None:
+    """Episode-weighted goal / collision / off-road rates over the last `window` rows (metrics.csv
+    rows or the trainer's row dicts, with "episodes" and the per-update rates); None before any
+    episode has ended."""
+    def num(v) -> float:
+        v = float(v) if v not in ("", None) else float("nan")
+        return 0.0 if math.isnan(v) else v
+
+    recent = rows[-window:]
+    n = sum(num(r["episodes"]) for r in recent)
+    if n <= 0:
+        return None
+    return {k: sum(num(r[k]) * num(r["episodes"]) for r in recent) / n for k in RATE_KEYS}
 
 PANELS = (
-    ("rates", ("goal_rate", "collision_rate", "offroad_rate")),
+    (f"rates (episode-weighted, last {RATE_WINDOW} updates)", RATE_KEYS),
     ("reward terms (per agent-step)", None),  # every reward/* column
     ("cost and risk", ("cost", "cvar", "cost_budget")),
     ("Lagrange multiplier", ("lambda",)),
@@ -28,10 +53,14 @@ def plot_curves(csv_path: str | Path, out: str | Path) -> Path:
         raise ValueError(f"{csv_path}: no rows to plot")
     x = [float(r["agent_steps"]) for r in rows]
     fig, axes = plt.subplots(2, 4, figsize=(18, 8))
+    windowed = [windowed_rates(rows[:i + 1]) for i in range(len(rows))]
     for ax, (title, keys) in zip(axes.flat, PANELS):
         keys = keys or tuple(k for k in rows[0] if k.startswith("reward/"))
         for k in keys:
-            if k in rows[0]:
+            if keys is RATE_KEYS:
+                ax.plot(x, [w[k] if w else float("nan") for w in windowed], label=k)
+                ax.set_ylim(-0.02, 1.02)
+            elif k in rows[0]:
                 ax.plot(x, [float(r[k]) if r[k] not in ("", "nan") else float("nan") for r in rows], label=k)
         ax.set_title(title)
         ax.set_xlabel("agent steps")

@@ -41,6 +41,7 @@ from tg_gpudrive.control import control_masks
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
+from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, windowed_rates
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.simulator import Simulator
 
@@ -541,9 +542,11 @@ class Trainer:
             last = row
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=f"{row['goal_rate']:.2f}",
-                                coll=f"{row['collision_rate']:.2f}", off=f"{row['offroad_rate']:.2f}",
-                                lam=f"{row['lambda']:.2f}")
+                self._recent_rows = (getattr(self, "_recent_rows", []) + [row])[-RATE_WINDOW:]
+                rates = windowed_rates(self._recent_rows)  # None until an episode has ended
+                shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
+                bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
+                                coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
             reached = self._reached_target(stats)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
             if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
