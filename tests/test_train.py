@@ -287,3 +287,31 @@ def test_evaluate_names_agent_and_scene_episodes(tmp_path, capsys):
                      "--worlds", "3", "--json"]) == 0
     ev = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert ev["scene_episodes"] == 3 and ev["agent_episodes"] == ev["episodes"] > 3
+
+
+@pytest.mark.parametrize("damage", ["truncated", "flipped", "text", "empty"])
+def test_a_damaged_checkpoint_is_a_one_line_error_naming_the_file(tmp_path, capsys, damage):
+    run = tmp_path / "run"
+    Trainer(tiny(run, updates=1, checkpoint_every=1), run, progress=False).train()
+    ck = run / "checkpoint.pt"
+    data = ck.read_bytes()
+    ck.write_bytes({"truncated": data[: len(data) // 2], "flipped": data[:200] + bytes(b ^ 0xFF for b in data[200:400])
+                    + data[400:], "text": b"not a checkpoint\n", "empty": b""}[damage])
+    capsys.readouterr()
+    assert cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "1",
+                     "--json"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(ck) in err and "damaged" in err, err
+
+
+def test_resume_falls_back_to_the_previous_checkpoint_and_drops_a_cut_metrics_row(tmp_path):
+    run = tmp_path / "run"
+    Trainer(tiny(run, updates=4, checkpoint_every=2), run, progress=False).train()  # saves at 2 and 4
+    assert (run / "checkpoint.prev.pt").is_file()
+    (run / "checkpoint.pt").write_bytes(b"")  # the newest is lost
+    with (run / "metrics.csv").open("a") as f:
+        f.write("5,0.1")  # a row cut short by a kill
+    tr = Trainer(tiny(run, updates=5, checkpoint_every=2), run, resume=run, progress=False)
+    assert tr.update == 2  # the previous checkpoint
+    tr.train()
+    assert [int(r["update"]) for r in rows(run)] == [1, 2, 3, 4, 5]

@@ -27,11 +27,37 @@ SHIPPED = "shipped"  # the name that stands for the packaged policy
 SHIPPED_POLICY = Path(__file__).resolve().parent / "policies" / "shipped.pt"
 
 
-def save_atomic(obj, path: str | Path) -> Path:
+class CheckpointError(ValueError):
+    """A checkpoint file that exists but cannot be read (truncated, corrupted, not a checkpoint)."""
+
+
+def previous_path(path: Path) -> Path:
+    """Where `save_atomic(..., keep_previous=True)` keeps the checkpoint it replaced."""
+    return path.with_name(path.stem + ".prev" + path.suffix)
+
+
+def save_atomic(obj, path: str | Path, keep_previous: bool = False) -> Path:
+    """Write `obj` beside `path`, fsync it, rename it over `path` and fsync the directory, so a
+    crash or power loss leaves either the old or the new file whole. `keep_previous`: the file
+    replaced stays as `<stem>.prev<suffix>`, the fallback `load_checkpoint` uses when the newest is
+    damaged."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    if keep_previous and path.exists():
+        os.replace(path, previous_path(path))
     os.replace(tmp, path)
+    try:  # the renames themselves must reach the disk
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:  # some filesystems do not fsync directories
+        pass
     return path
 
 
@@ -50,8 +76,31 @@ def checkpoint_path(path: str | Path, option: str = "--resume") -> Path:
     return path
 
 
-def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cpu") -> dict:
-    return torch.load(checkpoint_path(path, option), map_location=map_location, weights_only=False)
+def _read(path: Path, option: str, map_location) -> dict:
+    try:
+        ck = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for a damaged file
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise CheckpointError(f"{option}: {path} is damaged or not a checkpoint ({type(e).__name__}: {first})") \
+            from None
+    if not isinstance(ck, dict):
+        raise CheckpointError(f"{option}: {path} is not a checkpoint (it holds a {type(ck).__name__})")
+    return ck
+
+
+def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cpu", fallback: bool = False) -> dict:
+    """The checkpoint at `path` (see checkpoint_path); CheckpointError naming the file if it is
+    damaged. `fallback`: a damaged checkpoint.pt falls back, with a warning, to the previous one
+    kept beside it (checkpoint.prev.pt), as `--resume` wants."""
+    path = checkpoint_path(path, option)
+    try:
+        return _read(path, option, map_location)
+    except CheckpointError as e:
+        prev = previous_path(path)
+        if not (fallback and prev.is_file()):
+            raise
+        log.warning("%s; resuming from the previous checkpoint %s", e, prev)
+        return _read(prev, option, map_location)
 
 
 def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:

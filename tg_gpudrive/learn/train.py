@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import random
 import time
@@ -44,6 +45,8 @@ from tg_gpudrive.learn.networks import Actor, CentralCritic
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, windowed_rates
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.simulator import Simulator
+
+log = logging.getLogger(__name__)
 
 
 class TrainingError(RuntimeError):
@@ -178,7 +181,7 @@ class Trainer:
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
         torch.backends.cuda.matmul.allow_tf32 = True
-        ck = None if resume is None else load_checkpoint(resume)
+        ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.rank)
         self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
         if self.world > 1:
@@ -615,7 +618,7 @@ class Trainer:
         }
 
     def save(self) -> Path:
-        path = save_atomic(self.state_dict(), self.out / "checkpoint.pt")
+        path = save_atomic(self.state_dict(), self.out / "checkpoint.pt", keep_previous=True)
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
 
@@ -644,7 +647,11 @@ class Trainer:
         # metrics.csv may hold rows written after this checkpoint: keep only those up to it
         if self.lead and (self.out / "metrics.csv").exists():
             rows = list(csv.DictReader((self.out / "metrics.csv").open()))
-            keep = [r for r in rows if int(r["update"]) <= self.update]
+            # a row cut short by a kill (missing fields, a partial number) is dropped with the rest
+            whole = [r for r in rows if None not in r.values() and str(r.get("update", "")).isdigit()]
+            if len(whole) != len(rows):
+                log.warning("%s: %d damaged row(s) dropped", self.out / "metrics.csv", len(rows) - len(whole))
+            keep = [r for r in whole if int(r["update"]) <= self.update]
             if len(keep) != len(rows):
                 with (self.out / "metrics.csv").open("w", newline="") as f:
                     w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
