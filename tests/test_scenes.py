@@ -85,3 +85,21 @@ def test_convert_keeps_going_and_lists_bad_files(tmp_path, capsys):
     assert len(store) == 2
     sim = Simulator([store[0], store[1]], EngineConfig(max_agents=128), "cpu")
     assert run_rollout(sim, expert_policy, sim.episode_length)["goal_rate"] == 1.0
+
+
+@pytest.mark.parametrize("flag", [["--steps", "-5"], ["--steps", "0"], ["--num-scenes", "0"], ["--worlds", "0"]])
+def test_counts_must_be_positive(flag, capsys):
+    from tg_gpudrive import cli
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["simulate", "--scenes", "procedural:merge", "--device", "cpu", *flag])
+    assert e.value.code == 2 and "expected a positive integer" in capsys.readouterr().err
+
+
+def test_convert_where_every_file_failed_is_an_error(tmp_path, capsys):
+    from tg_gpudrive import cli
+
+    (tmp_path / "in").mkdir()
+    (tmp_path / "in" / "a.json").write_text("{not json")
+    assert cli.main(["convert", str(tmp_path / "in"), "--out", str(tmp_path / "store")]) == 2
+    assert "every input failed" in capsys.readouterr().err

@@ -44,7 +44,7 @@ def _engine_args(p: argparse.ArgumentParser) -> None:
 def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all") -> None:
     p.add_argument("--scenes", default=default,
                    help="procedural:<type> | procedural:all | a store, .json/.tfrecord file or directory")
-    p.add_argument("--num-scenes", type=int, default=None,
+    p.add_argument("--num-scenes", type=positive_int, default=None,
                    help="distinct scenes to draw from the source (default: min(worlds, source size))")
 
 
@@ -61,6 +61,17 @@ def _background_args(p: argparse.ArgumentParser) -> None:
                         "run directory; default: the shipped model)")
 
 
+def positive_int(text: str) -> int:
+    """argparse type of counts (worlds, steps, episodes, scenes): 0 and negatives are errors, not defaults."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {v}")
+    return v
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tg-gpudrive", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -70,8 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="roll out a built-in policy and report goal/collision/off-road rates")
     _scene_args(p)
     _engine_args(p)
-    p.add_argument("--worlds", type=int, default=16)
-    p.add_argument("--steps", type=int, default=None, help="default: one episode")
+    p.add_argument("--worlds", type=positive_int, default=16)
+    p.add_argument("--steps", type=positive_int, default=None, help="default: one episode")
     p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"])
     p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
     _background_args(p)
@@ -80,8 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("benchmark", help="engine agent steps/s for several world counts")
     _scene_args(p)
     _engine_args(p)
-    p.add_argument("--worlds", type=int, nargs="*", default=None)
-    p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--worlds", type=positive_int, nargs="*", default=None)
+    p.add_argument("--steps", type=positive_int, default=50)
     p.add_argument("--no-graph", action="store_true", help="plain launches instead of a CUDA graph")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
@@ -110,8 +121,8 @@ def build_parser() -> argparse.ArgumentParser:
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
-    p.add_argument("--episodes", type=int, default=64, help="scene episodes to run (worlds x rounds)")
-    p.add_argument("--worlds", type=int, default=None, help="parallel worlds (default: min(episodes, 256))")
+    p.add_argument("--episodes", type=positive_int, default=64, help="scene episodes to run (worlds x rounds)")
+    p.add_argument("--worlds", type=positive_int, default=None, help="parallel worlds (default: min(episodes, 256))")
     p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
     _background_args(p)
     p.add_argument("--json", action="store_true")
@@ -123,9 +134,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="expert | random | constant | shipped (the packaged policy) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
-    p.add_argument("--steps", type=int, default=None, help="at most this many steps (default and most: one episode)")
+    p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
-    p.add_argument("--worlds", type=int, default=None, help="worlds to simulate (default: world + 1)")
+    p.add_argument("--worlds", type=positive_int, default=None, help="worlds to simulate (default: world + 1)")
     p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
     p.add_argument("--out", default="episode.gif", help="episode.gif | episode.mp4 | frame.png")
     p.add_argument("--size", default="640", metavar="PX or WxH", help="picture size in pixels (default 640)")
@@ -419,6 +430,10 @@ def cmd_convert(args) -> int:
                      simplify_tolerance=args.simplify)
     d = dataclasses.asdict(report) if dataclasses.is_dataclass(report) else dict(vars(report))
     print(json.dumps(d, default=str, indent=1))
+    if report.failed and report.num_scenes == 0:  # nothing usable came out: a failure, not a success
+        print(f"tg-gpudrive convert: error: every input failed ({len(report.failed)}; first: "
+              f"{report.failed[0][0]}: {report.failed[0][1]})", file=sys.stderr)
+        return 2
     return 0
 
 
