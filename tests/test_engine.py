@@ -261,3 +261,25 @@ def test_background_agents_are_driven_but_not_counted(device):
         sim.step(a)
     assert float(sim.pos[0, 1, 0]) < 10 * 1.0 - 1.0  # behind where its log would be at t = 1 s
     assert float(sim.pos[0, 2, 0]) == pytest.approx(-15 + 10 * 1.0, abs=1e-4)  # replayed
+
+
+def test_unusable_actions_written_in_place_are_counted():
+    """NaN written straight into the continuous buffer, or an out-of-range grid index, is counted
+    per acting row and step in sim.report() (the kernels would otherwise clamp it silently)."""
+    from scenes import crossing_scene
+
+    cont = Simulator([crossing_scene()], EngineConfig(max_agents=4, action_space="continuous"), "cpu")
+    cont.reset()
+    cont.actions.zero_()
+    cont.step()
+    assert cont.report()["bad_actions"] == 0
+    cont.actions[0, 0, 0] = float("nan")
+    cont.step()
+    cont.step()
+    assert cont.report() == {"agents_dropped": 0, "bad_actions": 2}
+    disc = Simulator([crossing_scene()], EngineConfig(max_agents=4), "cpu")
+    disc.reset()
+    disc.actions_index.fill_(45)
+    disc.actions_index[0, 1] = 10_000
+    disc.step()
+    assert disc.report()["bad_actions"] == 1

@@ -19,6 +19,7 @@ outcomes of the finished episode are kept in the `final_*` tensors.
 from __future__ import annotations
 
 import logging
+import os
 import re
 from typing import Sequence
 
@@ -90,6 +91,9 @@ def resolve_device(device: str | torch.device | None = "auto", flag: str | None 
     return d
 
 
+DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # check every step's actions and raise
+
+
 class Simulator:
     def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "auto",
                  controlled: Sequence[np.ndarray] | None = None, background: Sequence[np.ndarray] | None = None):
@@ -113,6 +117,9 @@ class Simulator:
         self._corr = None  # corrective_expert's output buffers, allocated on first use
         self._steps_run = 0
         self._make_views()
+        # rows of acting agents whose action was unusable (non-finite, or a grid index out of range),
+        # summed on the device over every step since the build; `report()` reads it
+        self.bad_actions = torch.zeros((), dtype=torch.int64, device=self.actions.device)
         rep = self.model.report
         if rep.total_truncated:
             hit = sorted({s.scene_id for s, n in zip(scenes, rep.truncated_agents) if n})
@@ -233,6 +240,7 @@ class Simulator:
         action buffers (`actions_index` / `actions`) are used as they are."""
         if actions is not None:
             self._write_actions(actions)
+        self._count_bad_actions()
         with wp.ScopedDevice(self.device):
             self._sync_in()
             if self._graph is not None:
@@ -247,6 +255,29 @@ class Simulator:
                 self._launch_step()
             self._sync_out()
         self._steps_run += 1
+
+    def _count_bad_actions(self) -> None:
+        """Count (without a host sync) acting rows whose action the kernels would have to clamp from
+        garbage: a non-finite continuous action, or a grid index outside [0, num_actions). With the
+        environment variable TG_GPUDRIVE_DEBUG=1 such an action raises instead (a sync per step)."""
+        acting = (self.controlled != 0) & (self.active != 0)
+        if self.cfg.action_space == "discrete":
+            bad = (self.actions_index < 0) | (self.actions_index >= self.num_actions)
+        else:
+            bad = ~torch.isfinite(self.actions).all(-1)
+        bad = bad & acting
+        self.bad_actions += bad.sum()
+        if DEBUG and bool(bad.any()):
+            w, a = bad.nonzero()[0].tolist()
+            raise ValueError(f"step {self._steps_run}: world {w}, slot {a} has an unusable action "
+                             f"({self.actions_index[w, a].item() if self.cfg.action_space == 'discrete' else self.actions[w, a].tolist()}); "
+                             f"{int(bad.sum())} such rows this step (TG_GPUDRIVE_DEBUG=1)")
+
+    def report(self) -> dict:
+        """What the engine dropped, truncated or could not use: agents beyond max_agents (from the
+        build) and unusable actions written into the buffers (summed over the steps so far)."""
+        rep = self.model.report
+        return {"agents_dropped": int(rep.total_truncated), "bad_actions": int(self.bad_actions)}
 
     def use_expert_actions(self) -> None:
         """Fill the action buffers with the logged (inverse-dynamics) expert actions of the current step."""
