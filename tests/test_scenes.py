@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 import pytest
 from conftest import WOMD_FILES
 
@@ -103,3 +105,20 @@ def test_convert_where_every_file_failed_is_an_error(tmp_path, capsys):
     (tmp_path / "in" / "a.json").write_text("{not json")
     assert cli.main(["convert", str(tmp_path / "in"), "--out", str(tmp_path / "store")]) == 2
     assert "every input failed" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field", ["log_pos", "goal", "roads.geometry"])
+def test_a_coordinate_far_from_the_scene_is_a_field_error(field):
+    """One coordinate of 1e30 (float32 still holds it) once gave collision and off-road 1.0 for
+    every agent without a word; now it is a SceneError naming the field."""
+    from tg_gpudrive.scene import SceneError
+
+    sc = generate_scene("merge", 0)
+    if field == "log_pos":
+        sc.log_pos[0, np.nonzero(sc.log_valid[0])[0][0], 0] = 1e30
+    elif field == "goal":
+        sc.goal[0, 1] = -1e30
+    else:
+        sc.road_points[3, 0] = 1e30
+    with pytest.raises(SceneError, match=field.replace(".", r"\.")):
+        sc.validate()

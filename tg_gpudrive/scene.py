@@ -47,6 +47,9 @@ import numpy as np
 from tg_gpudrive.types import AgentType, RoadType
 
 
+MAX_EXTENT = 1.0e6  # m: a coordinate farther than this from the scene's centre is a broken field, not a map
+
+
 class SceneError(ValueError):
     """A scene (or its source file) is malformed. The message names source and field."""
 
@@ -128,6 +131,20 @@ class Scene:
         )
 
     # ------------------------------------------------------------- validation
+    def _check_extent(self, src: str, valid: np.ndarray) -> None:
+        """Positions, goals and road points within MAX_EXTENT of the scene's centre (the median
+        of the valid positions): one coordinate of 1e30 would otherwise overflow float32 in the
+        recentring and flag every agent as collided and off the road."""
+        centre = np.median(self.log_pos[valid].astype(np.float64), axis=0)
+        present = valid.any(-1)
+        for name, pts in (("log_pos", self.log_pos[valid]), ("goal", self.goal[present]),
+                          ("roads.geometry", self.road_points)):
+            far = np.abs(np.asarray(pts, np.float64).reshape(-1, 2) - centre).max(-1) > MAX_EXTENT
+            if far.any():
+                i = int(np.nonzero(far)[0][0])
+                raise SceneError(src, name, f"coordinate {np.asarray(pts).reshape(-1, 2)[i].tolist()} lies more "
+                                 f"than {MAX_EXTENT:.0e} m from the scene's centre {centre.round(1).tolist()}")
+
     def validate(self, source: str | None = None) -> "Scene":
         """Coerce dtypes and check shapes, finiteness and non-emptiness.
 
@@ -185,6 +202,7 @@ class Scene:
             p = int(np.nonzero(~np.isfinite(self.road_points).all(-1))[0][0])
             poly = int(np.searchsorted(self.road_offsets, p, side="right") - 1)
             raise SceneError(src, "roads.geometry", f"non-finite point in polyline {poly} (id {self.road_id[poly]})")
+        self._check_extent(src, valid)
         if not set(np.unique(self.road_type)).issubset({int(v) for v in RoadType}):
             raise SceneError(src, "road_type", f"unknown road types {sorted(set(np.unique(self.road_type)))}")
         self.lane_edges = np.ascontiguousarray(self.lane_edges, dtype=np.int32).reshape(-1, 2)
