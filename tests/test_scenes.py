@@ -122,3 +122,35 @@ def test_a_coordinate_far_from_the_scene_is_a_field_error(field):
         sc.road_points[3, 0] = 1e30
     with pytest.raises(SceneError, match=field.replace(".", r"\.")):
         sc.validate()
+
+
+def test_a_bad_file_in_a_directory_is_skipped_and_counted_when_the_source_opens(tmp_path, capsys):
+    """One broken JSON and one truncated TFRecord among good files: the source opens without them
+    (they are listed in `skipped`), simulate reports the count, and training that resamples every
+    update never meets them."""
+    import shutil
+
+    from tg_gpudrive.config import TrainConfig, load_config, REPO_CONFIGS
+    from tg_gpudrive.data.sources import resolve_scenes
+    from tg_gpudrive.learn.train import Trainer
+
+    for f in WOMD_FILES:
+        shutil.copy(f, tmp_path)
+    (tmp_path / "broken.json").write_text('{"objects": [')
+    (tmp_path / "cut.tfrecord.gz").write_bytes(b"\x1f\x8b\x08\x00garbage")
+    src = resolve_scenes(str(tmp_path))
+    assert len(src) == len(WOMD_FILES) and sorted(p.rsplit("/", 1)[1] for p, _ in src.skipped) == \
+        ["broken.json", "cut.tfrecord.gz"]
+    assert cli.main(["simulate", "--scenes", str(tmp_path), "--worlds", "3", "--steps", "2", "--device", "cpu",
+                     "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["scene_files_skipped"] == 2
+    cfg = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml",
+                      [f"scenes={tmp_path}", "num_worlds=2", "updates=2", "resample_every=1", "rollout_steps=4",
+                       "hidden=16", "quantiles=4", "epochs=1", "minibatches=1", f"out_dir={tmp_path / 'run'}",
+                       "env.max_agents=128"])
+    assert Trainer(cfg, progress=False).train()["scene_files_skipped"] == 2
+    (tmp_path / "a.json").unlink(missing_ok=True)
+    for f in WOMD_FILES:
+        (tmp_path / f.name).unlink()
+    with pytest.raises(ValueError, match="no scene loads"):
+        resolve_scenes(str(tmp_path))

@@ -167,14 +167,15 @@ def _engine_config(args) -> EngineConfig:
     return load_config(EngineConfig, args.env_config, overrides)
 
 
-def _load_scenes(args, worlds: int):
+def _load_scenes(args, worlds: int) -> tuple[list, int]:
+    """`worlds` scenes of --scenes, and how many files of it were skipped because they do not load."""
     from tg_gpudrive.data.sampler import SceneSampler
     from tg_gpudrive.data.sources import resolve_scenes
 
     n = args.num_scenes or worlds
     src = resolve_scenes(args.scenes, n=n, seed=args.seed)
     sampler = SceneSampler(src, worlds, replacement=False, seed=args.seed)
-    return sampler.sample()
+    return sampler.sample(), len(getattr(src, "skipped", ()))
 
 
 def _check_background_args(args) -> None:
@@ -209,13 +210,13 @@ def cmd_simulate(args) -> int:
 
     _check_background_args(args)
     cfg = _engine_config(args)
-    scenes = _load_scenes(args, args.worlds)
+    scenes, skipped = _load_scenes(args, args.worlds)
     sim, background = _simulator_with_background(args, cfg, scenes)
     steps = args.steps or sim.episode_length
     out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=not args.json,
                       background=background)
     out.update({"policy": args.policy, "collision_mode": cfg.collision_mode, "scenes": args.scenes,
-                **_background_report(args, cfg)})
+                "scene_files_skipped": skipped, **sim.report(), **_background_report(args, cfg)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -332,7 +333,7 @@ def cmd_evaluate(args) -> int:
     else:
         cfg = _engine_config(args)
     worlds = args.worlds or min(args.episodes, 256)
-    scenes = _load_scenes(args, worlds)
+    scenes, skipped = _load_scenes(args, worlds)
     if args.checkpoint:  # the engine it was trained in, with a slot for every agent of the scenes
         cfg = policy_engine_config(trained, scenes)
         if args.collision_mode:
@@ -344,8 +345,8 @@ def cmd_evaluate(args) -> int:
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background,
                       desc="evaluate")
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": cfg.collision_mode,
-                "scenes": args.scenes, "max_agents": sim.max_agents,
-                "agents_dropped": sim.model.report.total_truncated, **_background_report(args, cfg)})
+                "scenes": args.scenes, "max_agents": sim.max_agents, "scene_files_skipped": skipped,
+                **sim.report(), **_background_report(args, cfg)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -403,7 +404,7 @@ def cmd_render(args) -> int:
     else:
         cfg = _engine_config(args)
 
-    scenes = _load_scenes(args, worlds)
+    scenes, _ = _load_scenes(args, worlds)
     if checkpoint is not None:  # the engine it was trained in, with a slot for every agent of the scenes
         cfg = policy_engine_config(trained, scenes)
         if args.collision_mode:

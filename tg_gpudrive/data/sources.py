@@ -171,22 +171,56 @@ class StoreSource(SceneSource):
 
 
 class FileSource(SceneSource):
-    """GPUDrive JSON files (parsed on demand, LRU-cached) plus TFRecord scenes (read up front)."""
+    """GPUDrive JSON files plus TFRecord scenes, every file checked when the source opens.
+
+    A file that does not load (bad JSON, a bad field, a truncated or CRC-broken TFRecord) is
+    skipped with a warning and listed in `skipped` ((path, reason) pairs), so a training run that
+    resamples never meets it mid-way; opening fails only when no scene is left. JSON scenes are
+    parsed again on demand (LRU-cached) rather than all held in memory; TFRecord scenes are kept.
+    For thousands of files, pack them into a store once (`tg-gpudrive convert`)."""
 
     def __init__(self, json_files: Sequence[Path], tfrecord_files: Sequence[Path], name: str,
                  n: int | None = None, cache_size: int = 256):
         from tg_gpudrive.data.store import load_file
 
-        self._items: list[Path | Scene] = list(json_files)
-        for f in tfrecord_files:
-            if n is not None and len(self._items) >= n:
-                break
-            self._items.extend(load_file(f))
-        if n is not None:
-            self._items = self._items[: int(n)]
         self.name, self.cache_size = name, int(cache_size)
         self._cache: OrderedDict[int, Scene] = OrderedDict()
         self._load: Callable[[Path], list[Scene]] = load_file
+        self._items: list[Path | Scene] = []
+        self.skipped: list[tuple[str, str]] = []
+        files = [(f, True) for f in json_files] + [(f, False) for f in tfrecord_files]
+        bar = None
+        if len(files) > 64:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(files), desc=f"checking {name}", unit="file", leave=False)
+        for f, is_json in files:
+            if n is not None and len(self._items) >= n:
+                break
+            try:
+                scenes = load_file(f)
+            except Exception as e:  # noqa: BLE001 - any unreadable file is skipped and counted
+                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                self.skipped.append((str(f), f"{type(e).__name__}: {reason}"))
+                log.warning("%s: skipped, it does not load (%s: %s)", f, type(e).__name__, reason)
+                scenes = []
+            if is_json and scenes:
+                self._items.append(f)
+                if len(self._cache) < self.cache_size:
+                    self._cache[len(self._items) - 1] = scenes[0]
+            else:
+                self._items.extend(scenes)
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
+        if n is not None:
+            self._items = self._items[: int(n)]
+        if not self._items:
+            first = f"; first: {self.skipped[0][0]}: {self.skipped[0][1]}" if self.skipped else ""
+            raise ValueError(f"scene spec {name!r}: no scene loads ({len(self.skipped)} file(s) skipped{first})")
+        if self.skipped:
+            log.warning("%s: %d of %d file(s) skipped because they do not load", name, len(self.skipped), len(files))
 
     def __len__(self) -> int:
         return len(self._items)

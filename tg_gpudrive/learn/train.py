@@ -532,6 +532,7 @@ class Trainer:
                 "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
                 "mean_speed": float(stats["speed"]) / max(steps, 1),
                 "scenes_visited": self.sampler.visited,
+                "scene_files_skipped": len(getattr(self.source, "skipped", ())),  # files that do not load
             })
             per_term = stats["terms"] / max(steps, 1)
             for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
