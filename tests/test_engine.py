@@ -276,10 +276,22 @@ def test_unusable_actions_written_in_place_are_counted():
     cont.actions[0, 0, 0] = float("nan")
     cont.step()
     cont.step()
-    assert cont.report() == {"agents_dropped": 0, "bad_actions": 2}
+    assert cont.report()["bad_actions"] == 2 and cont.report()["agents_dropped"] == 0
     disc = Simulator([crossing_scene()], EngineConfig(max_agents=4), "cpu")
     disc.reset()
     disc.actions_index.fill_(45)
     disc.actions_index[0, 1] = 10_000
     disc.step()
     assert disc.report()["bad_actions"] == 1
+
+
+def test_scenes_without_road_edges_are_warned_and_counted(caplog):
+    from scenes import crossing_scene
+
+    from tg_gpudrive.scene import make_scene
+
+    bare = make_scene(np.zeros((1, 20, 2)), np.zeros((1, 20)), scene_id="bare")  # no roads at all
+    with caplog.at_level("WARNING"):
+        sim = Simulator([bare, crossing_scene()], EngineConfig(max_agents=4), "cpu")
+    assert sim.report()["worlds_without_road_edges"] == 1 + int(not (crossing_scene().road_type == 3).any())
+    assert "no road edges" in caplog.text and "bare" in caplog.text

@@ -36,6 +36,7 @@ from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_fin
 from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
 from tg_gpudrive.kernels.road import launch_road_query
 from tg_gpudrive.scene import Scene
+from tg_gpudrive.types import RoadType
 
 log = logging.getLogger("tg_gpudrive")
 
@@ -120,6 +121,13 @@ class Simulator:
         # rows of acting agents whose action was unusable (non-finite, or a grid index out of range),
         # summed on the device over every step since the build; `report()` reads it
         self.bad_actions = torch.zeros((), dtype=torch.int64, device=self.actions.device)
+        # off-road is "the box crosses a road edge": without edges it can never fire
+        no_edges = [s.scene_id for s in scenes if not (np.asarray(s.road_type) == int(RoadType.ROAD_EDGE)).any()]
+        self.worlds_without_road_edges = len(no_edges)
+        if no_edges:
+            log.warning("%d of %d worlds have no road edges, so off-road cannot fire there (scenes: %s%s)",
+                        len(no_edges), len(scenes), ", ".join(sorted(set(no_edges))[:5]),
+                        " ..." if len(set(no_edges)) > 5 else "")
         rep = self.model.report
         if rep.total_truncated:
             hit = sorted({s.scene_id for s, n in zip(scenes, rep.truncated_agents) if n})
@@ -275,9 +283,11 @@ class Simulator:
 
     def report(self) -> dict:
         """What the engine dropped, truncated or could not use: agents beyond max_agents (from the
-        build) and unusable actions written into the buffers (summed over the steps so far)."""
+        build), worlds whose scene has no road edge (off-road never fires there) and unusable actions
+        written into the buffers (summed over the steps so far)."""
         rep = self.model.report
-        return {"agents_dropped": int(rep.total_truncated), "bad_actions": int(self.bad_actions)}
+        return {"agents_dropped": int(rep.total_truncated), "bad_actions": int(self.bad_actions),
+                "worlds_without_road_edges": self.worlds_without_road_edges}
 
     def use_expert_actions(self) -> None:
         """Fill the action buffers with the logged (inverse-dynamics) expert actions of the current step."""
