@@ -315,3 +315,15 @@ def test_resume_falls_back_to_the_previous_checkpoint_and_drops_a_cut_metrics_ro
     assert tr.update == 2  # the previous checkpoint
     tr.train()
     assert [int(r["update"]) for r in rows(run)] == [1, 2, 3, 4, 5]
+
+
+def test_training_writes_tensorboard_events_when_installed(tmp_path):
+    pytest.importorskip("tensorboard")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    Trainer(tiny(tmp_path, updates=2), tmp_path, progress=False).train()
+    acc = EventAccumulator(str(tmp_path))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    assert {"kl/prior", "lambda", "reward/goal_progress", "entropy"} <= tags
+    assert [e.step for e in acc.Scalars("lambda")] == [1, 2]

@@ -293,7 +293,7 @@ def _fresh_run_dir(path: Path, overwrite: bool) -> Path:
     if not any((path / f).exists() for f in RUN_FILES):
         return path
     if overwrite:
-        for f in RUN_FILES:
+        for f in [*RUN_FILES, *(p.name for p in path.glob("events.out.tfevents.*"))]:
             (path / f).unlink(missing_ok=True)
         print(f"tg-gpudrive train: --overwrite: replacing the run in {path}", file=sys.stderr)
         return path

@@ -574,6 +574,8 @@ class Trainer:
             bar.close()
         if self.lead:
             self.plot()
+            if getattr(self, "_tb", None) is not None:
+                self._tb.close()
         return last
 
     def _reached_target(self, stats: dict) -> bool:
@@ -593,6 +595,24 @@ class Trainer:
             if new:
                 w.writeheader()
             w.writerow(row)
+        tb = self._tensorboard()
+        if tb is not None:  # the same names as metrics.csv: reward/<term>, kl/prior, lambda, goal_rate, ...
+            for k, v in row.items():
+                if isinstance(v, (int, float)) and k != "update" and math.isfinite(v):
+                    tb.add_scalar(k, v, row["update"])
+            tb.flush()
+
+    def _tensorboard(self):
+        """A SummaryWriter into the run directory when `tensorboard` is installed (the optional extra
+        `pip install tg_gpudrive[tensorboard]`), else None; metrics.csv is written either way."""
+        if not hasattr(self, "_tb"):
+            self._tb = None
+            try:
+                from torch.utils.tensorboard import SummaryWriter  # needs the tensorboard package
+            except ImportError:
+                return None
+            self._tb = SummaryWriter(log_dir=str(self.out), purge_step=self.update or None)
+        return self._tb
 
     def plot(self) -> Path | None:
         """PNG of the training curves (metrics.csv -> curves.png)."""
