@@ -128,6 +128,13 @@ _FEATURE_OF_TYPE = {int(rt): (name, key, sub) for name, (rt, key, sub) in _FEATU
 _TL_VALUES = {int(v) for v in TrafficLightState}
 
 
+
+def _f32(x: np.ndarray) -> np.ndarray:
+    """float64 -> float32 without a RuntimeWarning: a value beyond float32 becomes inf, which
+    Scene.validate then reports as a field error naming the polyline or agent."""
+    with np.errstate(over="ignore"):
+        return np.asarray(x).astype(np.float32)
+
 def decode_scenario(data: bytes) -> dict[str, Any]:
     """Decode one serialized WOMD Scenario into a dict (see protowire)."""
     return decode(SCENARIO, data)
@@ -300,10 +307,10 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
         height=dims[:, 2],
         agent_type=agent_type,
         agent_id=agent_id,
-        goal=(goal - origin).astype(np.float32),
+        goal=_f32(goal - origin),
         is_sdc=is_sdc,
         is_interest=is_interest,
-        road_points=road_points.astype(np.float32),
+        road_points=_f32(road_points),
         road_offsets=offsets,
         road_type=np.asarray(road_type, np.int8),
         road_id=np.asarray(road_id, np.int64),
