@@ -154,3 +154,12 @@ def test_a_bad_file_in_a_directory_is_skipped_and_counted_when_the_source_opens(
         (tmp_path / f.name).unlink()
     with pytest.raises(ValueError, match="no scene loads"):
         resolve_scenes(str(tmp_path))
+
+
+@pytest.mark.parametrize("content", [b"\x1f\x8b\x08\x00\x00\x00", b""])
+def test_simulate_on_a_broken_tfrecord_is_a_one_line_error(tmp_path, capsys, content):
+    bad = tmp_path / "cut.tfrecord.gz"
+    bad.write_bytes(content)
+    assert cli.main(["simulate", "--scenes", str(bad), "--worlds", "1", "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len([line for line in err if "error" in line]) == 1 and str(bad) in err[-1]
