@@ -9,6 +9,7 @@ The figures each test measures are printed (pytest -s shows them)."""
 from __future__ import annotations
 
 import copy
+import math
 import dataclasses
 
 import numpy as np
@@ -264,6 +265,24 @@ def test_laplace_mixture_matches_numpy():
     mean, log_std = mix
     np.testing.assert_allclose(draws.mean(0).numpy(), mean[0].numpy(), atol=0.02)
     np.testing.assert_allclose(draws.std(0).numpy(), log_std[0].exp().numpy(), rtol=0.02)
+
+
+def test_the_continuous_magnet_is_the_top_mixture_component():
+    """Two rows, two components: the most probable one is kept, alone, with its own location and
+    scale; the KL bound of one component is exact (the closed form of Gaussian -> Laplace)."""
+    logits = torch.tensor([[0.0, 2.0], [1.0, -1.0]])
+    loc = torch.tensor([[[1.0, 0.1], [-2.0, 0.2]], [[3.0, -0.1], [0.0, 0.0]]])
+    log_scale = torch.log(torch.tensor([[[0.5, 0.01], [0.25, 0.02]], [[1.0, 0.03], [2.0, 0.04]]]))
+    top = LaplaceMixture(logits, loc, log_scale).top_component()
+    assert top.num_components == 1
+    torch.testing.assert_close(top.loc[:, 0], torch.tensor([[-2.0, 0.2], [3.0, -0.1]]))
+    torch.testing.assert_close(top.log_scale[:, 0].exp(), torch.tensor([[0.25, 0.02], [1.0, 0.03]]))
+    # a Gaussian sitting on the component's location: KL = sum_d [log(2b/s) - 1/2 log(2 pi e) + s sqrt(2/pi)/b]
+    s_ = torch.tensor([[0.1, 0.005], [0.2, 0.01]])
+    kl = top.kl_from((top.loc[:, 0], s_.log()))
+    b = top.log_scale[:, 0].exp()
+    want = (torch.log(2 * b / s_) - 0.5 * math.log(2 * math.pi * math.e) + s_ * math.sqrt(2 / math.pi) / b).sum(-1)
+    torch.testing.assert_close(kl, want, rtol=1e-5, atol=1e-6)
 
 
 def test_gaussian_to_laplace_kl():

@@ -134,6 +134,7 @@ class TrainConfig:
     quantiles: int = 64
     cost_nstep: int = 8  # steps of the cost critic's distributional Bellman target (1: the one-step target)
     prior: str = "world_model"  # world_model | expert: the magnet
+    prior_top_component: bool = True  # world_model, continuous: the magnet is the most probable mixture component
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir); "" = the shipped model
     prior_sigma_accel: float = 0.7  # m/s^2, spread of the expert prior (one grid bin is 2)
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)

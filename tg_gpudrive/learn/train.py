@@ -94,7 +94,7 @@ def make_prior(cfg: TrainConfig, sim: Simulator):
         from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
         model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
-        return WorldModelPrior(model, sim)
+        return WorldModelPrior(model, sim, top_component=cfg.prior_top_component)
     return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop, cfg.prior_floor)
 
 

@@ -93,6 +93,14 @@ class LaplaceMixture(tuple):
         k = self.logits.argmax(-1)
         return torch.gather(self.loc, -2, k[..., None, None].expand(*k.shape, 1, self.loc.shape[-1]))[..., 0, :]
 
+    def top_component(self) -> "LaplaceMixture":
+        """The most probable component alone, as a one-component mixture (its KL bound is exact):
+        the magnet TrafficGamer pulls the policy towards."""
+        k = self.logits.argmax(-1)[..., None, None]
+        pick = lambda x: torch.gather(x, -2, k.expand(*k.shape[:-2], 1, x.shape[-1]))  # noqa: E731
+        return LaplaceMixture(torch.zeros_like(self.logits[..., :1]), pick(self.loc), pick(self.log_scale),
+                              self.kl_samples)
+
     def sample(self, generator: torch.Generator | None = None, temperature: float = 1.0) -> torch.Tensor:
         """(..., D) draws at `temperature` T: each component is tempered, w_k^(1/T) L_k(x)^(1/T) up to
         normalisation, which for a Laplace is the same Laplace with its scale b times T; so T divides

@@ -89,14 +89,16 @@ class WorldModelPrior(BehaviourPrior):
     context(sim, C) -> (W, C, H * 7): the history window of the first C slots.
     distribution(context, obs) -> logits (..., num_actions), or a LaplaceMixture (continuous)
     whose KL from the Gaussian policy is the closed-form bound (`kl_samples` None) or a
-    Monte Carlo estimate with that many fixed draws."""
+    Monte Carlo estimate with that many fixed draws. `top_component` (default, as TrafficGamer
+    does): the continuous magnet is the mixture's most probable component alone."""
 
-    def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None):
+    def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None, top_component: bool = True):
         if sim is not None:
             check_action_space(model, sim.cfg)
             model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
         self.model = model
         self.kl_samples = kl_samples
+        self.top_component = top_component  # continuous: the most probable component is the magnet
         self.history = HistoryBuffer(model.history)
 
     @property
@@ -123,7 +125,8 @@ class WorldModelPrior(BehaviourPrior):
             out = self.model(obs.float(), hist.float())
         if self.model.discrete:
             return out.float()
-        return LaplaceMixture(out.logits.float(), out.loc.float(), out.log_scale.float(), self.kl_samples)
+        mix = LaplaceMixture(out.logits.float(), out.loc.float(), out.log_scale.float(), self.kl_samples)
+        return mix.top_component() if self.top_component else mix
 
 
 class WorldModelDriver:
