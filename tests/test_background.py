@@ -93,7 +93,7 @@ def test_cli_simulate_reports_the_background_driver(capsys):
 
 def test_vector_env_world_model_background_rows_are_masked(worlds):
     scenes, _, ctrl = worlds
-    env = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=len(scenes), scenes=scenes, config=SMALL,
+    env = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_worlds=len(scenes), scenes=scenes, config=SMALL,
                              controlled=ctrl, background="world_model")
     env.reset()
     bg = (env.sim.background != 0).view(-1)

@@ -7,7 +7,7 @@ import dataclasses
 import json
 
 import numpy as np
-
+import pytest
 import torch
 import torch.multiprocessing as mp
 
@@ -58,6 +58,7 @@ def _ddp_worker(rank, world, port, out, result):
             result.put([x.numpy() for x in gr])
 
 
+@pytest.mark.slow
 def test_ddp_gradients_equal_single_process_union(tmp_path):
     from tg_gpudrive.learn.distributed import free_port
     from tg_gpudrive.learn.train import Trainer
@@ -73,6 +74,7 @@ def test_ddp_gradients_equal_single_process_union(tmp_path):
     assert any(float(b.abs().sum()) > 0 for b in single)
 
 
+@pytest.mark.slow
 def test_two_rank_run_checkpoints_and_resumes_with_one(tmp_path, capsys):
     run = tmp_path / "run"
     args = ["train", "--config", str(SMALL), "--out", str(run), "--set", "updates=2", "--set", "num_worlds=2",

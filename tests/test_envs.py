@@ -166,7 +166,7 @@ def test_single_agent_bad_actions_are_clear_errors():
 
 # ---------------------------------------------------------------- vector
 def test_vector_env_through_make_vec_stays_on_device(device):
-    env = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=3, scenes="procedural:all", config=SMALL,
+    env = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=3 * 16, scenes="procedural:all", config=SMALL,
                              device=device)
     u = env.unwrapped
     assert isinstance(u, TGVectorEnv) and u.num_worlds == 3 and env.num_envs == 3 * 16
@@ -188,11 +188,44 @@ def test_vector_env_through_make_vec_stays_on_device(device):
     # rows of slots that are not controlled are always masked
     unctrl = ~u.controlled
     assert unctrl.any() and not info["active"][unctrl].any() and not (reward[unctrl] != 0).any()
-    cont = gymnasium.make_vec("tg_gpudrive/VectorContinuous-v0", num_envs=2, scenes="procedural:merge",
+    cont = gymnasium.make_vec("tg_gpudrive/VectorContinuous-v0", num_worlds=2, scenes="procedural:merge",
                               config=SMALL, device=device)
     cont.reset()
     out = cont.step(torch.zeros((cont.num_envs, 2), device=device))
     assert out[0].device == dev and cont.single_action_space.shape == (2,)
+
+
+def test_vector_env_num_envs_is_the_argument_and_the_batch_size():
+    # an env is one agent slot (a row): make_vec(num_envs=N) reports num_envs == N == the batch size
+    env = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=32, scenes="procedural:merge", config=SMALL)
+    obs, info = env.reset()
+    assert env.num_envs == 32 and env.unwrapped.num_worlds == 2
+    assert obs.shape[0] == env.observation_space.shape[0] == env.action_space.shape[0] == 32
+    assert info["active"].shape == (32,)
+    # worlds instead of rows; both given must agree
+    by_worlds = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_worlds=2, scenes="procedural:merge", config=SMALL)
+    assert by_worlds.num_envs == 32
+    assert TGVectorEnv("procedural:merge", num_envs=48, config=SMALL).num_worlds == 3
+    assert TGVectorEnv("procedural:merge", num_envs=32, num_worlds=2, config=SMALL).num_envs == 32
+    with pytest.raises(ValueError, match=r"num_envs=33: an env is one agent slot .* multiple of max_agents=16"):
+        gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=33, scenes="procedural:merge", config=SMALL)
+    with pytest.raises(ValueError, match="num_envs=32 and num_worlds=3 disagree"):
+        gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=32, num_worlds=3, scenes="procedural:merge",
+                           config=SMALL)
+    # make_vec's default num_envs=1 means "not given": one world per scene of a list
+    scenes = [crossing_scene(T), crossing_scene(T)]
+    assert gymnasium.make_vec("tg_gpudrive/Vector-v0", scenes=scenes, config=SMALL).num_envs == 2 * 16
+
+
+def test_vector_env_build_shows_progress(monkeypatch, capsys):
+    monkeypatch.setattr(TGVectorEnv, "progress_delay_s", 0.0)  # as if the build were slow
+    env = TGVectorEnv("procedural:merge", num_worlds=3, config=SMALL)
+    err = capsys.readouterr().err
+    assert "TGVectorEnv: scenes" in err and "3/3" in err and "building the engine" in err
+    env.reset(options={"scenes": "procedural:roundabout"})
+    assert "TGVectorEnv: scenes" in capsys.readouterr().err
+    TGVectorEnv("procedural:merge", num_worlds=3, config=SMALL, progress=False)
+    assert "TGVectorEnv" not in capsys.readouterr().err
 
 
 def test_vector_env_matches_bare_simulator_across_auto_reset():
@@ -386,7 +419,7 @@ def test_unknown_scene_spec_and_config_key_are_clear_errors():
     with pytest.raises(ValueError, match="unknown scenario type 'nope'"):
         gymnasium.make("tg_gpudrive/SingleAgent-v0", scenes="procedural:nope")
     with pytest.raises(ValueError, match="unknown scenario type 'nope'"):
-        gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=2, scenes="procedural:nope")
+        gymnasium.make_vec("tg_gpudrive/Vector-v0", num_worlds=2, scenes="procedural:nope")
     with pytest.raises(ValueError, match="unknown scenario type 'nope'"):
         TGParallelEnv("procedural:nope")
     with pytest.raises(ValueError, match="no such file or directory"):

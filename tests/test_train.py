@@ -148,6 +148,7 @@ def test_train_and_evaluate_cli(tmp_path, capsys):
     assert "unknown key 'nope'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_small_cpu_config_learns(tmp_path):
     """The README's CPU config learns to drive, on the road, and does not collapse.
 

@@ -61,6 +61,7 @@ def _collect(scenes, cfg: WorldModelConfig):
     return collect(scenes, cfg.env, history=cfg.history, max_partners=cfg.max_partners, max_roads=cfg.max_roads)
 
 
+@pytest.mark.slow
 def test_memorises_a_tiny_dataset(wm_cfg):
     torch.manual_seed(0)
     data = _collect([generate_scene("merge", 3), generate_scene("t_junction", 4)], wm_cfg)
@@ -325,6 +326,7 @@ def test_gaussian_to_laplace_kl():
     assert float(bound[1]) > float(mc[1]) - 0.01
 
 
+@pytest.mark.slow
 def test_continuous_head_memorises_a_tiny_dataset(wm_cfg):
     cfg = _cont_cfg(wm_cfg)
     data = _collect([generate_scene("merge", 3), generate_scene("t_junction", 4)], cfg)

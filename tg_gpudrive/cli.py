@@ -9,11 +9,16 @@
     tg-gpudrive render    --scenes procedural:merge --policy expert --out episode.gif
     tg-gpudrive report    --runs runs/grid/* --out report/
 
-Every subcommand takes the engine config (`--env-config`, default
-configs/env/default.yaml, plus `--set key=value` overrides). The device is
-`--device auto` unless given (train: the config's `device`, also auto by
-default): cuda when Warp and torch see one, else cpu; JSON reports name the
-device that ran, and asking for CUDA where there is none exits 2 in one line.
+The engine config: simulate, benchmark, evaluate and render take `--env-config`
+(default configs/env/default.yaml) plus `--set key=value` overrides (evaluate
+and render with a checkpoint policy: the engine it was trained in, plus
+--collision-mode); train and train-world-model take their own `--config` YAML
+(the engine config is its `env:` section) plus `--set`; report and convert take
+neither. The device is `--device auto` unless given (train, train-world-model:
+the config's `device`, also auto by default): cuda when Warp and torch see one,
+else cpu; JSON reports name the device that ran, and asking for CUDA where
+there is none exits 2 in one line. `tg-gpudrive COMMAND --help` shows every
+option of a command with its default.
 """
 
 from __future__ import annotations
@@ -35,17 +40,21 @@ def _engine_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--env-config", default=str(default) if default.exists() else None,
                    help="engine YAML (default: configs/env/default.yaml)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override an engine config key, e.g. --set beta=3 --set reward.collision=-2")
+                   help="override an engine config key, e.g. --set beta=3 --set reward.collision=-2 "
+                        "(repeatable; default: none)")
     p.add_argument("--device", default="auto",
                    help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the scene draw (procedural scenes, sampling), the random policy and the "
+                        "world-model background")
 
 
-def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all") -> None:
+def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all",
+                num_scenes_default: str = "min(worlds, source size)") -> None:
     p.add_argument("--scenes", default=default,
                    help="procedural:<type> | procedural:all | a store, .json/.tfrecord file or directory")
     p.add_argument("--num-scenes", type=positive_int, default=None,
-                   help="distinct scenes to draw from the source (default: min(worlds, source size))")
+                   help=f"distinct scenes to draw from the source (default: {num_scenes_default})")
 
 
 def _background_args(p: argparse.ArgumentParser) -> None:
@@ -72,35 +81,62 @@ def positive_int(text: str) -> int:
     return v
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; an option's help ends with "(default: VALUE)" unless it already says
+    its default, the option is required, or the default is None or empty (its help says what happens
+    then); a switch's default is "off"."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if "default" in text.lower() or action.required or action.default is argparse.SUPPRESS:
+            return text
+        if action.nargs == 0 and action.default is False:  # a switch
+            return f"{text} (default: off)"
+        if action.default is None or action.default == [] or not (action.option_strings or action.nargs in ("?", "*")):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+POLICY_HELP = ("expert: tracks the logged trajectory (closed-loop inverse dynamics); random: a uniformly random "
+               "action each step; constant: zero acceleration and zero curvature")
+COLLISION_HELP = ("what a collision or leaving the road does to the agent: ignore (counted, it drives on), stop "
+                  "(frozen, done) or remove (taken out, done) (default: the engine config's collision_mode, ignore "
+                  "in configs/env/default.yaml)")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tg-gpudrive", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="store_true")
+    parser = argparse.ArgumentParser(prog="tg-gpudrive", description=__doc__, formatter_class=HelpFormatter)
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="log INFO messages too (engine build reports, timings; default: warnings only); "
+                             "give it before the command: tg-gpudrive -v simulate ...")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("simulate", help="roll out a built-in policy and report goal/collision/off-road rates")
     _scene_args(p)
     _engine_args(p)
-    p.add_argument("--worlds", type=positive_int, default=16)
-    p.add_argument("--steps", type=positive_int, default=None, help="default: one episode")
-    p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"])
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    p.add_argument("--worlds", type=positive_int, default=16, help="worlds simulated in parallel, one scene each")
+    p.add_argument("--steps", type=positive_int, default=None, help="steps to run (default: one episode)")
+    p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"], help=POLICY_HELP)
+    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
     _background_args(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
     p = sub.add_parser("benchmark", help="engine agent steps/s for several world counts")
-    _scene_args(p)
+    _scene_args(p, num_scenes_default="36")
     _engine_args(p)
-    p.add_argument("--worlds", type=positive_int, nargs="*", default=None)
-    p.add_argument("--steps", type=positive_int, default=50)
+    p.add_argument("--worlds", type=positive_int, nargs="*", default=None,
+                   help="world counts to time (default: 1 64 256 on cpu; 1 64 1024 4096 8192 16384 on cuda)")
+    p.add_argument("--steps", type=positive_int, default=50, help="steps timed per world count")
     p.add_argument("--no-graph", action="store_true", help="plain launches instead of a CUDA graph")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
     p = sub.add_parser("train", help="CCE-MAPPO training (TrafficGamer)")
-    p.add_argument("--config", required=True, help="configs/train/<name>.yaml")
+    p.add_argument("--config", required=True, help="configs/train/<name>.yaml (required)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3")
-    p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR exactly")
+                   help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3 "
+                        "(repeatable; default: none)")
+    p.add_argument("--resume", default=None, metavar="DIR",
+                   help="continue the run saved in DIR exactly (default: start a new run)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the run already in the run directory (default: a new directory NAME-2, ...)")
     p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
@@ -116,16 +152,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
-                                          "(the policy packaged with tg_gpudrive)")
-    who.add_argument("--policy", choices=["expert", "random", "constant"])
+                                          "(the policy packaged with tg_gpudrive); this or --policy is required")
+    who.add_argument("--policy", choices=["expert", "random", "constant"],
+                     help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
     _engine_args(p)
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
     p.add_argument("--episodes", type=positive_int, default=64, help="scene episodes to run (worlds x rounds)")
     p.add_argument("--worlds", type=positive_int, default=None, help="parallel worlds (default: min(episodes, 256))")
     p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
     _background_args(p)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
     p = sub.add_parser("render", help="draw one world of an episode: .gif / .mp4, or its last frame as .png")
     _scene_args(p)
@@ -137,14 +174,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
     p.add_argument("--worlds", type=positive_int, default=None, help="worlds to simulate (default: world + 1)")
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None)
+    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
     p.add_argument("--out", default="episode.gif", help="episode.gif | episode.mp4 | frame.png")
     p.add_argument("--size", default="640", metavar="PX or WxH", help="picture size in pixels (default 640)")
     p.add_argument("--center-agent", type=int, default=None, metavar="SLOT",
-                   help="follow this agent slot of the world instead of fitting the whole scene")
+                   help="follow this agent slot of the world (default: none; the view fits the whole scene)")
     p.add_argument("--view-radius", type=float, default=None, metavar="METRES",
                    help="half the shorter side of the view (default 40 m with --center-agent)")
-    p.add_argument("--fps", type=float, default=10.0)
+    p.add_argument("--fps", type=float, default=10.0, help="frames per second of a .gif / .mp4")
     p.add_argument("--highlight", choices=["controlled", "all", "none"], default="controlled",
                    help="whose collisions / off-road events are outlined")
 
@@ -153,10 +190,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("convert", help="pack WOMD files (json / tfrecord) into a memory-mapped store")
     p.add_argument("inputs", nargs="+", help="files or directories")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, metavar="DIR", help="the store directory to write (required)")
     p.add_argument("--no-resume", action="store_true", help="start over instead of skipping converted files")
     p.add_argument("--simplify", type=float, default=None, metavar="METRES",
-                   help="simplify road polylines with this tolerance")
+                   help="simplify road polylines with this tolerance (default: keep every point)")
+    for command in sub.choices.values():  # every option's help shows its default
+        command.formatter_class = HelpFormatter
     return parser
 
 

@@ -2,7 +2,7 @@
 
     import tg_gpudrive.envs  # registers the ids below
     env = gymnasium.make("tg_gpudrive/SingleAgent-v0", scenes="procedural:merge")
-    vec = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=64, scenes="procedural:all", device="auto")
+    vec = gymnasium.make_vec("tg_gpudrive/Vector-v0", num_envs=1024, scenes="procedural:all", device="auto")
 
 (or ``gymnasium.make("tg_gpudrive.envs:tg_gpudrive/SingleAgent-v0", ...)``, which imports this module.)
 
@@ -12,8 +12,9 @@
     tg_gpudrive/Vector-v0                   vector.make_vector_env (make_vec)   MultiDiscrete over rows
     tg_gpudrive/VectorContinuous-v0         vector.make_vector_env (make_vec)   Box (rows, 2)
 
-For make_vec, `num_envs` is the number of worlds; the env's own `num_envs`
-is worlds x max_agents rows. The PettingZoo env (parallel.TGParallelEnv) has
+In the vector envs an env is one agent slot (a row): make_vec's `num_envs`
+(a multiple of max_agents, 64 by default) is the env's own `num_envs`, here
+16 worlds x 64 slots; `num_worlds=` asks for worlds instead. The PettingZoo env (parallel.TGParallelEnv) has
 no gymnasium id. The env classes (and torch) load on first use. Every env
 takes ``device=``: "auto" (the default: cuda:0 when CUDA is usable, else
 cpu), "cpu", "cuda" or "cuda:N"; asking for CUDA without one is a ValueError.

@@ -1,10 +1,16 @@
 """`TGVectorEnv`: the batched engine as a torch-native gymnasium vector env.
 
-One row per agent slot: ``num_envs = num_worlds * max_agents`` and row
-``w * max_agents + a`` is slot ``a`` of world ``w``. Rows whose slot is not
+An env is one agent slot (one row of every returned tensor), as gymnasium's
+``num_envs`` is the batch size of obs, reward and terminated:
+``num_envs = num_worlds * max_agents`` and row ``w * max_agents + a`` is slot
+``a`` of world ``w``. Ask for rows (``num_envs=``, a multiple of
+``max_agents``) or for worlds (``num_worlds=``); ``gymnasium.make_vec(...,
+num_envs=1024)`` with the default ``max_agents=64`` builds 16 worlds and
+reports ``num_envs == 1024``. Rows whose slot is not
 the policy's (empty, replayed from the log, or a background vehicle) are
 always masked out (``info["active"]`` False, reward 0, never terminated or
-truncated).
+truncated). A build that takes longer than a second (many worlds on the CPU)
+shows a tqdm bar on stderr (``progress=False``: none).
 
 Background (``background=``): "log" (default) replays the vehicles the policy
 does not drive; "world_model" has the learned world model drive them
@@ -140,10 +146,11 @@ def scene_source(scenes, seed: int = 0):
                     f"string such as 'procedural:merge', got {type(scenes).__name__}")
 
 
-def load_scenes(scenes, num_worlds: int | None = None, seed: int = 0) -> list[Scene]:
+def load_scenes(scenes, num_worlds: int | None = None, seed: int = 0, bar=None) -> list[Scene]:
     """Scenes 0..W-1 of `scene_source(scenes, seed)`, cycled when the source is shorter.
 
-    W defaults to the number of scenes given as a Scene list, else to 1.
+    W defaults to the number of scenes given as a Scene list, else to 1. `bar`: a tqdm bar
+    advanced once per scene (its total set to W).
     """
     from tg_gpudrive.data.sources import SceneListSource
 
@@ -151,7 +158,31 @@ def load_scenes(scenes, num_worlds: int | None = None, seed: int = 0) -> list[Sc
         raise ValueError(f"num_worlds must be positive, got {num_worlds}")
     src = scene_source(scenes, seed)
     n = int(num_worlds) if num_worlds is not None else (len(src) if isinstance(src, SceneListSource) else 1)
-    return [src.get(i % len(src)) for i in range(n)]
+    if bar is None:
+        return [src.get(i % len(src)) for i in range(n)]
+    bar.total = n
+    out = []
+    for i in range(n):
+        out.append(src.get(i % len(src)))
+        bar.update(1)
+    return out
+
+
+def worlds_for(num_envs: int | None, num_worlds: int | None, max_agents: int) -> int | None:
+    """The number of worlds that gives `num_envs` rows (an env is an agent slot: num_envs = worlds x
+    max_agents), checked against `num_worlds` when both are given; None: neither given."""
+    if num_envs is None:
+        return num_worlds
+    n, A = int(num_envs), int(max_agents)
+    if n <= 0 or n % A:
+        near = A * max(1, round(n / A))
+        raise ValueError(f"num_envs={num_envs}: an env is one agent slot (a row), so num_envs must be a positive "
+                         f"multiple of max_agents={A} (num_envs = worlds x max_agents), e.g. num_envs={near} "
+                         f"({near // A} worlds); or give num_worlds=")
+    if num_worlds is not None and int(num_worlds) * A != n:
+        raise ValueError(f"num_envs={num_envs} and num_worlds={num_worlds} disagree: num_envs = worlds x "
+                         f"max_agents = {int(num_worlds) * A} (max_agents={A}); give one of them")
+    return n // A
 
 
 def single_action_space(cfg: EngineConfig) -> gymnasium.spaces.Space:
@@ -187,11 +218,13 @@ def render_world(sim: Simulator, world: int = 0, **kwargs) -> np.ndarray:
 
 # ---------------------------------------------------------------- the env
 class TGVectorEnv(gymnasium.vector.VectorEnv):
-    """Every agent slot of W worlds as one row of a torch-native vector env (see module docstring).
+    """Every agent slot of W worlds as one row (one env) of a torch-native vector env (see module docstring).
 
     Args:
         scenes: Scene, list of Scenes, SceneSource or spec string ("procedural:all", a .json, a store).
         num_worlds: worlds W (default: len(scenes), or 1 for a spec).
+        num_envs: rows instead of worlds: a multiple of the config's max_agents (W = num_envs / max_agents);
+            the env's ``num_envs`` is then this number.
         config: EngineConfig, a mapping of its fields, or a YAML path; `overrides` on top of it.
         continuous: set the config's action_space (None: keep it).
         device: "auto" (default: cuda:0 when CUDA is usable, else cpu), "cpu", "cuda" or "cuda:N".
@@ -201,15 +234,18 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         background_model: world-model checkpoint for "world_model" (None: the shipped model).
         strict: actions of inactive rows must be `noop_action`.
         render_mode: None or "rgb_array" (frames of `render_worlds`).
+        progress: a tqdm bar on stderr over scene loading and the engine build, shown when they take
+            longer than a second.
     """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"]}
+    progress_delay_s = 1.0  # the build's progress bar appears once the build has taken this long
 
     def __init__(self, scenes="procedural:all", num_worlds: int | None = None, config: ConfigLike = None,
                  overrides: OverridesLike = None, continuous: bool | None = None, device: str = "auto",
                  seed: int = 0, controlled: Sequence[np.ndarray] | None = None, strict: bool = False,
                  render_mode: str | None = None, render_worlds: Sequence[int] = (0,), background: str = "log",
-                 background_model: str | Path | None = None):
+                 background_model: str | Path | None = None, num_envs: int | None = None, progress: bool = True):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         device = resolve_device(device)  # a CUDA request without CUDA fails here, before scenes load
@@ -217,16 +253,33 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         self.cfg = make_config(config, overrides, continuous)
         self.metadata = dict(self.metadata, autoreset_mode=AutoresetMode.SAME_STEP if self.cfg.auto_reset
                              else AutoresetMode.DISABLED)
-        loaded = load_scenes(scenes, num_worlds, seed)
-        self.sim = Simulator(loaded, self.cfg, device, controlled,
-                             background_masks(loaded, self.cfg, background, controlled))
-        self._driver = make_background_driver(self.sim, background, background_model, seed)
+        num_worlds = worlds_for(num_envs, num_worlds, self.cfg.max_agents)
+        self.progress = bool(progress)
+        with self._bar() as bar:
+            loaded = load_scenes(scenes, num_worlds, seed, bar)
+            self._building(bar)
+            self.sim = Simulator(loaded, self.cfg, device, controlled,
+                                 background_masks(loaded, self.cfg, background, controlled))
+            self._driver = make_background_driver(self.sim, background, background_model, seed)
         self.device = torch.device(self.sim.device)
         self.strict = bool(strict)
         self.render_mode = render_mode
         self.render_worlds = tuple(int(w) for w in render_worlds)
         self._seed = seed
         self._setup()
+
+    def _bar(self):
+        """A tqdm bar over the scenes, then a note while the engine builds; shown after progress_delay_s."""
+        from tqdm import tqdm
+
+        return tqdm(desc="TGVectorEnv: scenes", unit="world", delay=self.progress_delay_s, leave=False,
+                    disable=not self.progress)
+
+    @staticmethod
+    def _building(bar) -> None:
+        bar.set_description("TGVectorEnv: building the engine", refresh=False)
+        if not bar.disable and bar.last_print_t >= bar.start_t + bar.delay:  # shown already: say what comes
+            bar.refresh()
 
     def _setup(self) -> None:
         sim, cfg = self.sim, self.cfg
@@ -312,9 +365,11 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
                                  f"got {w.dtype} {tuple(w.shape)}")
             worlds = w if worlds is None else worlds | w
         if "scenes" in options:
-            new = load_scenes(options.pop("scenes"), self.num_worlds, self._seed if seed is None else seed)
-            ctrl = options.pop("controlled", None)
-            self.sim.set_scenes(new, ctrl, background_masks(new, self.cfg, self.background, ctrl))
+            with self._bar() as bar:
+                new = load_scenes(options.pop("scenes"), self.num_worlds, self._seed if seed is None else seed, bar)
+                ctrl = options.pop("controlled", None)
+                self._building(bar)
+                self.sim.set_scenes(new, ctrl, background_masks(new, self.cfg, self.background, ctrl))
             self._setup()
             worlds = None
         if options:
@@ -424,17 +479,13 @@ def _as_tensor(x, device) -> torch.Tensor:
 
 
 def make_vector_env(num_envs: int = 1, num_worlds: int | None = None, **kwargs) -> TGVectorEnv:
-    """`gymnasium.make_vec` entry point: `num_envs` is the number of worlds when `num_worlds` is not given.
-
-    The env's own ``num_envs`` is then ``num_worlds * max_agents`` rows. With a
-    list of scenes and make_vec's default ``num_envs=1`` every scene gets a world.
+    """`gymnasium.make_vec` entry point: an env is an agent slot, so ``num_envs`` rows are
+    ``num_envs / max_agents`` worlds (a multiple of the config's max_agents, default 64) and the
+    env's ``num_envs`` equals the argument. Or give ``num_worlds=`` (then ``num_envs`` is
+    ``num_worlds * max_agents``). make_vec's default ``num_envs=1`` means "not given": one world
+    per scene of a Scene list, else one world.
     """
-    if num_worlds is None and num_envs != 1:
-        num_worlds = num_envs
-    elif num_worlds is not None and num_envs not in (1, num_worlds):
-        raise ValueError(f"make_vec: num_envs={num_envs} and num_worlds={num_worlds} disagree "
-                         "(num_envs counts worlds here; give one of them)")
     if kwargs.pop("max_episode_steps", None) is not None:
         raise ValueError("max_episode_steps is not supported: episodes end with the scene's log "
                          "(its length after EngineConfig.init_steps)")
-    return TGVectorEnv(num_worlds=num_worlds, **kwargs)
+    return TGVectorEnv(num_worlds=num_worlds, num_envs=None if num_envs == 1 else num_envs, **kwargs)

@@ -184,60 +184,130 @@ def _fig():
 
 
 # ---------------------------------------------------------------- figures
-def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path) -> None:
+# bounds of the report's pictures (inches at 100 dpi): they stay readable and bounded at any number of runs;
+# each plot_* function saves `path` and returns its Figure
+MAX_FIG_W, MAX_FIG_H = 26.0, 20.0
+
+
+def _wrapped(text: str, width_in: float, fontsize: float) -> str:
+    """`text` wrapped to lines that fit `width_in` inches at `fontsize` points (about 0.55 em a character)."""
+    import textwrap
+
+    return "\n".join(textwrap.wrap(text, max(12, int(width_in * 72 / (0.55 * fontsize)))))
+
+
+def _short(label: str, n: int = 26) -> str:
+    return label if len(label) <= n else label[: n - 10] + "…" + label[-9:]
+
+
+def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_cols: int = 8):
+    """The beta x alpha grid. More than `max_cols` betas wrap into further blocks of rows (each block
+    all the alphas); cells shrink (from 2.4 in) and labels with them, so the picture stays within
+    MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
     betas = sorted({b for b, _ in cells}) or [0.0]
     alphas = sorted({a for _, a in cells}) or [0.0]
+    blocks = [betas[i:i + max_cols] for i in range(0, len(betas), max_cols)]
+    ncols, nrows = len(blocks[0]), len(blocks) * len(alphas)
+    cell = min(2.4, (MAX_FIG_W - 0.8) / ncols, (MAX_FIG_H - 1.2 - 0.3 * len(blocks)) / nrows)
+    fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits over a cell
+    width = max(4.0, cell * ncols + 0.8)
+    title = _wrapped("CCE-MAPPO scenes: beta (distance budget, columns) x alpha (CVaR level, rows)", width - 0.2, 9)
+    head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title
+    height = nrows * cell + 0.3 * len(blocks) + 0.4 + head
     fig = _fig()
-    fig.set_size_inches(2.4 * len(betas) + 0.6, 2.4 * len(alphas) + 0.6)
-    for r, a in enumerate(alphas):
-        for c, b in enumerate(betas):
-            ax = fig.add_subplot(len(alphas), len(betas), r * len(betas) + c + 1)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if (b, a) in cells:
-                ax.imshow(cells[(b, a)])
-            if r == 0:
-                ax.set_title(f"beta = {b:g} m", fontsize=9)
-            if c == 0:
-                ax.set_ylabel(f"alpha = {a:g}", fontsize=9)
-    fig.suptitle("CCE-MAPPO scenes: beta (distance budget, columns) x alpha (CVaR level, rows)", fontsize=9)
-    fig.tight_layout()
+    fig.set_size_inches(width, height)
+    for k, block in enumerate(blocks):
+        for r, a in enumerate(alphas):
+            for c, b in enumerate(block):
+                ax = fig.add_subplot(nrows, ncols, (k * len(alphas) + r) * ncols + c + 1)
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if (b, a) in cells:
+                    ax.imshow(cells[(b, a)])
+                if r == 0:
+                    ax.set_title(f"beta = {b:g} m", fontsize=fs)
+                if c == 0:
+                    ax.set_ylabel(f"alpha = {a:g}", fontsize=fs)
+    if not cells:
+        fig.axes[0].text(0.5, 0.5, "no CCE-MAPPO run", ha="center", va="center", fontsize=9)
+    fig.suptitle(title, fontsize=9, y=1 - 0.1 / height, va="top")
+    fig.tight_layout(rect=(0, 0, 1, 1 - head / height))
     fig.savefig(path)
+    return fig
 
 
-def plot_multipliers(curves: dict[str, list[dict]], path: Path) -> None:
+def plot_multipliers(curves: dict[str, list[dict]], path: Path):
+    """Three panels; the legend goes below them in columns (its rows grow the picture, up to MAX_FIG_H)."""
     fig = _fig()
-    fig.set_size_inches(10, 3.4)
+    ncol = 4
+    legend_rows = -(-len(curves) // ncol)
+    extra = min(0.2 * legend_rows, MAX_FIG_H - 3.4)
+    fig.set_size_inches(12, 3.4 + extra)
+    styles = ("-", "--", ":", "-.")
     for i, key in enumerate(("lambda", "cvar", "cost")):
         ax = fig.add_subplot(1, 3, i + 1)
-        for label, rows in curves.items():
+        for j, (label, rows) in enumerate(curves.items()):
             x = [int(r["update"]) for r in rows if r.get(key) not in (None, "", "nan")]
             y = [float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")]
-            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=label)
+            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=_short(label, 40),
+                    color=f"C{j % 10}", ls=styles[j // 10 % len(styles)])
         ax.set_xlabel("update", fontsize=8)
         ax.set_title({"lambda": "Lagrange multiplier lambda", "cvar": "CVaR_alpha of cost-to-go",
                       "cost": "cost per agent-step"}[key], fontsize=9)
         ax.tick_params(labelsize=7)
-    fig.axes[0].legend(fontsize=6)
-    fig.tight_layout()
+    bottom = (extra + 0.1) / (3.4 + extra)
+    if curves:
+        handles, labels = fig.axes[0].get_legend_handles_labels()
+        fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=7, frameon=False,
+                   bbox_to_anchor=(0.5, 0.0))
+    fig.tight_layout(rect=(0, bottom, 1, 1))
     fig.savefig(path)
+    return fig
 
 
-def plot_gaps(gaps: dict[str, dict], path: Path) -> None:
-    fig = _fig()
+def plot_gaps(gaps: dict[str, dict], path: Path):
+    """CCE-gap per policy: each agent's gap a dot, the mean over agents with its 95% CI a black bar.
+    One column per policy, wrapped into rows of at most `per_row` columns (at most 6 rows; more
+    policies make the columns narrower), so the picture stays within MAX_FIG_W x MAX_FIG_H."""
     labels = list(gaps)
-    n_agents = max([len(g["gap_per_agent"]) for g in gaps.values()] or [1])
-    fig.set_size_inches(max(5, 0.5 * n_agents * max(len(labels), 1) + 2), 3.4)
-    ax = fig.add_subplot(1, 1, 1)
-    w = 0.8 / max(len(labels), 1)
-    for i, label in enumerate(labels):
-        g = gaps[label]["gap_per_agent"]
-        ax.bar(np.arange(len(g)) + i * w, g, width=w, label=f"{label} (mean {gaps[label]['mean_gap']:.3g})")
-    ax.set_xlabel("policy agent (scene / agent index)", fontsize=8)
-    ax.set_ylabel("CCE-gap (return gain of best response)", fontsize=8)
-    ax.legend(fontsize=6)
-    fig.tight_layout()
+    n = max(len(labels), 1)
+    per_row = max(12, -(-n // 6))
+    rows = -(-n // per_row)
+    cols = min(n, per_row)
+    width = min(MAX_FIG_W, max(5.0, 0.75 * cols + 1.6))
+    height = min(MAX_FIG_H, 3.0 * rows + 0.5)
+    fig = _fig()
+    fig.set_size_inches(width, height)
+    vals = [v for g in gaps.values() for v in g["gap_per_agent"] if np.isfinite(v)]
+    hi = max(vals + [g["mean_gap"] + (g.get("ci95") or 0) for g in gaps.values()
+                     if np.isfinite(g["mean_gap"] + (g.get("ci95") or 0))] + [1e-6])
+    rng = np.random.default_rng(0)
+    for r in range(rows):
+        ax = fig.add_subplot(rows, 1, r + 1)
+        part = labels[r * per_row:(r + 1) * per_row]
+        for i, label in enumerate(part):
+            g = gaps[label]
+            y = np.asarray(g["gap_per_agent"], float)
+            ax.scatter(i + rng.uniform(-0.18, 0.18, len(y)), y, s=9, alpha=0.6, color=f"C{(r * per_row + i) % 10}",
+                       label="gap of one agent" if r == 0 and i == 0 else None)
+            ax.errorbar(i, g["mean_gap"], yerr=g.get("ci95") or 0, fmt="_", ms=14, color="k", capsize=3, lw=1,
+                        label="mean over agents, 95% CI over seeds" if r == 0 and i == 0 else None)
+        ax.set_xlim(-0.6, cols - 0.4)
+        ax.set_ylim(-0.05 * hi, 1.1 * hi)
+        ax.set_xticks(range(len(part)))
+        ax.set_xticklabels([_short(lab) for lab in part], rotation=25, ha="right", fontsize=7)
+        ax.tick_params(axis="y", labelsize=7)
+        ax.set_ylabel("CCE-gap", fontsize=8)
+        if r == 0 and labels:  # above the panel, under the title: it never hides a dot
+            ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, frameon=False)
+    if not labels:
+        fig.axes[0].text(0.5, 0.5, "no CCE-gap measured", ha="center", va="center", transform=fig.axes[0].transAxes)
+    title = _wrapped("CCE-gap (return gain of each agent's best response) per policy", width - 0.2, 9)
+    head = 0.05 + 0.18 * (title.count("\n") + 1)
+    fig.suptitle(title, fontsize=9, y=1 - 0.05 / height, va="top")
+    fig.tight_layout(rect=(0, 0, 1, 1 - head / height))
     fig.savefig(path)
+    return fig
 
 
 # ------------------------------------------------------------------ tables
@@ -408,17 +478,21 @@ def _json_default(o):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="tg-gpudrive report", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    from tg_gpudrive.cli import HelpFormatter  # every option's help ends with its default
+
+    p = argparse.ArgumentParser(prog="tg-gpudrive report", description=__doc__, formatter_class=HelpFormatter)
     d = ReportOptions()
     p.add_argument("--runs", nargs="+", required=True,
-                   help="training run directories (or checkpoint files; shipped: the packaged policy)")
+                   help="training run directories (or checkpoint files; shipped: the packaged policy) (required)")
     p.add_argument("--out", default="report", help="output directory")
-    p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes per run")
-    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), help="rollout seeds")
-    p.add_argument("--br-iters", type=int, default=d.br_iters, help="best-response updates per seed")
-    p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds))
-    p.add_argument("--br-lr", type=float, default=d.br_lr)
+    p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes (worlds) per run")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), metavar="SEED",
+                   help=f"rollout seeds; diversity needs at least two (default: {' '.join(map(str, d.seeds))})")
+    p.add_argument("--br-iters", type=int, default=d.br_iters,
+                   help="best-response updates per seed when measuring the CCE-gap")
+    p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds), metavar="SEED",
+                   help=f"seeds of the best-response training (default: {' '.join(map(str, d.br_seeds))})")
+    p.add_argument("--br-lr", type=float, default=d.br_lr, help="learning rate of the best response")
     p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
     p.add_argument("--device", default="auto",
                    help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")

@@ -579,10 +579,11 @@ def _append_csv(path: Path, row: dict) -> None:
 
 # --------------------------------------------------------------------- CLI
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", required=True, help="configs/worldmodel/<name>.yaml")
+    p.add_argument("--config", required=True, help="configs/worldmodel/<name>.yaml (required)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key, e.g. --set steps=500 --set env.road_k=64")
-    p.add_argument("--resume", default=None, metavar="DIR", help="continue the run saved in DIR")
+                   help="override a config key, e.g. --set steps=500 --set env.road_k=64 (repeatable; default: none)")
+    p.add_argument("--resume", default=None, metavar="DIR",
+                   help="continue the run saved in DIR (default: start a new run)")
     p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
     p.add_argument("--json", action="store_true", help="print the final metrics as JSON")
 

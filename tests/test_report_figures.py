@@ -1,0 +1,63 @@
+"""The report's pictures (grid.png, cce_gap.png, multipliers.png) stay bounded and unclipped at any
+number of runs: drawn from synthetic runs, no training or rollout."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("matplotlib")
+from PIL import Image  # noqa: E402
+
+from tg_gpudrive.evaluation.report import plot_gaps, plot_grid, plot_multipliers  # noqa: E402
+
+MAX_W, MAX_H = 3000, 2200  # pixels
+
+
+def _fake_runs(n: int, agents: int = 12):
+    rng = np.random.default_rng(n)
+    betas, alphas = (2.0, 4.0, 6.0, 8.0, 10.0), (0.25, 0.5, 0.75, 0.9)
+    keys = [(betas[i % 5] + 10 * (i // 20), alphas[i // 5 % 4]) for i in range(n)]
+    cells = {k: rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for k in keys}
+    labels = ["log replay (expert)", "behaviour prior"] + [f"beta{b:g}_alpha{a:g}_a_long_run_name" for b, a in keys]
+    gaps = {lab: {"agents": [f"s{j // 2}/a{j % 2}" for j in range(agents)],
+                  "gap_per_agent": rng.random(agents).tolist(), "mean_gap": 0.5, "ci95": 0.1} for lab in labels}
+    curves = {lab: [{"update": u, "lambda": rng.random(), "cvar": rng.random(), "cost": rng.random()}
+                    for u in range(1, 20)] for lab in labels[2:]}
+    return cells, gaps, curves
+
+
+def _inside(fig, artist) -> bool:
+    """The artist's drawn box lies within the figure (nothing clipped at an edge)."""
+    renderer = fig.canvas.get_renderer()
+    box, page = artist.get_window_extent(renderer), fig.bbox
+    return box.x0 >= page.x0 - 1 and box.y0 >= page.y0 - 1 and box.x1 <= page.x1 + 1 and box.y1 <= page.y1 + 1
+
+
+@pytest.mark.parametrize("runs", [1, 20, 200])
+def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs):
+    cells, gaps, curves = _fake_runs(runs)
+    figs = {"grid": plot_grid(cells, tmp_path / "grid.png"),
+            "cce_gap": plot_gaps(gaps, tmp_path / "cce_gap.png"),
+            "multipliers": plot_multipliers(curves, tmp_path / "multipliers.png")}
+    for name, fig in figs.items():
+        w, h = Image.open(tmp_path / f"{name}.png").size
+        assert 300 <= w <= MAX_W and 250 <= h <= MAX_H, (name, runs, w, h)
+        if fig._suptitle is not None:
+            assert _inside(fig, fig._suptitle), (name, runs)
+        for ax in fig.axes:
+            assert _inside(fig, ax.title), (name, runs)
+    # one run: the grid's title is whole (wrapped, not cut at the picture's edges)
+    if runs == 1:
+        assert "\n" in figs["grid"]._suptitle.get_text()
+    # cce_gap: one column per policy, wrapped into rows rather than one ever wider strip
+    ticks = [t.get_text() for ax in figs["cce_gap"].axes for t in ax.get_xticklabels()]
+    assert len(ticks) == len(gaps)
+
+
+def test_report_pictures_without_runs(tmp_path):
+    plot_grid({}, tmp_path / "grid.png")
+    plot_gaps({}, tmp_path / "cce_gap.png")
+    plot_multipliers({}, tmp_path / "multipliers.png")
+    for name in ("grid", "cce_gap", "multipliers"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 0
