@@ -216,6 +216,15 @@ def expert_actions_kernel(
                 pos, yaw, vel, speed = delta_local_forward(pos, yaw, d, dt)
 
 
+@wp.func
+def finite_or_zero(u: wp.vec3, bad_actions: wp.array(dtype=wp.int32)):
+    """u itself, or the zero action (counted in bad_actions) if any entry is NaN or infinite."""
+    if wp.isfinite(u[0]) and wp.isfinite(u[1]) and wp.isfinite(u[2]):
+        return u
+    wp.atomic_add(bad_actions, 0, 1)
+    return wp.vec3(0.0, 0.0, 0.0)
+
+
 @wp.kernel
 def step_agents_kernel(
     # model
@@ -250,10 +259,13 @@ def step_agents_kernel(
     present_out: wp.array(dtype=wp.int32),
     alive_out: wp.array(dtype=wp.int32),
     applied_out: wp.array(dtype=wp.vec3),  # action actually applied (after decoding/clipping)
+    bad_actions: wp.array(dtype=wp.int32),  # (1,) in/out: acting rows with an unusable action, summed
 ):
     """Advance every slot by one step: controlled agents integrate their action,
     the others replay the log at step + 1; done agents stay frozen (stop) or
-    absent (remove)."""
+    absent (remove). An unusable action (a grid index out of range, a non-finite
+    continuous value) is counted in `bad_actions`; a grid index is clamped, a
+    non-finite value acts as 0 (no acceleration, no turn) instead of a bound."""
     i = wp.tid()
     w = i / agents_per_world
     tn = step[w] + 1
@@ -284,12 +296,16 @@ def step_agents_kernel(
         a = float(0.0)
         k = float(0.0)
         if discrete != 0:
-            idx = wp.clamp(action_index[i], 0, n_accel * n_kappa - 1)
+            raw = action_index[i]
+            if raw < 0 or raw >= n_accel * n_kappa:
+                wp.atomic_add(bad_actions, 0, 1)
+            idx = wp.clamp(raw, 0, n_accel * n_kappa - 1)
             a = bin_value(idx / n_kappa, -max_accel, max_accel, n_accel)
             k = bin_value(idx % n_kappa, -max_kappa, max_kappa, n_kappa)
         else:
-            a = wp.clamp(action[i][0], -max_accel, max_accel)
-            k = wp.clamp(action[i][1], -max_kappa, max_kappa)
+            u = finite_or_zero(action[i], bad_actions)
+            a = wp.clamp(u[0], -max_accel, max_accel)
+            k = wp.clamp(u[1], -max_kappa, max_kappa)
         p, y, v, s = bicycle_forward(pos[i], yaw[i], vel[i], a, k, dt)
         pos[i] = p
         yaw[i] = y
@@ -297,10 +313,11 @@ def step_agents_kernel(
         speed[i] = s
         applied_out[i] = wp.vec3(a, k, 0.0)
     else:
+        u = finite_or_zero(action[i], bad_actions)
         d = wp.vec3(
-            wp.clamp(action[i][0], -delta_max[0], delta_max[0]),
-            wp.clamp(action[i][1], -delta_max[1], delta_max[1]),
-            wp.clamp(action[i][2], -delta_max[2], delta_max[2]),
+            wp.clamp(u[0], -delta_max[0], delta_max[0]),
+            wp.clamp(u[1], -delta_max[1], delta_max[1]),
+            wp.clamp(u[2], -delta_max[2], delta_max[2]),
         )
         p, y, v, s = delta_local_forward(pos[i], yaw[i], d, dt)
         pos[i] = p
@@ -338,7 +355,7 @@ def launch_step_agents(model, state, control, cfg) -> None:
                 control.action, control.action_index, state.step, state.world_done, state.agent_done,
                 state.removed,
                 state.pos, state.yaw, state.vel, state.speed],
-        outputs=[state.present, state.alive, state.applied_action],
+        outputs=[state.present, state.alive, state.applied_action, state.bad_actions],
         device=model.device,
     )
 

@@ -23,8 +23,8 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
-from tg_gpudrive.config import EngineConfig, TrainConfig, from_dict
+from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.learn.train import load_policy
 from tg_gpudrive.rollout import builtin_policy, run_rollout
@@ -33,13 +33,14 @@ from tg_gpudrive.simulator import Simulator
 BUILTIN = ("expert", "constant", "random")
 
 
-def engine_config(run: str, fallback: EngineConfig | None) -> EngineConfig:
+def train_config(run: str, fallback: TrainConfig | None) -> TrainConfig:
+    """The run's training config (its engine settings); a built-in policy takes the first run's."""
     if run in BUILTIN:
         if fallback is None:
             raise SystemExit("heldout_eval: give at least one trained run first (it sets the engine config)")
         return fallback
     ck = load_checkpoint(checkpoint_path(run, "--runs"), "--runs")
-    return from_dict(TrainConfig, ck["config"], run).env
+    return from_dict(TrainConfig, ck["config"], run)
 
 
 def main(argv=None) -> int:
@@ -61,11 +62,11 @@ def main(argv=None) -> int:
     base = None
     rows = []
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
-        cfg = engine_config(run, base)
-        base = base or cfg
-        need = max(int(s.log_valid.any(1).sum()) for s in scenes)
+        trained = train_config(run, base)
+        base = base or trained
+        cfg = policy_engine_config(trained, scenes)  # a slot for every agent of the scenes
         for mode in args.modes:
-            c = dataclasses.replace(cfg, collision_mode=mode, max_agents=max(cfg.max_agents, need))
+            c = dataclasses.replace(cfg, collision_mode=mode)
             sim = Simulator(scenes, c, args.device)
             policy = builtin_policy(run, args.seed, sim.device) if run in BUILTIN else load_policy(run, sim)
             out = run_rollout(sim, policy, sim.episode_length)

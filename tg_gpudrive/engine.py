@@ -324,6 +324,7 @@ class State:
         self.world_done = wp.zeros(W, dtype=wp.int32, device=dev)
         self.world_truncated = wp.zeros(W, dtype=wp.int32, device=dev)
         self.episode_count = wp.zeros(W, dtype=wp.int32, device=dev)
+        self.bad_actions = wp.zeros(1, dtype=wp.int32, device=dev)  # unusable actions met by step_agents, summed
         self.reward_terms = wp.zeros((n, NUM_TERMS), dtype=float, device=dev)
         self.obs = wp.zeros((n, model.obs_dim), dtype=float, device=dev)
         # broad-phase scratch

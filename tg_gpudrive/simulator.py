@@ -92,7 +92,7 @@ def resolve_device(device: str | torch.device | None = "auto", flag: str | None 
     return d
 
 
-DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # check every step's actions and raise
+DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # raise at the first unusable action (syncs each step)
 
 
 class Simulator:
@@ -118,9 +118,6 @@ class Simulator:
         self._corr = None  # corrective_expert's output buffers, allocated on first use
         self._steps_run = 0
         self._make_views()
-        # rows of acting agents whose action was unusable (non-finite, or a grid index out of range),
-        # summed on the device over every step since the build; `report()` reads it
-        self.bad_actions = torch.zeros((), dtype=torch.int64, device=self.actions.device)
         # off-road is "the box crosses a road edge": without edges it can never fire
         no_edges = [s.scene_id for s in scenes if not (np.asarray(s.road_type) == int(RoadType.ROAD_EDGE)).any()]
         self.worlds_without_road_edges = len(no_edges)
@@ -145,6 +142,7 @@ class Simulator:
         for name in _VIEWS_W:
             setattr(self, name, t(getattr(s, name)))
         self.world_step = t(s.step)  # (W,) log step each world is at
+        self.bad_actions = t(s.bad_actions)  # (1,) unusable actions met since the build (report())
         self.pos = t(s.pos).view(W, A, 2)
         self.vel = t(s.vel).view(W, A, 2)
         self.applied_action = t(s.applied_action).view(W, A, 3)
@@ -248,7 +246,7 @@ class Simulator:
         action buffers (`actions_index` / `actions`) are used as they are."""
         if actions is not None:
             self._write_actions(actions)
-        self._count_bad_actions()
+        before = int(self.bad_actions) if DEBUG else 0  # a host sync per step, in debug mode only
         with wp.ScopedDevice(self.device):
             self._sync_in()
             if self._graph is not None:
@@ -263,23 +261,9 @@ class Simulator:
                 self._launch_step()
             self._sync_out()
         self._steps_run += 1
-
-    def _count_bad_actions(self) -> None:
-        """Count (without a host sync) acting rows whose action the kernels would have to clamp from
-        garbage: a non-finite continuous action, or a grid index outside [0, num_actions). With the
-        environment variable TG_GPUDRIVE_DEBUG=1 such an action raises instead (a sync per step)."""
-        acting = (self.controlled != 0) & (self.active != 0)
-        if self.cfg.action_space == "discrete":
-            bad = (self.actions_index < 0) | (self.actions_index >= self.num_actions)
-        else:
-            bad = ~torch.isfinite(self.actions).all(-1)
-        bad = bad & acting
-        self.bad_actions += bad.sum()
-        if DEBUG and bool(bad.any()):
-            w, a = bad.nonzero()[0].tolist()
-            raise ValueError(f"step {self._steps_run}: world {w}, slot {a} has an unusable action "
-                             f"({self.actions_index[w, a].item() if self.cfg.action_space == 'discrete' else self.actions[w, a].tolist()}); "
-                             f"{int(bad.sum())} such rows this step (TG_GPUDRIVE_DEBUG=1)")
+        if DEBUG and int(self.bad_actions) > before:
+            raise ValueError(f"step {self._steps_run}: {int(self.bad_actions) - before} acting agent(s) got an "
+                             "unusable action (grid index out of range or non-finite; TG_GPUDRIVE_DEBUG=1)")
 
     def report(self) -> dict:
         """What the engine dropped, truncated or could not use: agents beyond max_agents (from the

@@ -73,7 +73,6 @@ class ExpertPrior(BehaviourPrior):
             self.grid = torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
         sig = [sigma_accel, sigma_curvature] if self.bicycle else [0.5, 0.2, 0.1]
         self.sigma = torch.tensor(sig, device=dev)
-        self._arange: torch.Tensor | None = None
 
     def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
         """(W, C, 4): expert action (3 values) and a validity flag, at each world's current step."""

@@ -43,7 +43,7 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, windowed_rates
-from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.learn.prior import BehaviourPrior, ExpertPrior
 from tg_gpudrive.simulator import Simulator
 
 log = logging.getLogger(__name__)
@@ -88,8 +88,13 @@ def build_models(cfg: TrainConfig, sim: Simulator, device: str):
     return actor, critic
 
 
-def make_prior(cfg: TrainConfig, sim: Simulator):
-    """The magnet: the logged expert actions, or the learned world model (tg_gpudrive.worldmodel)."""
+def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
+    """The magnet: the learned world model (tg_gpudrive.worldmodel) or the logged expert actions;
+    none (a stateless BehaviourPrior that is never asked) for plain MAPPO, eta1 = 0. A prior reads
+    the simulator it is given at every call (the world model's history rebinds to new scenes), so
+    one prior serves a whole run, resamples included."""
+    if cfg.eta1 <= 0:
+        return BehaviourPrior()
     if cfg.prior == "world_model":
         from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
@@ -223,7 +228,7 @@ class Trainer:
         self.wall = 0.0
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
-        elif cfg.cost_limit_mode == "logs":
+        elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
             self.logged_cvar = dist_util.all_reduce_mean(logged_cost_cvar(self.sim, cfg.alpha, cfg.gamma))
             self.budget = cfg.cost_limit * self.logged_cvar
         self.sim.reset()
@@ -245,7 +250,6 @@ class Trainer:
     def _resample(self) -> None:
         scenes = self.sampler.sample()
         self.sim.set_scenes(scenes, controlled=self._control(scenes))
-        self.prior = make_prior(self.cfg, self.sim)
 
     # ------------------------------------------------------------- rollout
     def _amp(self):
