@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     scenes = [src.get(i) for i in range(len(src))]
     base = EngineConfig(max_agents=32, partner_k=8, road_k=32)
     reset_every = max(1, args.steps // max(args.resets, 1))
-    gen = torch.Generator().manual_seed(args.seed)
+    gen = None  # made on the engine's device once it exists: drawing actions there keeps the host out of the loop
     sim = None
     mode_i = -1
     start = None
@@ -84,12 +84,15 @@ def main(argv=None) -> int:
             sim = None  # the old engine's arrays go before the new ones are made
             sim = Simulator(scenes, dataclasses.replace(base, collision_mode=MODES[mode_i % 3]), args.device)
             sim.reset()
+            if gen is None:
+                gen = torch.Generator(device=sim.actions_index.device).manual_seed(args.seed)
         if step % reset_every == 0:
             sim.reset()
             resets += 1
-        a = torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen, dtype=torch.int32)
-        a[torch.rand(a.shape, generator=gen) < args.bad_share] = sim.num_actions + 7  # out of range
-        sim.actions_index.copy_(a.to(sim.actions_index.device))
+        dev = sim.actions_index.device
+        a = torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen, dtype=torch.int32, device=dev)
+        a[torch.rand(a.shape, generator=gen, device=dev) < args.bad_share] = sim.num_actions + 7  # out of range
+        sim.actions_index.copy_(a)
         sim.step()
         bar.update(1)
     bar.close()
