@@ -61,6 +61,8 @@ def main(argv=None) -> int:
                    help="steps between collision-mode switches (rebuilds) (default: %(default)s)")
     p.add_argument("--bad-share", type=float, default=0.01, help="share of unusable actions (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="(default: %(default)s)")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="stop early after this wall-clock time and report the steps done (default: no limit)")
     args = p.parse_args(argv)
 
     src = resolve_scenes(args.scenes, n=args.worlds, seed=args.seed)
@@ -74,7 +76,10 @@ def main(argv=None) -> int:
     resets = bad_total = 0
     t0 = time.perf_counter()
     bar = tqdm(total=args.steps, desc="soak", unit="step", mininterval=2.0)
+    steps_done = 0
     for step in range(args.steps):
+        if args.max_seconds is not None and time.perf_counter() - t0 > args.max_seconds:
+            break
         if step % args.switch_every == 0:
             if sim is not None:
                 bad_total += sim.report()["bad_actions"]
@@ -94,6 +99,7 @@ def main(argv=None) -> int:
         a[torch.rand(a.shape, generator=gen, device=dev) < args.bad_share] = sim.num_actions + 7  # out of range
         sim.actions_index.copy_(a)
         sim.step()
+        steps_done += 1
         bar.update(1)
     bar.close()
     bad_total += sim.report()["bad_actions"]
@@ -101,7 +107,7 @@ def main(argv=None) -> int:
     start = start or {"host_rss_mb": float("nan"), "device_used_mb": None, "step": None}
     growth = {k: (100 * (end[k] - start[k]) / start[k] if start[k] else None)
               for k in ("host_rss_mb", "device_used_mb") if end[k] is not None}
-    print(json.dumps({"device": sim.device, "worlds": args.worlds, "steps": args.steps, "explicit_resets": resets,
+    print(json.dumps({"device": sim.device, "worlds": args.worlds, "steps": steps_done, "explicit_resets": resets,
                       "episodes_per_world": sim.episode_count.float().mean().item(),
                       "mode_switches": mode_i, "unusable_actions_counted": bad_total,
                       "seconds": time.perf_counter() - t0, "start": start, "end": end, "growth_pct": growth}))
