@@ -43,7 +43,7 @@ def main() -> None:
     from tg_gpudrive.envs.vector import TGVectorEnv
     from tg_gpudrive.render import EpisodeRecorder
     from tg_gpudrive.rollout import expert_policy
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     src = resolve_scenes(args.scenes, n=args.num_scenes)
     pool = [src.get(i) for i in range(len(src))]

@@ -79,7 +79,7 @@ def bench_train(cfg, args, device: str) -> dict:
 @torch.no_grad()
 def bench_inference(cfg, args, device: str) -> dict:
     from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
     from tg_gpudrive.worldmodel import WorldModelDriver
 
     src = resolve_scenes(args.scenes, n=args.pool, seed=0)
@@ -181,7 +181,7 @@ def main(argv: list[str] | None = None) -> dict:
         torch.set_num_threads(args.threads)
 
     from tg_gpudrive.config import load_config
-    from tg_gpudrive.simulator import resolve_device
+    from tg_gpudrive.engine.simulator import resolve_device
     from tg_gpudrive.worldmodel.train import WorldModelConfig
 
     device = resolve_device(args.device)

@@ -28,7 +28,7 @@ from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.learn.train import load_policy
 from tg_gpudrive.rollout import builtin_policy, run_rollout
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 BUILTIN = ("expert", "constant", "random")
 

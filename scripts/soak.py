@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 MODES = ("ignore", "stop", "remove")
 

@@ -18,12 +18,12 @@ from scenes import crossing_scene
 
 import tg_gpudrive.envs  # noqa: F401  (registers the ids)
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.control import control_masks
+from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
 from tg_gpudrive.envs.vector import TGVectorEnv, load_scenes, noop_index
 from tg_gpudrive.rollout import background_masks, expert_policy, make_background_driver
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
 

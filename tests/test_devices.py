@@ -14,10 +14,10 @@ import pytest
 import torch
 
 from tg_gpudrive import cli
-from tg_gpudrive import simulator as simulator_mod
+from tg_gpudrive.engine import simulator as simulator_mod
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig
 from tg_gpudrive.learn import distributed
-from tg_gpudrive.simulator import Simulator, cuda_available, resolve_device
+from tg_gpudrive.engine.simulator import Simulator, cuda_available, resolve_device
 
 from scenes import crossing_scene
 

@@ -15,9 +15,9 @@ from conftest import WOMD_FILES
 from scenes import crossing_scene
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.types import AgentType, RoadType
 
 T = 40

@@ -20,7 +20,7 @@ from tg_gpudrive.config import ConfigError, EngineConfig
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
 from tg_gpudrive.envs.vector import TGVectorEnv, make_config, noop_index
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
 TIME_LEFT = 9  # kernels/observation.py: last ego feature, time left (s)
@@ -123,7 +123,7 @@ def test_single_agent_terminal_obs_is_the_terminal_state_and_no_auto_reset():
 
 def test_single_agent_other_policy_drives_the_others():
     from tg_gpudrive.data.procedural import generate_scene
-    from tg_gpudrive.engine import default_controlled, select_slots
+    from tg_gpudrive.engine.model import default_controlled, select_slots
 
     scene = generate_scene("t_junction", 1)
     env = TGSingleAgentEnv(scene, config=SMALL, other_policy="expert")

@@ -16,7 +16,7 @@ import torch
 from conftest import WOMD_FILES
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
 from tg_gpudrive.data.procedural import generate_scene
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
@@ -25,7 +25,7 @@ from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
 from tg_gpudrive.evaluation.rollouts import logged_episodes, record_episodes, record_rollouts
 from tg_gpudrive.rollout import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.types import RoadType
 
 REPO = Path(__file__).resolve().parents[1]

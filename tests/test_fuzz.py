@@ -13,11 +13,11 @@ import pytest
 from conftest import WOMD_FILES
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.data.scenario_proto import write_tfrecord_scenes
+from tg_gpudrive.data.womd.scenario_proto import write_tfrecord_scenes
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.data.tfrecord import iter_records, write_records
-from tg_gpudrive.data.womd_json import load_gpudrive_json
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
+from tg_gpudrive.engine.simulator import Simulator
 
 CASES = 120  # per format, seeded
 

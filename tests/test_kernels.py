@@ -13,7 +13,7 @@ import torch
 
 from tg_gpudrive.config import EngineConfig, RewardConfig
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.types import AgentType, RoadType
 
 T = 16
@@ -323,7 +323,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
     obs_r = sim.obs_road[0].cpu().numpy()
     ego = sim.obs_ego[0].cpu().numpy()
     p, y = scene.log_pos[:, INIT], scene.log_yaw[:, INIT]
-    a_seg, b_seg, t_seg = (x.copy() for x in __import__("tg_gpudrive.engine", fromlist=["x"]).scene_segments(scene, 3.0))
+    a_seg, b_seg, t_seg = (x.copy() for x in __import__("tg_gpudrive.engine.model", fromlist=["x"]).scene_segments(scene, 3.0))
     mid = 0.5 * (a_seg + b_seg)
     for i in range(25):
         g = ref.to_local(scene.goal[i] - p[i], y[i])

@@ -104,7 +104,7 @@ def test_simulator_from_a_mixed_batch():
 
     from tg_gpudrive.config import EngineConfig
     from tg_gpudrive.rollout import EpisodeStats
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     mix = resolve_scenes(SPEC, n=4, seed=0)  # 3 merge + 1 real, one pass = 4 worlds
     scenes = SceneSampler(mix, 4, replacement=False, seed=0).sample()

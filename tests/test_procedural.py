@@ -1,7 +1,7 @@
 """Procedural generator: invariants of every scene type, determinism, parameters.
 
 The geometric checks here are written independently of the generator's own
-(procedural_checks): box corners against segment crossings rather than its
+(data/procedural/checks.py): box corners against segment crossings rather than its
 separating-axis code, so a bug in one is not mirrored in the other.
 """
 

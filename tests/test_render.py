@@ -9,11 +9,11 @@ from PIL import Image
 from conftest import WOMD_FILES
 from tg_gpudrive import render
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.render import EpisodeRecorder, render_episode, render_frame
 from tg_gpudrive.rollout import expert_policy
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.types import AgentType, RoadType
 
 

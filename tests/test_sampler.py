@@ -17,7 +17,7 @@ from tg_gpudrive.scene import make_scene
 
 DATA = Path(__file__).parent / "data"
 HAVE_PROCEDURAL = importlib.util.find_spec("tg_gpudrive.data.procedural") is not None
-HAVE_JSON_LOADER = importlib.util.find_spec("tg_gpudrive.data.womd_json") is not None
+HAVE_JSON_LOADER = importlib.util.find_spec("tg_gpudrive.data.womd.gpudrive_json") is not None
 
 
 class CountSource:
@@ -156,7 +156,7 @@ def test_resolve_procedural():
     np.testing.assert_array_equal(a.log_pos, b.log_pos)
 
 
-@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd_json not written yet")
+@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd.gpudrive_json not written yet")
 def test_resolve_json_file_and_dir():
     files = sorted(DATA.glob("*.json"))
     one = resolve_scenes(str(files[0]))
@@ -166,10 +166,10 @@ def test_resolve_json_file_and_dir():
     assert both.get(1) is both.get(1)  # cached
 
 
-@pytest.mark.skipif(importlib.util.find_spec("tg_gpudrive.data.scenario_proto") is None,
-                    reason="tg_gpudrive.data.scenario_proto not written yet")
+@pytest.mark.skipif(importlib.util.find_spec("tg_gpudrive.data.womd.scenario_proto") is None,
+                    reason="tg_gpudrive.data.womd.scenario_proto not written yet")
 def test_resolve_tfrecord(tmp_path):
-    from tg_gpudrive.data.scenario_proto import write_tfrecord_scenes
+    from tg_gpudrive.data.womd.scenario_proto import write_tfrecord_scenes
 
     f = tmp_path / "validation.tfrecord-00000-of-00001"
     write_tfrecord_scenes(f, [tiny(k) for k in range(3)])

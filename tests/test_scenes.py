@@ -13,9 +13,9 @@ from conftest import WOMD_FILES
 from tg_gpudrive import cli
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.rollout import builtin_policy, expert_policy, run_rollout
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 SEEDS = (0, 1, 2)
 CFG = EngineConfig(max_agents=32, road_k=16, partner_k=4)

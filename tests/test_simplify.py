@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tg_gpudrive.data.simplify import DEFAULT_TOLERANCE_M, simplify_polyline, simplify_scene
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.types import RoadType
 

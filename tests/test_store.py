@@ -18,8 +18,8 @@ from tg_gpudrive.scene import Scene, SceneError, make_scene
 from tg_gpudrive.types import RoadType
 
 DATA = Path(__file__).parent / "data"
-HAVE_JSON_LOADER = importlib.util.find_spec("tg_gpudrive.data.womd_json") is not None
-HAVE_PROTO = importlib.util.find_spec("tg_gpudrive.data.scenario_proto") is not None
+HAVE_JSON_LOADER = importlib.util.find_spec("tg_gpudrive.data.womd.gpudrive_json") is not None
+HAVE_PROTO = importlib.util.find_spec("tg_gpudrive.data.womd.scenario_proto") is not None
 
 
 # ------------------------------------------------------------------ helpers
@@ -136,9 +136,9 @@ def test_empty_store(tmp_path):
     assert len(st) == 0 and st.scene_ids == []
 
 
-@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd_json not written yet")
+@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd.gpudrive_json not written yet")
 def test_round_trip_real_json(tmp_path):
-    from tg_gpudrive.data.womd_json import load_gpudrive_json
+    from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 
     files = sorted(DATA.glob("*.json"))
     rep = convert([DATA], tmp_path / "st", progress=False)
@@ -153,7 +153,7 @@ def test_round_trip_real_json(tmp_path):
         assert st.source(i) == str(f.resolve())
 
 
-@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd_json not written yet")
+@pytest.mark.skipif(not HAVE_JSON_LOADER, reason="tg_gpudrive.data.womd.gpudrive_json not written yet")
 def test_real_corrupt_json_listed(tmp_path):
     src = tmp_path / "in"
     src.mkdir()
@@ -168,9 +168,9 @@ def test_real_corrupt_json_listed(tmp_path):
     assert [st.source(i) for i in range(2)] == [str(f.resolve()) for f in sorted(src.glob("womd_*.json"))]
 
 
-@pytest.mark.skipif(not HAVE_PROTO, reason="tg_gpudrive.data.scenario_proto not written yet")
+@pytest.mark.skipif(not HAVE_PROTO, reason="tg_gpudrive.data.womd.scenario_proto not written yet")
 def test_tfrecord_round_trip_and_truncated_shard(tmp_path):
-    from tg_gpudrive.data.scenario_proto import read_tfrecord_scenes, write_tfrecord_scenes
+    from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes, write_tfrecord_scenes
 
     src = tmp_path / "in"
     src.mkdir()

@@ -11,12 +11,12 @@ import struct
 import numpy as np
 import pytest
 
-from tg_gpudrive.data import protowire as pw
-from tg_gpudrive.data.scenario_proto import (
+from tg_gpudrive.data.womd import protowire as pw
+from tg_gpudrive.data.womd.scenario_proto import (
     SCENARIO, TRACK, read_tfrecord_scenes, scene_to_scenario, scenario_to_scene, write_tfrecord_scenes,
 )
-from tg_gpudrive.data.tfrecord import _crc_loop, crc32c, iter_records, masked_crc32c, write_records
-from tg_gpudrive.data.womd_json import load_gpudrive_json
+from tg_gpudrive.data.womd.tfrecord import _crc_loop, crc32c, iter_records, masked_crc32c, write_records
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
 from tg_gpudrive.types import AgentType, RoadType
 

@@ -14,12 +14,12 @@ import torch
 
 from tg_gpudrive import cli
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
-from tg_gpudrive.control import control_mask
+from tg_gpudrive.engine.control import control_mask
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.learn.train import Trainer, TrainingError
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 from scenes import crossing_scene
 

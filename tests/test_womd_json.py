@@ -8,7 +8,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from tg_gpudrive.data.womd_json import SENTINEL, load_gpudrive_json
+from tg_gpudrive.data.womd.gpudrive_json import SENTINEL, load_gpudrive_json
 from tg_gpudrive.scene import SceneError
 from tg_gpudrive.types import AgentType, RoadType
 

@@ -133,8 +133,8 @@ def test_background_traffic_full_episode_gap_stays_bounded(shipped, heldout, wm_
 
 
 def test_driver_writes_only_its_rows(shipped, heldout, wm_cfg):
-    from tg_gpudrive.control import control_masks
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.control import control_masks
+    from tg_gpudrive.engine.simulator import Simulator
 
     scenes = heldout[:2]
     veh = control_masks(scenes, wm_cfg.env, "vehicles")
@@ -150,7 +150,7 @@ def test_driver_writes_only_its_rows(shipped, heldout, wm_cfg):
 
 def test_action_space_mismatch_is_refused(shipped, heldout, wm_cfg):
     from tg_gpudrive.config import ConfigError
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     sim = Simulator(heldout[:1], EngineConfig(max_agents=32, action_space="continuous"), "cpu")
     with pytest.raises(ValueError, match="discrete actions but the simulator's action_space is continuous"):
@@ -357,8 +357,8 @@ def test_continuous_head_memorises_a_tiny_dataset(wm_cfg):
 
 
 def _continuous_sim(scenes, cfg, n_ctrl=2):
-    from tg_gpudrive.control import control_masks
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.control import control_masks
+    from tg_gpudrive.engine.simulator import Simulator
 
     veh = control_masks(scenes, cfg.env, "vehicles")
     ctrl = [m & (np.cumsum(m) <= n_ctrl) for m in veh]
@@ -507,7 +507,7 @@ def test_corrective_target_recovers_a_displaced_vehicle(heldout, wm_cfg):
     vehicle pushed 1.5 m sideways is steered back by them."""
     import warp as wp
 
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
     from tg_gpudrive.worldmodel.train import _eval_env
 
     cfg = _cont_cfg(wm_cfg)

@@ -20,7 +20,7 @@ import warp as wp
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.rollout import constant_policy
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 
 def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: int, warmup: int = 5) -> dict:
@@ -70,7 +70,7 @@ def run_benchmark(scenes, worlds_list, cfg: EngineConfig, device: str, steps: in
 
 def main(args) -> int:
     from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.simulator import resolve_device
+    from tg_gpudrive.engine.simulator import resolve_device
 
     device = resolve_device(args.device, flag="--device")  # the rows name the device that ran
     cfg = dataclasses.replace(args.engine_config, control="all_agents",

@@ -226,9 +226,9 @@ def _check_background_args(args) -> None:
 
 def _simulator_with_background(args, cfg, scenes):
     """The Simulator with the --control agents as the policy's and the --background driver (None: log)."""
-    from tg_gpudrive.control import control_masks
+    from tg_gpudrive.engine.control import control_masks
     from tg_gpudrive.rollout import background_masks, make_background_driver
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     ctrl = control_masks(scenes, cfg, args.control, args.control_k) if args.control else None
     sim = Simulator(scenes, cfg, args.device, ctrl, background_masks(scenes, cfg, args.background, ctrl))
@@ -283,7 +283,7 @@ def cmd_benchmark(args) -> int:
 def cmd_train(args) -> int:
     from tg_gpudrive.config import TrainConfig, load_yaml, from_dict, apply_overrides
     from tg_gpudrive.learn.train import train_main
-    from tg_gpudrive.simulator import resolve_device
+    from tg_gpudrive.engine.simulator import resolve_device
 
     if args.resume:  # the run's own config, then any new overrides
         if not (Path(args.resume) / "checkpoint.pt").is_file() and not Path(args.resume).is_file():
@@ -398,7 +398,7 @@ def cmd_render(args) -> int:
 
     from tg_gpudrive.render import mp4_backend, render_episode
     from tg_gpudrive.rollout import builtin_policy
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     out = Path(args.out)
     if out.suffix.lower() not in (".gif", ".mp4", ".png"):
@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         if getattr(args, "device", None) is not None:  # "auto" made concrete; CUDA without one fails here
-            from tg_gpudrive.simulator import resolve_device
+            from tg_gpudrive.engine.simulator import resolve_device
 
             args.device = resolve_device(args.device, flag="--device")
         return COMMANDS[args.command](args)

@@ -26,7 +26,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 Policy = Callable[[Simulator], None]
 
@@ -86,7 +86,7 @@ def background_masks(scenes: Sequence, cfg, background: str = "log",
     (N,) bool over its agents: the vehicles the engine could control (present at init_step, away
     from their goal: control.eligible) that the policy does not. With `controlled` None the
     engine's default controlled agents are taken out by the Simulator itself."""
-    from tg_gpudrive.control import eligible
+    from tg_gpudrive.engine.control import eligible
 
     if check_background(background) == "log":
         return None

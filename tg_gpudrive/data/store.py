@@ -47,7 +47,7 @@ by `open_store` and removed by the next `convert`; the inputs they held are
 not marked done and are converted again. One writer per store at a time.
 
 This module must not parse source formats itself: it calls the loaders in
-`womd_json` and `scenario_proto` (imported lazily) and only packs `Scene`s.
+`data/womd` (imported lazily) and only packs `Scene`s.
 """
 
 from __future__ import annotations
@@ -364,11 +364,11 @@ def load_file(path: str | Path) -> list[Scene]:
     """
     p = Path(path)
     if _is_json(p):
-        from tg_gpudrive.data.womd_json import load_gpudrive_json
+        from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 
         return [load_gpudrive_json(p)]
     if _is_tfrecord(p):
-        from tg_gpudrive.data.scenario_proto import read_tfrecord_scenes
+        from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes
 
         return list(read_tfrecord_scenes(p))
     raise ValueError(_UNKNOWN_TYPE.format(p))

@@ -34,7 +34,7 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from tg_gpudrive.engine import default_controlled, obs_dim, select_slots
+from tg_gpudrive.engine.model import default_controlled, obs_dim, select_slots
 from tg_gpudrive.envs.single import EpisodeWorld, check_action, write_action
 from tg_gpudrive.envs.vector import (
     ConfigLike,
@@ -46,7 +46,7 @@ from tg_gpudrive.envs.vector import (
     single_observation_space,
 )
 from tg_gpudrive.rollout import check_background
-from tg_gpudrive.simulator import resolve_device
+from tg_gpudrive.engine.simulator import resolve_device
 
 
 class TGParallelEnv(ParallelEnv):

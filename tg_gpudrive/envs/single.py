@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.engine import default_controlled, obs_dim, select_slots
+from tg_gpudrive.engine.model import default_controlled, obs_dim, select_slots
 from tg_gpudrive.envs.vector import (
     ConfigLike,
     OverridesLike,
@@ -43,7 +43,7 @@ from tg_gpudrive.envs.vector import (
 )
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.simulator import Simulator, resolve_device
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 
 
 class EpisodeWorld:

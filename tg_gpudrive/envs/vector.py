@@ -82,7 +82,7 @@ from gymnasium.vector.utils import batch_space
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.simulator import Simulator, resolve_device
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 
 ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
 OverridesLike = Sequence[str] | Mapping[str, Any] | None

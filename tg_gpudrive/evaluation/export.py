@@ -1,6 +1,6 @@
 """Export scenes, and generated episodes, to GPUDrive's processed JSON format.
 
-The inverse of `data.womd_json.load_gpudrive_json`: positions go back to the
+The inverse of `data.womd.gpudrive_json.load_gpudrive_json`: positions go back to the
 source frame (+ `Scene.origin`), invalid steps hold the -10000 sentinel in
 position, velocity and heading, road polylines keep their type names and
 WOMD map_element_id (from metadata["road_subtype"] when the scene has it),
@@ -27,13 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tg_gpudrive.data.womd_json import SENTINEL
+from tg_gpudrive.data.womd.gpudrive_json import SENTINEL
 from tg_gpudrive.evaluation.rollouts import Trajectories
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 _TYPE_NAMES = {AgentType.VEHICLE: "vehicle", AgentType.PEDESTRIAN: "pedestrian", AgentType.CYCLIST: "cyclist"}
-# WOMD per-kind subtype -> GPUDrive map_element_id (inverse of womd_json._map_element_subtype)
+# WOMD per-kind subtype -> GPUDrive map_element_id (inverse of gpudrive_json._map_element_subtype)
 _MID_BASE = {RoadType.LANE: 0, RoadType.ROAD_LINE: 5, RoadType.ROAD_EDGE: 14}
 _MID_OTHER = {RoadType.STOP_SIGN: 17, RoadType.CROSSWALK: 18, RoadType.SPEED_BUMP: 19, RoadType.DRIVEWAY: 20}
 

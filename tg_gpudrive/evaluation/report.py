@@ -99,7 +99,7 @@ def run_kind(cfg) -> str:
 
 
 def _scenes(cfg, n: int):
-    from tg_gpudrive.control import control_masks
+    from tg_gpudrive.engine.control import control_masks
     from tg_gpudrive.data.sources import resolve_scenes
 
     src = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
@@ -128,7 +128,7 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.nda
 
     from tg_gpudrive.learn.train import load_policy
     from tg_gpudrive.render import render_episode
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     torch.manual_seed(0)
@@ -139,7 +139,7 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.nda
 
 def _gap_game_sim(cfg, scenes, masks, device):
     """Worlds = each scene once per policy agent, so every agent deviates in one world."""
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     k = max(1, max(int(m.sum()) for m in masks))
     return Simulator([s for s in scenes for _ in range(k)], cfg.env, device,
@@ -398,7 +398,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     from tg_gpudrive.checkpoint import policy_engine_config
     from tg_gpudrive.learn.train import load_policy
     from tg_gpudrive.rollout import expert_policy
-    from tg_gpudrive.simulator import Simulator, resolve_device
+    from tg_gpudrive.engine.simulator import Simulator, resolve_device
 
     opts = options or ReportOptions()
     runs = [Path(r) for r in runs]

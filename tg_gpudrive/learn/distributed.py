@@ -56,7 +56,7 @@ def _kind(device: str) -> str:
     """A config's device with "auto" made concrete: "cuda" when CUDA is usable, else "cpu"."""
     if device != "auto":
         return device
-    from tg_gpudrive.simulator import cuda_available
+    from tg_gpudrive.engine.simulator import cuda_available
 
     return "cuda" if cuda_available() else "cpu"
 

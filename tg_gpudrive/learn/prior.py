@@ -24,7 +24,7 @@ import math
 
 import torch
 
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 
 class BehaviourPrior:

@@ -38,13 +38,13 @@ import torch
 
 from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
 from tg_gpudrive.config import TrainConfig, to_dict
-from tg_gpudrive.control import control_masks
+from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, windowed_rates
 from tg_gpudrive.learn.prior import BehaviourPrior, ExpertPrior
-from tg_gpudrive.simulator import Simulator
+from tg_gpudrive.engine.simulator import Simulator
 
 log = logging.getLogger(__name__)
 

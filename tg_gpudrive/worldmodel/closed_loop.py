@@ -162,7 +162,7 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
     and the share of vehicles that collided / went off-road during the roll-outs."""
     import warp as wp
 
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
     from tg_gpudrive.worldmodel.prior import WorldModelDriver
     from tg_gpudrive.worldmodel.train import _eval_env, _truncate_obs
 

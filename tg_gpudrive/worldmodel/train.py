@@ -156,7 +156,7 @@ def collect(scenes, env: EngineConfig, *, history: int, max_partners: int, max_r
     """Teacher-forced samples of `scenes`, on the host: obs (N, D), hist (N, H, 7), target (N,) grid
     indices (discrete) or (N, 2) expert (accel, curvature) (continuous), expert (N, 4) (the logged
     expert action and a validity flag, for the oracle bound), layout (partner_k, road_k) of obs."""
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     require_bicycle(env)
     continuous = env.action_space == "continuous"
@@ -297,7 +297,7 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
     ADE averages the steps where the log is valid; FDE counts agents valid at the horizon."""
     import warp as wp
 
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.simulator import Simulator
 
     env = _eval_env(env)
     S, n = samples, len(scenes)
@@ -334,8 +334,8 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
 def background_rates(driver, scenes, env: EngineConfig, *, steps: int | None = None, device: str = "cpu") -> dict:
     """Every eligible vehicle is a background vehicle driven by `driver(sim)` (or by the expert
     replay when driver is None) for one episode; rates of those that ever collide / go off-road."""
-    from tg_gpudrive.control import control_masks
-    from tg_gpudrive.simulator import Simulator
+    from tg_gpudrive.engine.control import control_masks
+    from tg_gpudrive.engine.simulator import Simulator
 
     env = _eval_env(env)
     bg = control_masks(scenes, env, "vehicles")
@@ -402,7 +402,7 @@ def fit(model: WorldModel, data: dict, *, steps: int, batch_size: int, lr: float
 def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                       progress: bool = True) -> dict:
     """Collect, fit, log, checkpoint; returns the last metrics with `out_dir` and `model` paths."""
-    from tg_gpudrive.simulator import resolve_device
+    from tg_gpudrive.engine.simulator import resolve_device
 
     out = Path(out_dir or resume or cfg.out_dir)
     device = resolve_device(cfg.device, flag="device")  # before anything is written or built

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tg_gpudrive.data.procedural_checks import box_box_overlap, box_box_overlap_cs, self_near_pairs
-from tg_gpudrive.data.procedural_geometry import MAX_LEN, MAX_WID, Path, RoadMap
+from tg_gpudrive.data.procedural.checks import box_box_overlap, box_box_overlap_cs, self_near_pairs
+from tg_gpudrive.data.procedural.geometry import MAX_LEN, MAX_WID, Path, RoadMap
 
 DS = 0.5  # m, route grid spacing for pose look-up and conflict tables
 DS_ZONE = 1.5  # m, lane sample spacing for conflict zones

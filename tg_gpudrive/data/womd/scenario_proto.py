@@ -20,7 +20,7 @@ are not defined here, so the decoder skips them without parsing.
 
 Conversion conventions (both directions):
   * Scene coordinates are relative to `Scene.origin`; protos hold global ones.
-    Reading picks the origin with `womd_json.scene_origin` (rounded mean of the
+    Reading picks the origin with `gpudrive_json.scene_origin` (rounded mean of the
     valid positions), the same rule as the JSON loader, so JSON -> Scene ->
     TFRecord -> Scene reproduces origin and float32 arrays exactly.
   * goal = last valid position (WOMD has no goal); box size per agent = median
@@ -40,9 +40,9 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-from tg_gpudrive.data.protowire import DecodeError, EncodeError, Field as F, Message, decode, encode
-from tg_gpudrive.data.tfrecord import iter_records, write_records
-from tg_gpudrive.data.womd_json import scene_origin
+from tg_gpudrive.data.womd.protowire import DecodeError, EncodeError, Field as F, Message, decode, encode
+from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
+from tg_gpudrive.data.womd.gpudrive_json import scene_origin
 from tg_gpudrive.scene import Scene, SceneError
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 

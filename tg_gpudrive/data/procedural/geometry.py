@@ -7,7 +7,7 @@ graph, routes, curbs, road lines, crosswalks, spawn lanes) in a canonical frame
 whose origin is the conflict point. They check their own output: every lane is
 swept with the largest vehicle box against the curbs, and a builder that cannot
 meet that (or the minimum turn radius) raises `GeometryError` so the caller can
-draw again. Nothing here knows about vehicles' motion; see procedural_traffic.
+draw again. Nothing here knows about vehicles' motion; see traffic.py.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tg_gpudrive.data.procedural_checks import box_segment_overlap, near_pairs
+from tg_gpudrive.data.procedural.checks import box_segment_overlap, near_pairs
 
 R_MIN = 6.5  # m, smallest lane radius: curvature 0.154 < 0.25 leaves room for interpolation
 MAX_LEN, MAX_WID = 5.5, 2.2  # m, largest vehicle box the lanes must carry

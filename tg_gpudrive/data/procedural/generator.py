@@ -11,8 +11,8 @@ no box touches a curb, trajectories obey a kinematic bicycle model (speed >= 0,
 |accel| <= 4 m/s^2, |curvature| <= 0.25 1/m, heading = direction of motion),
 every goal lies on the last lane of the vehicle's route (`metadata["routes"]`).
 
-Geometry lives in procedural_geometry, the rollout in procedural_traffic; this
-module only picks per-type settings, retries and exports a `Scene`. Runtime
+Geometry lives in `geometry.py`, the rollout in `traffic.py`, the invariant checks in
+`checks.py`; this module only picks per-type settings, retries and exports a `Scene`. Runtime
 code is NumPy only.
 """
 
@@ -25,8 +25,8 @@ from typing import Callable
 
 import numpy as np
 
-from tg_gpudrive.data import procedural_geometry as geo
-from tg_gpudrive.data.procedural_traffic import TrafficModel, settle, spawn
+from tg_gpudrive.data.procedural import geometry as geo
+from tg_gpudrive.data.procedural.traffic import TrafficModel, settle, spawn
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
 

@@ -1,0 +1,353 @@
+"""`Simulator`: the batched engine's Python API.
+
+    sim = Simulator(scenes, EngineConfig(), device="cuda:0")
+    sim.reset()
+    while ...:
+        sim.actions_index[:] = policy(sim.obs)   # write actions in place (or pass them to step)
+        sim.step()
+        sim.reward, sim.cost, sim.terminated, sim.truncated, sim.obs   # torch views, no copies
+
+Every tensor attribute is a zero-copy torch view of an engine array on the
+engine's device, shaped (W, A, ...) or (W,). On CUDA the whole step is
+captured once as a CUDA graph; step() allocates nothing after the first call.
+Worlds whose episode ended (`world_ended`) are reset to their scene's
+`init_step` inside the step (`world_reset` says which; with
+`auto_reset: false` they stay frozen, `world_done`, until `reset(worlds)`); the
+outcomes of the finished episode are kept in the `final_*` tensors.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from typing import Sequence
+
+import numpy as np
+import torch
+import warp as wp
+
+from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.engine.model import Control, Model, State
+from tg_gpudrive.kernels.collision import launch_collision
+from tg_gpudrive.kernels.dynamics import launch_corrective_expert, launch_expert_to_control, launch_step_agents
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM, launch_observations
+from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_finish
+from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
+from tg_gpudrive.kernels.road import launch_road_query
+from tg_gpudrive.scene import Scene
+from tg_gpudrive.types import RoadType
+
+log = logging.getLogger("tg_gpudrive")
+
+_VIEWS_WA = ("present", "alive", "active", "agent_done", "removed", "collided", "offroad", "goal_event",
+             "terminated", "truncated", "ep_collided", "ep_offroad", "ep_goal", "ep_steps", "final_goal",
+             "final_collided", "final_offroad", "final_steps", "yaw", "speed", "goal_dist", "edge_dist",
+             "lane_dist", "nearest", "reward", "cost", "ep_return", "ep_cost", "ep_min_dist", "final_return",
+             "final_cost", "final_min_dist")
+_VIEWS_W = ("world_reset", "world_ended", "world_done", "world_truncated", "episode_count")
+
+
+def cuda_unavailable() -> str | None:
+    """Why the engine cannot run on CUDA here (None: it can). It needs a device Warp sees (the
+    kernels) and a CUDA build of torch (every tensor is a zero-copy torch view of a Warp array)."""
+    try:
+        wp.init()
+        if not wp.is_cuda_available():
+            return "no CUDA device is visible (Warp sees none)"
+    except Exception as e:  # pragma: no cover - driver probing failed: as good as no device
+        return f"no CUDA device is usable (Warp: {e})"
+    if not torch.cuda.is_available():
+        return "torch sees no CUDA device (a CPU-only torch build?)"
+    return None
+
+
+def cuda_available() -> bool:
+    """Whether device "auto" means CUDA here."""
+    return cuda_unavailable() is None
+
+
+def resolve_device(device: str | torch.device | None = "auto", flag: str | None = None) -> str:
+    """'auto' (or None), 'cpu', 'cuda' or 'cuda:N' -> the Warp/torch device name, 'cpu' or 'cuda:N'.
+
+    'auto' is cuda:0 where CUDA is usable (`cuda_unavailable`), else cpu, so the same call works on a
+    laptop and on a GPU node. Asking for CUDA where it is not usable is a one-line ValueError, raised
+    before anything is built; `flag` names the option in its message (the CLI passes "--device")."""
+    d = "auto" if device is None else str(device).strip().lower()
+    name, instead = ((f"{flag} {device}", f"use {flag} cpu or auto") if flag
+                     else (f"device={str(device)!r}", "use device='cpu' or 'auto'"))
+    if d == "auto":
+        return "cpu" if cuda_unavailable() else "cuda:0"
+    if d == "cpu":
+        return d
+    d = "cuda:0" if d == "cuda" else d
+    if not re.fullmatch(r"cuda:\d+", d):
+        raise ValueError(f"{name}: expected auto, cpu, cuda or cuda:N")
+    why = cuda_unavailable()
+    if why:
+        raise ValueError(f"{name}: {why}; {instead}")
+    n = wp.get_cuda_device_count()
+    if int(d[5:]) >= n:
+        raise ValueError(f"{name}: only {n} CUDA device(s) visible (cuda:0 to cuda:{n - 1})")
+    return d
+
+
+DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # raise at the first unusable action (syncs each step)
+
+
+class Simulator:
+    def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "auto",
+                 controlled: Sequence[np.ndarray] | None = None, background: Sequence[np.ndarray] | None = None):
+        """`device`: "auto" (cuda:0 when CUDA is usable, else cpu), "cpu", "cuda" or "cuda:N"
+        (`resolve_device`; `self.device` is the resolved name). `controlled` / `background`: per
+        scene, (N,) bool masks over its agents. Controlled agents
+        are the policy's; background agents are integrated from the same action buffers but driven
+        by a background model (reactive traffic); all others replay their logs."""
+        self.cfg = config or EngineConfig()
+        self.device = resolve_device(device)
+        self.is_cuda = self.device.startswith("cuda")
+        self._build(list(scenes), controlled, background)
+
+    # ------------------------------------------------------------------ setup
+    def _build(self, scenes: list[Scene], controlled, background=None) -> None:
+        with wp.ScopedDevice(self.device):
+            self.model = Model(scenes, self.cfg, self.device, controlled, background)
+            self.state = State(self.model, self.cfg)
+            self.control = Control(self.model)
+        self._graph = None
+        self._corr = None  # corrective_expert's output buffers, allocated on first use
+        self._steps_run = 0
+        self._make_views()
+        # off-road is "the box crosses a road edge": without edges it can never fire
+        no_edges = [s.scene_id for s in scenes if not (np.asarray(s.road_type) == int(RoadType.ROAD_EDGE)).any()]
+        self.worlds_without_road_edges = len(no_edges)
+        if no_edges:
+            log.warning("%d of %d worlds have no road edges, so off-road cannot fire there (scenes: %s%s)",
+                        len(no_edges), len(scenes), ", ".join(sorted(set(no_edges))[:5]),
+                        " ..." if len(set(no_edges)) > 5 else "")
+        rep = self.model.report
+        if rep.total_truncated:
+            hit = sorted({s.scene_id for s, n in zip(scenes, rep.truncated_agents) if n})
+            log.warning("%d agents beyond max_agents=%d dropped (least relevant first) over %d worlds; "
+                        "scenes: %s%s; counts per world in sim.model.report.truncated_agents",
+                        rep.total_truncated, self.max_agents, sum(1 for n in rep.truncated_agents if n),
+                        ", ".join(hit[:5]), " ..." if len(hit) > 5 else "")
+
+    def _make_views(self) -> None:
+        m, s, c = self.model, self.state, self.control
+        W, A, T = m.num_worlds, m.max_agents, m.num_steps
+        t = wp.to_torch
+        for name in _VIEWS_WA:
+            setattr(self, name, t(getattr(s, name)).view(W, A))
+        for name in _VIEWS_W:
+            setattr(self, name, t(getattr(s, name)))
+        self.world_step = t(s.step)  # (W,) log step each world is at
+        self.bad_actions = t(s.bad_actions)  # (1,) unusable actions met since the build (report())
+        self.pos = t(s.pos).view(W, A, 2)
+        self.vel = t(s.vel).view(W, A, 2)
+        self.applied_action = t(s.applied_action).view(W, A, 3)
+        self.reward_terms = t(s.reward_terms).view(W, A, len(REWARD_TERMS))
+        self.obs = t(s.obs).view(W, A, m.obs_dim)
+        self.controlled = t(m.controlled).view(W, A)  # integrated from actions (policy + background)
+        self.background = t(m.background).view(W, A)
+        # the policy's agents: what rates, returns and learners count
+        self.policy_agents = (self.controlled != 0) & (self.background == 0)
+        self.slot_valid = t(m.slot_valid).view(W, A)
+        self.goal = t(m.goal).view(W, A, 2)
+        self.length = t(m.length).view(W, A)
+        self.width = t(m.width).view(W, A)
+        self.agent_type = t(m.agent_type).view(W, A)
+        self.expert_action = t(m.expert_action).view(W, A, T, 3)
+        self.expert_index = t(m.expert_index).view(W, A, T)
+        self.expert_track = t(m.expert_track).view(W, A, T, 2)
+        self.actions = t(c.action).view(W, A, 3)
+        self.actions_index = t(c.action_index).view(W, A)
+        # named slices of the observation row (views too)
+        k, kr = self.cfg.partner_k, self.cfg.road_k
+        self.obs_ego = self.obs[..., :EGO_DIM]
+        self.obs_partners = self.obs[..., EGO_DIM:EGO_DIM + k * PARTNER_DIM].view(W, A, k, PARTNER_DIM)
+        self.obs_road = self.obs[..., EGO_DIM + k * PARTNER_DIM:].view(W, A, kr, ROAD_DIM)
+        if self.is_cuda:
+            self._torch_stream = wp.stream_from_torch(torch.cuda.current_stream(torch.device(self.device)))
+            self._warp_stream = wp.get_stream(self.device)
+            self._ev_in = wp.Event(self.device)
+            self._ev_out = wp.Event(self.device)
+
+    def set_scenes(self, scenes: Sequence[Scene], controlled: Sequence[np.ndarray] | None = None,
+                   background: Sequence[np.ndarray] | None = None) -> None:
+        """Load a new batch of scenes (resampling); the step graph is captured again."""
+        self._build(list(scenes), controlled, background)
+        self.reset()
+
+    # -------------------------------------------------------------- properties
+    @property
+    def num_worlds(self) -> int:
+        return self.model.num_worlds
+
+    @property
+    def max_agents(self) -> int:
+        return self.model.max_agents
+
+    @property
+    def max_controlled(self) -> int:
+        """C: controlled agents occupy slots [0, C) of every world (fewer in some worlds)."""
+        return self.model.max_controlled
+
+    @property
+    def obs_dim(self) -> int:
+        return self.model.obs_dim
+
+    @property
+    def num_actions(self) -> int:
+        return self.cfg.num_actions
+
+    @property
+    def reward_term_names(self) -> tuple[str, ...]:
+        return REWARD_TERMS
+
+    @property
+    def episode_length(self) -> int:
+        return self.model.num_steps - 1 - self.model.init_step
+
+    # ---------------------------------------------------------------- stepping
+    def reset(self, worlds: torch.Tensor | None = None) -> None:
+        """Worlds back to their scene's state at init_step (all, or where the (W,) mask `worlds`
+        is true); observations refreshed. Needed after an episode ends when auto_reset is off."""
+        m, s = self.model, self.state
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            if worlds is None:
+                launch_force_reset(m, s)
+                launch_road_query(m, s, self.cfg)
+            else:
+                mask = torch.as_tensor(worlds, device=self.device).reshape(self.num_worlds).to(torch.int32)
+                launch_force_reset(m, s, wp.from_torch(mask.contiguous()))
+                launch_road_query(m, s, self.cfg, only_reset_worlds=True)
+            launch_observations(m, s, self.cfg)
+            s.world_reset.zero_()
+            s.world_ended.zero_()
+            self._sync_out()
+
+    def _launch_step(self) -> None:
+        m, s, c, cfg = self.model, self.state, self.control, self.cfg
+        launch_step_agents(m, s, c, cfg)
+        launch_collision(m, s)
+        launch_road_query(m, s, cfg)
+        launch_reward(m, s, cfg)
+        launch_respond_and_finish(m, s)
+        launch_road_query(m, s, cfg, only_reset_worlds=True)
+        launch_observations(m, s, cfg)
+
+    def step(self, actions: torch.Tensor | np.ndarray | None = None) -> None:
+        """Advance every world by one step.
+
+        `actions`: (W, A) grid indices for a discrete config, (W, A, 2) bicycle
+        or (W, A, 3) delta-local actions for a continuous one; omitted, the
+        action buffers (`actions_index` / `actions`) are used as they are."""
+        if actions is not None:
+            self._write_actions(actions)
+        before = int(self.bad_actions) if DEBUG else 0  # a host sync per step, in debug mode only
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            if self._graph is not None:
+                wp.capture_launch(self._graph)
+            elif self.is_cuda and self.cfg.use_graph and self._steps_run > 0:
+                # modules are loaded by the first (plain) step: capture once, replay ever after
+                with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                    self._launch_step()
+                self._graph = cap.graph
+                wp.capture_launch(self._graph)
+            else:
+                self._launch_step()
+            self._sync_out()
+        self._steps_run += 1
+        if DEBUG and int(self.bad_actions) > before:
+            raise ValueError(f"step {self._steps_run}: {int(self.bad_actions) - before} acting agent(s) got an "
+                             "unusable action (grid index out of range or non-finite; TG_GPUDRIVE_DEBUG=1)")
+
+    def report(self) -> dict:
+        """What the engine dropped, truncated or could not use: agents beyond max_agents (from the
+        build), worlds whose scene has no road edge (off-road never fires there) and unusable actions
+        written into the buffers (summed over the steps so far)."""
+        rep = self.model.report
+        return {"agents_dropped": int(rep.total_truncated), "bad_actions": int(self.bad_actions),
+                "worlds_without_road_edges": self.worlds_without_road_edges}
+
+    def use_expert_actions(self) -> None:
+        """Fill the action buffers with the logged (inverse-dynamics) expert actions of the current step."""
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_expert_to_control(self.model, self.state, self.control)
+            self._sync_out()
+
+    def corrective_expert(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The expert's action from every agent's current state, (W, A, 3), and its nearest grid
+        index (W, A), -1 where the log has no next state. Unlike `expert_action` (the logged
+        actions, computed once along the log) this steers an agent that has drifted back to its
+        log: the same tracking controller, evaluated where the agent is now (kernels/dynamics.py).
+        The tensors are reused by the next call."""
+        if self._corr is None:
+            n, dev = self.model.num_slots, self.model.device
+            self._corr = (wp.zeros(n, dtype=wp.vec3, device=dev), wp.zeros(n, dtype=wp.int32, device=dev))
+        W, A = self.num_worlds, self.max_agents
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_corrective_expert(self.model, self.state, self.cfg, *self._corr)
+            self._sync_out()
+        return wp.to_torch(self._corr[0]).view(W, A, 3), wp.to_torch(self._corr[1]).view(W, A)
+
+    def _write_actions(self, actions) -> None:
+        W, A = self.num_worlds, self.max_agents
+        a = torch.as_tensor(actions, device=self.device)
+        if self.cfg.action_space == "discrete":
+            if tuple(a.shape) != (W, A) or a.dtype.is_floating_point or a.dtype == torch.bool:
+                raise ValueError(f"discrete actions: expected integer tensor of shape ({W}, {A}), "
+                                 f"got {a.dtype} {tuple(a.shape)}")
+            if a.numel() and (int(a.min()) < 0 or int(a.max()) >= self.num_actions):
+                raise ValueError(f"discrete actions must lie in [0, {self.num_actions}), "
+                                 f"got [{int(a.min())}, {int(a.max())}]")
+            self.actions_index.copy_(a)
+        else:
+            k = 2 if self.cfg.dynamics == "bicycle" else 3
+            if tuple(a.shape) != (W, A, k) or not a.dtype.is_floating_point:
+                raise ValueError(f"continuous actions: expected float tensor of shape ({W}, {A}, {k}), "
+                                 f"got {a.dtype} {tuple(a.shape)}")
+            if not torch.isfinite(a).all():
+                raise ValueError("continuous actions contain NaN or inf")
+            self.actions[..., :k].copy_(a)
+
+    # torch and warp may run on different CUDA streams: order them with events
+    def _sync_in(self) -> None:
+        if self.is_cuda:
+            self._warp_stream.wait_stream(self._torch_stream, event=self._ev_in)
+
+    def _sync_out(self) -> None:
+        if self.is_cuda:
+            self._torch_stream.wait_stream(self._warp_stream, event=self._ev_out)
+
+    # --------------------------------------------------------------- read-outs
+    def finished_episodes(self) -> dict[str, torch.Tensor]:
+        """Outcomes of the controlled agents whose episode ended at the last step (1-D tensors)."""
+        rows = (self.world_ended[:, None] != 0) & self.policy_agents
+        return {
+            "goal": self.final_goal[rows], "collided": self.final_collided[rows],
+            "offroad": self.final_offroad[rows], "return": self.final_return[rows],
+            "cost": self.final_cost[rows], "min_dist": self.final_min_dist[rows],
+            "steps": self.final_steps[rows],
+        }
+
+    def snapshot(self) -> dict[str, np.ndarray]:
+        """A host copy of the whole State (tests, debugging, determinism checks)."""
+        out = {}
+        for name, arr in vars(self.state).items():
+            if isinstance(arr, wp.array):
+                out[name] = arr.numpy().copy()
+        return out
+
+    def restore(self, snapshot: dict[str, np.ndarray]) -> None:
+        """Load a State saved by `snapshot()` (same scenes and config): exact resume mid-episode."""
+        for name, arr in vars(self.state).items():
+            if isinstance(arr, wp.array):
+                if name not in snapshot or tuple(snapshot[name].shape) != tuple(arr.numpy().shape):
+                    raise ValueError(f"snapshot does not match this simulator's State at field '{name}'")
+                arr.assign(snapshot[name])
