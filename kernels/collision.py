@@ -10,7 +10,10 @@ Narrow phase: separating axis test on the two boxes (4 axes). Boxes that only
 touch (zero-length overlap on some axis) do not collide.
 
 The same neighbour pass also yields the distance to the nearest other present
-agent (centre to centre, capped at the cell size), used by the distance cost.
+agent (centre to centre), used by the distance cost. Agents farther than one cell
+may sit outside the 3 x 3 cells visited, so the distance is capped at the world's
+`nearest_cap` (the cell size): a capped metric, exact below the cap. The cost
+compares it with beta, which is right because the builder keeps the cap >= beta.
 """
 
 from __future__ import annotations
@@ -128,7 +131,8 @@ def grid_scatter_kernel(
 def collide_kernel(
     agents_per_world: int,
     n_cells: int,
-    cell_size: wp.array(dtype=float),
+    cell_size: wp.array(dtype=float),  # (world,) m
+    nearest_cap: wp.array(dtype=float),  # (world,) m, reported when no partner is nearer (<= cell_size)
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
     length: wp.array(dtype=float),
@@ -140,20 +144,20 @@ def collide_kernel(
     cell_items: wp.array(dtype=wp.int32),
     # out
     collided_out: wp.array(dtype=wp.int32),  # (world * agent,) boxes overlap this step
-    nearest_out: wp.array(dtype=float),  # (world * agent,) m, centre distance to nearest, <= cell size
+    nearest_out: wp.array(dtype=float),  # (world * agent,) m, centre distance to nearest, <= nearest_cap
 ):
     i = wp.tid()
     collided_out[i] = 0
     w = i / agents_per_world
     c = cell_size[w]
-    nearest_out[i] = c
+    nearest_out[i] = nearest_cap[w]
     if present[i] == 0:
         return
     base = w * agents_per_world
     p = pos[i]
     cx = cell_coord(p[0], c)
     cy = cell_coord(p[1], c)
-    nearest = c
+    nearest = nearest_cap[w]
     hit = int(0)
     for k in range(9):
         h = cell_hash(cx + k / 3 - 1, cy + k % 3 - 1, n_cells)
@@ -182,7 +186,7 @@ def collide_kernel(
     nearest_out[i] = nearest
 
 
-def launch_collision(model, state) -> None:
+def launch_collision(model, state, control) -> None:
     """Broad phase (hashed grid, counting sort) then narrow phase for every slot."""
     n, dev, g = model.num_slots, model.device, model.collision_cells
     wp.launch(grid_count_kernel, dim=n, device=dev,
@@ -193,7 +197,7 @@ def launch_collision(model, state) -> None:
     wp.launch(grid_scatter_kernel, dim=n, device=dev,
               inputs=[model.max_agents, g, state.agent_cell, state.grid_fill], outputs=[state.grid_items])
     wp.launch(collide_kernel, dim=n, device=dev,
-              inputs=[model.max_agents, g, model.collision_cell_size, state.pos, state.yaw, model.length,
-                      model.width, state.present, state.agent_cell, state.grid_start, state.grid_fill,
-                      state.grid_items],
+              inputs=[model.max_agents, g, model.collision_cell_size, model.nearest_cap, state.pos, state.yaw,
+                      model.length, model.width, state.present, state.agent_cell, state.grid_start,
+                      state.grid_fill, state.grid_items],
               outputs=[state.collided, state.nearest])

@@ -11,7 +11,7 @@ curvature kappa [1/m]) and state (x, y, yaw, velocity); over one step dt
 and the inverse recovers (a, kappa) from two consecutive states. Delta-local
 moves the agent by (dx, dy, dyaw) given in its own frame.
 
-This module also replays logs for non-controlled agents: one kernel moves
+This module also replays logs for the agents that are not integrated: one kernel moves
 every agent slot one step, whoever drives it. It must not touch collision,
 road or reward state beyond clearing the per-step event flags it owns.
 """
@@ -20,8 +20,7 @@ from __future__ import annotations
 
 import warp as wp
 
-DYNAMICS_BICYCLE = wp.constant(0)
-DYNAMICS_DELTA_LOCAL = wp.constant(1)
+from tg_gpudrive.kernels.kinds import DYNAMICS_BICYCLE, DYNAMICS_DELTA_LOCAL
 
 # a speed below which curvature is undefined: the inverse reports kappa = 0
 _MIN_ARC = wp.constant(1.0e-3)
@@ -230,7 +229,7 @@ def step_agents_kernel(
     # model
     agents_per_world: int,
     slot_valid: wp.array(dtype=wp.int32),  # (world * agent,)
-    controlled: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),  # moved by its action (policy or background), else log replay
     log_pos: wp.array2d(dtype=wp.vec2),  # (world * agent, step)
     log_yaw: wp.array2d(dtype=float),
     log_vel: wp.array2d(dtype=wp.vec2),
@@ -247,7 +246,7 @@ def step_agents_kernel(
     action: wp.array(dtype=wp.vec3),  # (world * agent,) continuous action
     action_index: wp.array(dtype=wp.int32),  # (world * agent,) discrete grid index
     # state in/out
-    step: wp.array(dtype=wp.int32),  # (world,) log step the state is at
+    world_step: wp.array(dtype=wp.int32),  # (world,) log step the state is at
     world_done: wp.array(dtype=wp.int32),  # (world,) ended without auto-reset: frozen
     agent_done: wp.array(dtype=wp.int32),
     removed: wp.array(dtype=wp.int32),
@@ -261,14 +260,14 @@ def step_agents_kernel(
     applied_out: wp.array(dtype=wp.vec3),  # action actually applied (after decoding/clipping)
     bad_actions: wp.array(dtype=wp.int32),  # (1,) in/out: acting rows with an unusable action, summed
 ):
-    """Advance every slot by one step: controlled agents integrate their action,
+    """Advance every slot by one step: integrated agents apply their action,
     the others replay the log at step + 1; done agents stay frozen (stop) or
     absent (remove). An unusable action (a grid index out of range, a non-finite
     continuous value) is counted in `bad_actions`; a grid index is clamped, a
     non-finite value acts as 0 (no acceleration, no turn) instead of a bound."""
     i = wp.tid()
     w = i / agents_per_world
-    tn = step[w] + 1
+    tn = world_step[w] + 1
     alive_out[i] = 0
     applied_out[i] = wp.vec3(0.0, 0.0, 0.0)
     if world_done[w] != 0:
@@ -276,7 +275,7 @@ def step_agents_kernel(
     if slot_valid[i] == 0 or removed[i] != 0:
         present_out[i] = 0
         return
-    if controlled[i] == 0:
+    if integrated[i] == 0:
         if log_valid[i, tn] != 0:
             pos[i] = log_pos[i, tn]
             yaw[i] = log_yaw[i, tn]
@@ -332,29 +331,28 @@ TRACK_GAIN_LONG = 0.3
 TRACK_GAIN_LAT = 1.0
 
 
-def launch_expert_actions(model, cfg) -> None:
-    """Fill model.expert_action / expert_index / expert_track from the logs."""
+def launch_expert_actions(model) -> None:
+    """Fill model.expert_action / expert_index / expert_track from the logs (once, by the builder)."""
     wp.launch(
         expert_actions_kernel,
         dim=model.num_slots,
-        inputs=[model.log_pos, model.log_yaw, model.log_vel, model.log_valid, cfg.init_steps, model.dt,
-                model.dynamics, cfg.max_accel, cfg.max_curvature, model.discrete, cfg.accel_bins,
-                cfg.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
+        inputs=[model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.init_step, model.dt,
+                model.dynamics, model.max_accel, model.max_curvature, model.discrete, model.accel_bins,
+                model.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
         outputs=[model.expert_action, model.expert_index, model.expert_track],
         device=model.device,
     )
 
 
-def launch_step_agents(model, state, control, cfg) -> None:
+def launch_step_agents(model, state, control) -> None:
     wp.launch(
         step_agents_kernel,
         dim=model.num_slots,
-        inputs=[model.max_agents, model.slot_valid, model.controlled, model.log_pos, model.log_yaw,
-                model.log_vel, model.log_valid, model.dt, model.dynamics, model.discrete, cfg.max_accel,
-                cfg.max_curvature, cfg.accel_bins, cfg.curvature_bins, wp.vec3(*cfg.delta_max),
-                control.action, control.action_index, state.step, state.world_done, state.agent_done,
-                state.removed,
-                state.pos, state.yaw, state.vel, state.speed],
+        inputs=[model.max_agents, model.slot_valid, model.integrated, model.log_pos, model.log_yaw,
+                model.log_vel, model.log_valid, model.dt, model.dynamics, model.discrete, model.max_accel,
+                model.max_curvature, model.accel_bins, model.curvature_bins, model.delta_max,
+                control.action, control.action_index, state.world_step, state.world_done, state.agent_done,
+                state.removed, state.pos, state.yaw, state.vel, state.speed],
         outputs=[state.present, state.alive, state.applied_action, state.bad_actions],
         device=model.device,
     )
@@ -363,7 +361,7 @@ def launch_step_agents(model, state, control, cfg) -> None:
 @wp.kernel
 def corrective_expert_kernel(
     agents_per_world: int,
-    step: wp.array(dtype=wp.int32),
+    world_step: wp.array(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
     vel: wp.array(dtype=wp.vec2),
@@ -387,7 +385,7 @@ def corrective_expert_kernel(
     drifted to. Continuous action (a, kappa, 0) or (dx, dy, dyaw); the nearest grid index
     (-1: the log has no next state)."""
     i = wp.tid()
-    t = step[i / agents_per_world]
+    t = world_step[i / agents_per_world]
     T = log_pos.shape[1]
     if t + 1 >= T or log_valid[i, t + 1] == 0:
         action_out[i] = wp.vec3(0.0, 0.0, 0.0)
@@ -405,18 +403,21 @@ def corrective_expert_kernel(
         index_out[i] = 0
 
 
-def launch_corrective_expert(model, state, cfg, action_out, index_out) -> None:
+def launch_corrective_expert(model, state, control, action_out, index_out) -> None:
+    """The tracking expert's action from every slot's current state into `action_out` (W*A,) vec3 and
+    its grid index into `index_out` (W*A,) int32; the control buffers are not touched."""
     wp.launch(corrective_expert_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, state.step, state.pos, state.yaw, state.vel, model.log_pos,
-                      model.log_yaw, model.log_vel, model.log_valid, model.dt, model.dynamics, cfg.max_accel,
-                      cfg.max_curvature, cfg.accel_bins, cfg.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
+              inputs=[model.max_agents, state.world_step, state.pos, state.yaw, state.vel, model.log_pos,
+                      model.log_yaw, model.log_vel, model.log_valid, model.dt, model.dynamics, model.max_accel,
+                      model.max_curvature, model.accel_bins, model.curvature_bins, TRACK_GAIN_LONG,
+                      TRACK_GAIN_LAT],
               outputs=[action_out, index_out])
 
 
 @wp.kernel
 def expert_to_control_kernel(
     agents_per_world: int,
-    step: wp.array(dtype=wp.int32),
+    world_step: wp.array(dtype=wp.int32),
     expert_action: wp.array2d(dtype=wp.vec3),
     expert_index: wp.array2d(dtype=wp.int32),
     action_out: wp.array(dtype=wp.vec3),
@@ -424,12 +425,12 @@ def expert_to_control_kernel(
 ):
     """Write the expert action of the current step into the control buffers."""
     i = wp.tid()
-    t = step[i / agents_per_world]
+    t = world_step[i / agents_per_world]
     action_out[i] = expert_action[i, t]
     index_out[i] = wp.max(expert_index[i, t], 0)
 
 
 def launch_expert_to_control(model, state, control) -> None:
     wp.launch(expert_to_control_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, state.step, model.expert_action, model.expert_index],
+              inputs=[model.max_agents, state.world_step, model.expert_action, model.expert_index],
               outputs=[control.action, control.action_index])

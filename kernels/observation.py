@@ -1,4 +1,4 @@
-"""Observations of each controlled agent, in its own frame (x forward, y left).
+"""Observations of each integrated agent (policy or background), in its own frame (x forward, y left).
 
 One flat float32 row per agent slot: ego features, then `partner_k` partner
 rows, then `road_k` road rows; each partner/road row starts with a 0/1 mask.
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from tg_gpudrive.kernels.road import cell_range
+from tg_gpudrive.kernels.road import cell_range, road_grid_inputs
 
 # ego: speed, length, width, goal x, goal y, collided (episode), offroad (episode),
 #      lane distance, road-edge distance, time left (s)
@@ -40,14 +40,14 @@ def ego_partner_obs_kernel(
     obs_dim: int,
     dt: float,
     # model
-    controlled: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),  # rows without it get no observation
     length: wp.array(dtype=float),
     width: wp.array(dtype=float),
     agent_type: wp.array(dtype=wp.int32),
     goal: wp.array(dtype=wp.vec2),
     last_step: wp.array(dtype=wp.int32),  # (world,)
     # state
-    step: wp.array(dtype=wp.int32),
+    world_step: wp.array(dtype=wp.int32),  # (world,)
     world_done: wp.array(dtype=wp.int32),  # (world,) ended without auto-reset: nobody acts
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
@@ -64,15 +64,15 @@ def ego_partner_obs_kernel(
     part_j: wp.array(dtype=wp.int32),
     # out
     obs_out: wp.array2d(dtype=float),  # (world * agent, obs_dim)
-    active_out: wp.array(dtype=wp.int32),  # controlled and will act next step
+    active_out: wp.array(dtype=wp.int32),  # integrated and will act next step
 ):
     i = wp.tid()
     w = i / agents_per_world
     act = int(0)
-    if controlled[i] != 0 and present[i] != 0 and agent_done[i] == 0 and world_done[w] == 0:
+    if integrated[i] != 0 and present[i] != 0 and agent_done[i] == 0 and world_done[w] == 0:
         act = 1
     active_out[i] = act
-    if controlled[i] == 0:
+    if integrated[i] == 0:
         return
     base = w * agents_per_world
     p = pos[i]
@@ -88,7 +88,7 @@ def ego_partner_obs_kernel(
     obs_out[i, 6] = float(ep_offroad[i])
     obs_out[i, 7] = lane_dist[i]
     obs_out[i, 8] = edge_dist[i]
-    obs_out[i, 9] = float(last_step[w] - step[w]) * dt
+    obs_out[i, 9] = float(last_step[w] - world_step[w]) * dt
 
     # nearest partner_k present agents, kept sorted by distance (insertion)
     sb = i * partner_k
@@ -173,7 +173,7 @@ def road_obs_kernel(
     road_radius: float,
     road_col: int,  # first column of the road block
     # model
-    controlled: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),
     seg_a: wp.array(dtype=wp.vec2),
     seg_b: wp.array(dtype=wp.vec2),
     seg_type: wp.array(dtype=wp.int32),
@@ -195,7 +195,7 @@ def road_obs_kernel(
     obs_out: wp.array2d(dtype=float),
 ):
     i = wp.tid()
-    if controlled[i] == 0:
+    if integrated[i] == 0:
         return
     w = i / agents_per_world
     p = pos[i]
@@ -267,20 +267,18 @@ def road_obs_kernel(
         col += ROAD_DIM
 
 
-def launch_observations(model, state, cfg) -> None:
-    from tg_gpudrive.kernels.road import road_grid_inputs
-
+def launch_observations(model, state, control) -> None:
     n, dev = model.num_slots, model.device
     wp.launch(ego_partner_obs_kernel, dim=n, device=dev,
-              inputs=[model.max_agents, cfg.partner_k, cfg.partner_radius, model.obs_dim, model.dt,
-                      model.controlled, model.length, model.width, model.agent_type, model.goal,
-                      model.last_step, state.step, state.world_done, state.pos, state.yaw, state.vel, state.speed,
+              inputs=[model.max_agents, model.partner_k, model.partner_radius, model.obs_dim, model.dt,
+                      model.integrated, model.length, model.width, model.agent_type, model.goal,
+                      model.last_step, state.world_step, state.world_done, state.pos, state.yaw, state.vel, state.speed,
                       state.present, state.agent_done, state.ep_collided, state.ep_offroad,
                       state.lane_dist, state.edge_dist, state.part_d, state.part_j],
               outputs=[state.obs, state.active])
-    if cfg.road_k > 0:
+    if model.road_k > 0:
         wp.launch(road_obs_kernel, dim=n, device=dev,
-                  inputs=[model.max_agents, cfg.road_k, cfg.road_radius, EGO_DIM + cfg.partner_k * PARTNER_DIM,
-                          model.controlled, *road_grid_inputs(model), state.pos, state.yaw,
+                  inputs=[model.max_agents, model.road_k, model.road_radius, EGO_DIM + model.partner_k * PARTNER_DIM,
+                          model.integrated, *road_grid_inputs(model), state.pos, state.yaw,
                           state.heap_d, state.heap_j],
                   outputs=[state.obs])

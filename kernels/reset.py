@@ -10,17 +10,16 @@ restores the scene's state at `init_step`. `reset()` runs the last kernel with
 Collision modes (tg_gpudrive.types.CollisionMode): IGNORE counts the event
 and keeps driving; STOP freezes the agent and ends its episode; REMOVE takes
 it out of the scene (and of later collision checks) and ends its episode.
-The same response applies to off-road events. Goal behaviour: 0 continue,
-1 stop, 2 remove (default: remove, as GPUDrive does for agents at their goal).
+The same response applies to off-road events. Goal behaviour
+(tg_gpudrive.types.GoalBehaviour): CONTINUE counts the goal, STOP and REMOVE also
+end the episode (default: remove, as GPUDrive does for agents at their goal).
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-MODE_IGNORE = wp.constant(0)
-MODE_STOP = wp.constant(1)
-MODE_REMOVE = wp.constant(2)
+from tg_gpudrive.kernels.kinds import COLLISION_IGNORE, COLLISION_REMOVE, GOAL_CONTINUE, GOAL_REMOVE
 
 BIG_DISTANCE = wp.constant(1.0e6)
 
@@ -65,13 +64,13 @@ def respond_kernel(
     rem = int(0)
     if goal_event[i] != 0:
         ep_goal[i] = 1
-        if goal_behaviour != MODE_IGNORE:
+        if goal_behaviour != GOAL_CONTINUE:
             term = 1
-            if goal_behaviour == MODE_REMOVE:
+            if goal_behaviour == GOAL_REMOVE:
                 rem = 1
-    if (collided[i] != 0 or offroad[i] != 0) and collision_mode != MODE_IGNORE:
+    if (collided[i] != 0 or offroad[i] != 0) and collision_mode != COLLISION_IGNORE:
         term = 1
-        if collision_mode == MODE_REMOVE:
+        if collision_mode == COLLISION_REMOVE:
             rem = 1
     if term != 0:
         agent_done[i] = 1
@@ -84,12 +83,12 @@ def respond_kernel(
 def finish_world_kernel(
     agents_per_world: int,
     init_step: int,
-    controlled: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),
     background: wp.array(dtype=wp.int32),
     last_step: wp.array(dtype=wp.int32),  # (world,)
     agent_done: wp.array(dtype=wp.int32),
     auto_reset: int,
-    step: wp.array(dtype=wp.int32),  # in/out
+    world_step: wp.array(dtype=wp.int32),  # (world,) in/out
     world_done: wp.array(dtype=wp.int32),  # (world,) in/out: episode over, waiting for reset()
     world_ended_out: wp.array(dtype=wp.int32),  # (world,) episode ended this step
     world_reset_out: wp.array(dtype=wp.int32),  # (world,) ... and the world was reset
@@ -102,7 +101,7 @@ def finish_world_kernel(
         world_reset_out[w] = 0
         world_truncated_out[w] = 0
         return
-    t = step[w] + 1
+    t = world_step[w] + 1
     # the episode ends early once the policy's agents are all done; background-driven agents
     # do not hold it open (they decide only in a world that has no policy agent)
     n_ctrl = int(0)
@@ -111,7 +110,7 @@ def finish_world_kernel(
     n_pol_done = int(0)
     for a in range(agents_per_world):
         i = w * agents_per_world + a
-        if controlled[i] != 0:
+        if integrated[i] != 0:
             n_ctrl += 1
             if agent_done[i] != 0:
                 n_done += 1
@@ -134,9 +133,9 @@ def finish_world_kernel(
     if end != 0:
         episode_count[w] = episode_count[w] + 1
     if end != 0 and auto_reset != 0:
-        step[w] = init_step
+        world_step[w] = init_step
     else:
-        step[w] = t
+        world_step[w] = t
         if end != 0:
             world_done[w] = 1
 
@@ -147,7 +146,6 @@ def reset_agents_kernel(
     init_step: int,
     force: int,
     slot_valid: wp.array(dtype=wp.int32),
-    controlled: wp.array(dtype=wp.int32),
     log_pos: wp.array2d(dtype=wp.vec2),
     log_yaw: wp.array2d(dtype=float),
     log_vel: wp.array2d(dtype=wp.vec2),
@@ -227,8 +225,7 @@ def reset_agents_kernel(
 
 def _reset_agents(model, state, force: int) -> None:
     wp.launch(reset_agents_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.controlled,
-                      model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.goal,
+              inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.goal,
                       state.world_ended, state.world_reset, state.world_truncated, state.alive, state.terminated,
                       state.pos, state.yaw, state.vel, state.speed, state.present, state.agent_done,
                       state.removed, state.goal_dist, state.ep_collided, state.ep_offroad, state.ep_goal,
@@ -237,7 +234,8 @@ def _reset_agents(model, state, force: int) -> None:
                        state.final_return, state.final_cost, state.final_min_dist, state.final_steps])
 
 
-def launch_respond_and_finish(model, state) -> None:
+def launch_respond_and_finish(model, state, control) -> None:
+    """Collision-mode and goal response, episode bookkeeping, then auto-reset of the worlds whose episode ended."""
     wp.launch(respond_kernel, dim=model.num_slots, device=model.device,
               inputs=[model.collision_mode, model.goal_behaviour, state.alive, state.collided, state.offroad,
                       state.goal_event, state.reward, state.cost, state.nearest, state.agent_done,
@@ -245,29 +243,29 @@ def launch_respond_and_finish(model, state) -> None:
                       state.ep_cost, state.ep_min_dist, state.ep_steps],
               outputs=[state.terminated])
     wp.launch(finish_world_kernel, dim=model.num_worlds, device=model.device,
-              inputs=[model.max_agents, model.init_step, model.controlled, model.background, model.last_step,
-                      state.agent_done, model.auto_reset, state.step, state.world_done],
+              inputs=[model.max_agents, model.init_step, model.integrated, model.background, model.last_step,
+                      state.agent_done, model.auto_reset, state.world_step, state.world_done],
               outputs=[state.world_ended, state.world_reset, state.world_truncated, state.episode_count])
     _reset_agents(model, state, force=0)
 
 
 @wp.kernel
-def mark_worlds_kernel(init_step: int, mask: wp.array(dtype=wp.int32), step: wp.array(dtype=wp.int32),
+def mark_worlds_kernel(init_step: int, mask: wp.array(dtype=wp.int32), world_step: wp.array(dtype=wp.int32),
                        world_done: wp.array(dtype=wp.int32), world_reset_out: wp.array(dtype=wp.int32)):
     w = wp.tid()
     world_reset_out[w] = mask[w]
     if mask[w] != 0:
-        step[w] = init_step
+        world_step[w] = init_step
         world_done[w] = 0
 
 
-def launch_force_reset(model, state, mask=None) -> None:
+def launch_force_reset(model, state, control, mask=None) -> None:
     """Reset every world, or those where `mask` (W,) int32 is non-zero (outcomes are not copied)."""
     if mask is None:
-        state.step.fill_(model.init_step)
+        state.world_step.fill_(model.init_step)
         state.world_done.zero_()
         _reset_agents(model, state, force=1)
     else:
         wp.launch(mark_worlds_kernel, dim=model.num_worlds, device=model.device,
-                  inputs=[model.init_step, mask, state.step, state.world_done], outputs=[state.world_reset])
+                  inputs=[model.init_step, mask, state.world_step, state.world_done], outputs=[state.world_reset])
         _reset_agents(model, state, force=2)

@@ -15,7 +15,9 @@ this step (`alive`) earn anything; every other row is zero.
     overspeed       m/s    speed above the limit
 
 cost = 1 when the nearest other present agent is closer than `beta` metres
-(centre to centre), the constraint signal of CCE-MAPPO.
+(centre to centre), the constraint signal of CCE-MAPPO. `nearest` is capped at
+the world's `nearest_cap` (kernels/collision.py); the cost is exact only because
+the Model builder keeps that cap >= beta.
 """
 
 from __future__ import annotations
@@ -85,10 +87,9 @@ def reward_kernel(
     cost_out[i] = c
 
 
-def launch_reward(model, state, cfg) -> None:
-    r = cfg.reward
+def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[cfg.goal_radius, cfg.beta, r.speed_limit, r.lane_cap, model.reward_weights, model.goal,
+              inputs=[model.goal_radius, model.beta, model.speed_limit, model.lane_cap, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
                       state.nearest, state.ep_goal, state.ep_offroad, state.goal_dist],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

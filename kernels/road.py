@@ -18,9 +18,7 @@ from __future__ import annotations
 import warp as wp
 
 from tg_gpudrive.kernels.collision import box_axes
-
-ROAD_LANE = wp.constant(1)
-ROAD_EDGE = wp.constant(3)
+from tg_gpudrive.kernels.kinds import ROAD_EDGE, ROAD_LANE
 
 
 @wp.func
@@ -156,10 +154,10 @@ def road_grid_inputs(model) -> list:
             model.grid_cell_offset, model.cell_start, model.cell_items, model.road_cell_size, model.seg_pad]
 
 
-def launch_road_query(model, state, cfg, only_reset_worlds: bool = False) -> None:
+def launch_road_query(model, state, control, only_reset_worlds: bool = False) -> None:
     """Off-road, edge and lane distances; `only_reset_worlds` refreshes the worlds that just reset."""
     wp.launch(road_query_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, *road_grid_inputs(model), cfg.road_query_radius, model.length,
+              inputs=[model.max_agents, *road_grid_inputs(model), model.road_query_radius, model.length,
                       model.width, state.pos, state.yaw, state.present, state.world_reset,
                       int(only_reset_worlds)],
               outputs=[state.offroad, state.edge_dist, state.lane_dist])

@@ -54,7 +54,7 @@ def main() -> None:
 
     sim = Simulator(scenes, cfg, dev)
     sim.reset()
-    n_ctrl = int(sim.controlled.sum())
+    n_ctrl = int(sim.policy_agents.sum())
 
     def raw_step():
         sim.actions_index.copy_(torch.randint(0, 91, sim.actions_index.shape, generator=gen, device=dev,

@@ -45,14 +45,15 @@ def _model(cfg, path, device):
 
     if path:
         return load_world_model(path, device=device)
-    if cfg.env.action_space == "discrete":
+    if cfg.env.discrete:
         return load_world_model(SHIPPED, device=device)
     return build_model(cfg).to(device).eval()
 
 
 def bench_train(cfg, args, device: str) -> dict:
     from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.worldmodel.train import build_model, collect, fit
+    from tg_gpudrive.worldmodel.data import collect
+    from tg_gpudrive.worldmodel.train import build_model, fit
 
     src = resolve_scenes(cfg.scenes, n=args.train_scenes, seed=cfg.seed)
     scenes = [src.get(i) for i in range(min(args.train_scenes, len(src)))]
@@ -89,7 +90,7 @@ def bench_inference(cfg, args, device: str) -> dict:
     sim.reset()
     model = _model(cfg, args.model, device)
     driver = WorldModelDriver(model, rows="controlled", seed=0)
-    rows = sim.controlled != 0
+    rows = sim.integrated != 0
     driven = torch.zeros((), dtype=torch.int64, device=sim.pos.device)
 
     def wm_step():

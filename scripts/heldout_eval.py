@@ -26,7 +26,7 @@ from tqdm import tqdm
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.learn.train import load_policy
+from tg_gpudrive.policy import load_policy
 from tg_gpudrive.rollout import builtin_policy, run_rollout
 from tg_gpudrive.engine.simulator import Simulator
 

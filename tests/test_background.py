@@ -17,12 +17,14 @@ import torch
 from scenes import crossing_scene
 
 import tg_gpudrive.envs  # noqa: F401  (registers the ids)
+from tg_gpudrive.cli import main
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
-from tg_gpudrive.envs.vector import TGVectorEnv, load_scenes, noop_index
+from tg_gpudrive.envs.vector import TGVectorEnv, load_scenes
 from tg_gpudrive.rollout import background_masks, expert_policy, make_background_driver
+from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
@@ -72,7 +74,6 @@ def test_world_model_background_leaves_the_log_but_not_the_policy_rows(worlds):
 
 
 def test_cli_simulate_reports_the_background_driver(capsys):
-    from tg_gpudrive.cli import main
 
     base = ["simulate", "--worlds", "2", "--steps", "3", "--set", "max_agents=16", "--set", "road_k=16",
             "--set", "partner_k=4", "--control", "nearest_conflict", "--control-k", "1", "--json"]
@@ -127,7 +128,7 @@ def test_vector_env_world_model_background_across_auto_reset():
     log_env.reset()
     bg = (env.sim.background != 0)
     assert int(bg.sum()) == 2
-    a = torch.full((env.num_envs,), noop_index(env.cfg), dtype=torch.int64)
+    a = torch.full((env.num_envs,), env.cfg.noop_index, dtype=torch.int64)
     resets = 0
     for _ in range(2 * env.sim.episode_length + 1):
         obs, _, _, _, info = env.step(a)
@@ -151,7 +152,7 @@ def test_single_and_parallel_envs_take_the_background_option():
     assert int(bg.sum()) > 0 and not bool(bg[0, env.unwrapped.agent_slot])
     assert sim.policy_agents.sum() == 1
     for _ in range(6):
-        env.step(noop_index(env.unwrapped.cfg))
+        env.step(env.unwrapped.cfg.noop_index)
     assert float(_log_gap(sim, bg).max()) > 0.1
 
     ctrl = control_masks([scene], EngineConfig(**SMALL), "nearest_conflict", 3)[0]
@@ -186,7 +187,6 @@ def test_episode_ends_when_the_policy_agents_are_done_not_the_background(device)
     """Agent 0 (the policy's) reaches the end of a 20-step log; agent 1 (background) drives on to
     step 40. The episode must end with agent 0, at step 20; with agent 1 as the policy's too it
     runs on until agent 1 is done."""
-    from tg_gpudrive.scene import make_scene
 
     T = 41
     t = np.arange(T) * 0.1

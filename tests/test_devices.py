@@ -18,6 +18,8 @@ from tg_gpudrive.engine import simulator as simulator_mod
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig
 from tg_gpudrive.learn import distributed
 from tg_gpudrive.engine.simulator import Simulator, cuda_available, resolve_device
+from tg_gpudrive.envs import vector
+from tg_gpudrive.envs.single import TGSingleAgentEnv
 
 from scenes import crossing_scene
 
@@ -88,8 +90,6 @@ def test_simulator_cuda_fails_before_building(monkeypatch):
 
 @no_gpu_only
 def test_vector_env_cuda_fails_before_loading_scenes(monkeypatch):
-    from tg_gpudrive.envs import vector
-
     def load(*a, **k):
         raise AssertionError("scenes were loaded although the device is unusable")
 
@@ -101,8 +101,6 @@ def test_vector_env_cuda_fails_before_loading_scenes(monkeypatch):
 def test_simulator_and_env_default_to_auto():
     cfg = EngineConfig(max_agents=4, road_k=8, partner_k=2)
     assert Simulator([crossing_scene()], cfg).device == resolve_device("auto")
-    from tg_gpudrive.envs.single import TGSingleAgentEnv
-
     env = TGSingleAgentEnv([crossing_scene()], config=cfg)
     assert env.device == env.sim.device == resolve_device("auto")
 

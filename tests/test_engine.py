@@ -3,6 +3,8 @@ determinism, bad input, and (on GPU) graph replay without allocation."""
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 
 import numpy as np
@@ -14,11 +16,12 @@ from conftest import WOMD_FILES
 
 from scenes import crossing_scene
 
-from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
+from tg_gpudrive.engine.model import State, StepState, view_shape
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.types import AgentType, CollisionMode, GoalBehaviour, RoadType
 
 T = 40
 
@@ -43,7 +46,7 @@ def test_expert_tracks_real_womd_logs(womd_scenes, device):
         idx = sim.model.slot_agent[0]
         n = int((idx >= 0).sum())
         track = sim.expert_track[0, :n].cpu().numpy()
-        ctrl = np.nonzero(sim.controlled[0, :n].cpu().numpy())[0]
+        ctrl = np.nonzero(sim.policy_agents[0, :n].cpu().numpy())[0]
         assert len(ctrl) > 0
         for a in ctrl:
             k = idx[a]
@@ -134,7 +137,6 @@ def test_episode_bookkeeping_and_auto_reset(device):
 
 
 def test_same_inputs_same_state_on_cpu():
-    rng = np.random.default_rng(0)
     scenes = [head_on_scene() for _ in range(3)]
     runs = []
     for _ in range(2):
@@ -144,7 +146,6 @@ def test_same_inputs_same_state_on_cpu():
         for _ in range(20):
             sim.step(torch.randint(0, sim.num_actions, (3, 8), generator=g, dtype=torch.int32))
         runs.append(sim.snapshot())
-    assert rng is not None
     for name in runs[0]:
         if name in ("grid_items",):  # bucket order comes from atomics; contents are compared below
             continue
@@ -253,7 +254,7 @@ def test_background_agents_are_driven_but_not_counted(device):
     # policy agent first, then the background one, then the replayed one
     assert sim.model.slot_agent[0, :3].tolist() == [1, 0, 2]
     assert sim.policy_agents[0].tolist() == [True, False, False, False]
-    assert sim.controlled[0, :3].tolist() == [1, 1, 0] and sim.max_controlled == 1
+    assert sim.integrated[0, :3].tolist() == [1, 1, 0] and sim.max_controlled == 1
     sim.reset()
     a = torch.zeros((1, 4, 2), device=device)
     a[0, 1, 0] = -6.0  # the background agent brakes: it follows the action buffer, not its log
@@ -266,8 +267,6 @@ def test_background_agents_are_driven_but_not_counted(device):
 def test_unusable_actions_written_in_place_are_counted():
     """NaN written straight into the continuous buffer, or an out-of-range grid index, is counted
     per acting row and step in sim.report() (the kernels would otherwise clamp it silently)."""
-    from scenes import crossing_scene
-
     cont = Simulator([crossing_scene()], EngineConfig(max_agents=4, action_space="continuous"), "cpu")
     cont.reset()
     cont.actions.zero_()
@@ -279,19 +278,42 @@ def test_unusable_actions_written_in_place_are_counted():
     assert cont.report()["bad_actions"] == 2 and cont.report()["agents_dropped"] == 0
     disc = Simulator([crossing_scene()], EngineConfig(max_agents=4), "cpu")
     disc.reset()
-    disc.actions_index.fill_(45)
+    disc.actions_index.fill_(disc.cfg.noop_index)
     disc.actions_index[0, 1] = 10_000
     disc.step()
     assert disc.report()["bad_actions"] == 1
 
 
 def test_scenes_without_road_edges_are_warned_and_counted(caplog):
-    from scenes import crossing_scene
-
-    from tg_gpudrive.scene import make_scene
-
     bare = make_scene(np.zeros((1, 20, 2)), np.zeros((1, 20)), scene_id="bare")  # no roads at all
     with caplog.at_level("WARNING"):
         sim = Simulator([bare, crossing_scene()], EngineConfig(max_agents=4), "cpu")
     assert sim.report()["worlds_without_road_edges"] == 1 + int(not (crossing_scene().road_type == 3).any())
     assert "no road edges" in caplog.text and "bare" in caplog.text
+
+
+def test_modes_parse_print_and_round_trip_as_their_yaml_names():
+    cfg = from_dict(EngineConfig, {"collision_mode": "STOP", "goal_behaviour": "continue", "control": "none"})
+    assert cfg.collision_mode is CollisionMode.STOP and cfg.goal_behaviour is GoalBehaviour.CONTINUE
+    assert str(cfg.collision_mode) == "stop" and f"{cfg.dynamics}" == "bicycle"
+    plain = to_dict(TrainConfig(env=cfg, control="nearest_conflict"))
+    assert plain["control"] == "nearest_conflict" and plain["env"]["collision_mode"] == "stop"
+    assert json.loads(json.dumps(plain))["env"]["dynamics"] == "bicycle"  # names, not integers
+    assert from_dict(TrainConfig, plain).env == cfg  # checkpoints store names (old ones: the same strings)
+    assert (cfg.act_dim, cfg.noop_index) == (2, 45)
+    assert EngineConfig(dynamics="delta_local", action_space="continuous").act_dim == 3
+    with pytest.raises(ConfigError, match="control: expected one of vehicles, all_agents, none"):
+        EngineConfig(control="ids")
+    with pytest.raises(ConfigError, match="collision_mode"):
+        from_dict(EngineConfig, {"collision_mode": 1})
+
+
+def test_simulator_views_are_the_state_fields_declared_once():
+    sim = Simulator([crossing_scene()], EngineConfig(max_agents=4, road_k=8, partner_k=2), "cpu")
+    for f in dataclasses.fields(StepState):
+        view = getattr(sim, f.name)
+        assert view.data_ptr() == wp.to_torch(getattr(sim.state, f.name)).data_ptr(), f.name
+        assert tuple(view.shape) == view_shape(f, sim.model), f.name
+        assert f.name in State.__doc__
+    assert tuple(sim.collided.shape) == (1, 4) and tuple(sim.world_step.shape) == (1,)
+    assert bool((sim.model.nearest_cap.numpy() >= sim.model.beta).all())

@@ -17,10 +17,13 @@ from scenes import crossing_scene
 
 import tg_gpudrive.envs  # noqa: F401  (registers the ids)
 from tg_gpudrive.config import ConfigError, EngineConfig
+from tg_gpudrive.data.procedural import generate_scene
+from tg_gpudrive.engine.control import default_controlled, select_slots
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
-from tg_gpudrive.envs.vector import TGVectorEnv, make_config, noop_index
+from tg_gpudrive.envs.vector import TGVectorEnv, make_config
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.types import ActionSpace, CollisionMode
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
 TIME_LEFT = 9  # kernels/observation.py: last ego feature, time left (s)
@@ -68,7 +71,6 @@ def test_single_agent_default_config_on_real_scene():
 @pytest.mark.parametrize("continuous", [False, True])
 def test_single_agent_drives_the_engine_like_a_bare_simulator(continuous):
     """dense_intersection has more agents than its 16 slots: both keep the same ones."""
-    from tg_gpudrive.data.procedural import generate_scene
 
     scene = generate_scene("dense_intersection", 2)
     env = TGSingleAgentEnv(scene, config=SMALL, continuous=continuous)
@@ -105,7 +107,7 @@ def test_single_agent_terminal_obs_is_the_terminal_state_and_no_auto_reset():
     is that state (collided flag set), not the next episode's first obs; stepping on is an error."""
     cfg = head_on_config("stop") | {"control": "vehicles"}
     env = TGSingleAgentEnv(head_on_scene(), agent=0, config=cfg)
-    noop = noop_index(env.cfg)
+    noop = env.cfg.noop_index
     first, _ = env.reset()
     for k in range(30):
         obs, reward, terminated, truncated, info = env.step(noop)
@@ -122,8 +124,6 @@ def test_single_agent_terminal_obs_is_the_terminal_state_and_no_auto_reset():
 
 
 def test_single_agent_other_policy_drives_the_others():
-    from tg_gpudrive.data.procedural import generate_scene
-    from tg_gpudrive.engine.model import default_controlled, select_slots
 
     scene = generate_scene("t_junction", 1)
     env = TGSingleAgentEnv(scene, config=SMALL, other_policy="expert")
@@ -132,7 +132,7 @@ def test_single_agent_other_policy_drives_the_others():
     mask = np.zeros(scene.num_agents, bool)
     mask[idx[default_controlled(scene, idx, cfg)[0]]] = True
     bare = Simulator([scene], cfg, "cpu", controlled=[mask])
-    assert mask.sum() > 1 and env.sim.controlled.sum() == mask.sum()
+    assert mask.sum() > 1 and env.sim.integrated.sum() == mask.sum()
     env.reset()
     bare.reset()
     for _ in range(20):
@@ -229,7 +229,6 @@ def test_vector_env_build_shows_progress(monkeypatch, capsys):
 
 
 def test_vector_env_matches_bare_simulator_across_auto_reset():
-    from tg_gpudrive.data.procedural import generate_scene
 
     scenes = [generate_scene("merge", 0), generate_scene("roundabout", 1)]
     env = TGVectorEnv(scenes, config=SMALL)
@@ -336,7 +335,7 @@ def test_parallel_env_discrete_default_config_on_other_real_scene():
 def test_parallel_env_drives_the_engine_like_a_bare_simulator(continuous):
     env = TGParallelEnv("procedural:roundabout", config=SMALL | {"collision_mode": "stop"}, continuous=continuous)
     bare = Simulator([env.scene], env.cfg, "cpu")
-    assert [env.agent_slot(a) for a in env.possible_agents] == torch.nonzero(bare.controlled[0])[:, 0].tolist()
+    assert [env.agent_slot(a) for a in env.possible_agents] == torch.nonzero(bare.policy_agents[0])[:, 0].tolist()
     obs, _ = env.reset(seed=0)
     bare.reset()
     actions = torch.zeros((1, 16), dtype=torch.int32) if not continuous else torch.zeros((1, 16, 2))
@@ -362,7 +361,7 @@ def test_parallel_env_agents_leave_per_collision_mode(mode):
     env = TGParallelEnv(head_on_scene(), config=head_on_config(mode))
     bare = Simulator([head_on_scene()], env.cfg, "cpu")
     assert env.possible_agents == ["agent_0", "agent_1", "agent_2"]
-    noop = noop_index(env.cfg)
+    noop = env.cfg.noop_index
     env.reset()
     bare.reset()
     left = {}
@@ -392,7 +391,7 @@ def test_parallel_env_agents_leave_per_collision_mode(mode):
 
 def test_parallel_env_bad_actions_are_clear_errors():
     env = TGParallelEnv(head_on_scene(), config=head_on_config("remove"))
-    noop = noop_index(env.cfg)
+    noop = env.cfg.noop_index
     with pytest.raises(ValueError, match=r"no live agent.*call reset\(\)"):
         env.step({})
     env.reset()
@@ -430,7 +429,7 @@ def test_unknown_scene_spec_and_config_key_are_clear_errors():
         make_config(None, ["reward.goal=3"])
     cfg = make_config(EngineConfig(max_agents=8), {"reward.goal_reached": 2, "collision_mode": "stop"}, True)
     assert (cfg.max_agents, cfg.reward.goal_reached, cfg.collision_mode, cfg.action_space) == \
-        (8, 2.0, "stop", "continuous")
+        (8, 2.0, CollisionMode.STOP, ActionSpace.CONTINUOUS)
 
 
 def test_render_is_delegated_to_the_renderer():

@@ -18,7 +18,8 @@ from tg_gpudrive import cli
 from tg_gpudrive.checkpoint import checkpoint_path, policy_engine_config
 from tg_gpudrive.config import REPO_CONFIGS, TrainConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.engine.model import agents_needed, default_controlled
+from tg_gpudrive.engine.control import default_controlled
+from tg_gpudrive.engine.model import agents_needed
 
 DENSE = Path(__file__).parent / "data" / "womd_db4edc9bd0c9d18c.json"  # a real WOMD scene of 81 agents
 SLOTS = 4  # the tiny policy's max_agents: fewer than DENSE's eligible vehicles (11) and procedural:merge's agents (8)

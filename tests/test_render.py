@@ -18,7 +18,7 @@ from tg_gpudrive.types import AgentType, RoadType
 
 
 def _rgb(colour: str) -> np.ndarray:
-    return np.round(render._rgba(colour)[:3] * 255).astype(np.uint8)
+    return np.round(render.rgba(colour)[:3] * 255).astype(np.uint8)
 
 
 BG, RED, BLUE = _rgb(render.BACKGROUND), _rgb(render.COLLIDED), _rgb(render.CONTROLLED)
@@ -52,7 +52,7 @@ def test_frame_size_and_content(womd_sim, size):
 
 def test_center_agent_and_trails_change_the_view(womd_sim):
     default = render_frame(womd_sim, size=(320, 320))
-    a = int(np.nonzero(womd_sim.controlled[0].numpy())[0][0])
+    a = int(np.nonzero(womd_sim.integrated[0].numpy())[0][0])
     centred = render_frame(womd_sim, size=(320, 320), center_agent=a, view_radius=20.0)
     assert centred.shape == default.shape
     assert np.abs(centred.astype(int) - default.astype(int)).sum(-1).astype(bool).mean() > 0.1
@@ -170,6 +170,6 @@ def test_cli_render_checkpoint_without_learner(tmp_path, monkeypatch, capsys):
 
     ck = tmp_path / "checkpoint.pt"
     ck.write_bytes(b"")
-    monkeypatch.setitem(sys.modules, "tg_gpudrive.learn.train", None)
+    monkeypatch.setitem(sys.modules, "tg_gpudrive.policy", None)
     assert main(["render", "--policy", str(tmp_path), "--steps", "1", "--out", str(tmp_path / "x.gif")]) == 2
-    assert "checkpoint policies need tg_gpudrive.learn" in capsys.readouterr().err
+    assert "checkpoint policies need tg_gpudrive.policy" in capsys.readouterr().err

@@ -30,7 +30,7 @@ def procedural_sims():
 def test_expert_drives_every_procedural_type_cleanly(procedural_sims, scenario):
     sim = procedural_sims[scenario]
     out = run_rollout(sim, expert_policy, sim.episode_length)
-    assert out["episodes"] == int(sim.controlled.sum()) >= 2 * len(SEEDS)
+    assert out["episodes"] == int(sim.policy_agents.sum()) >= 2 * len(SEEDS)
     assert out["goal_rate"] >= 0.95 and out["collision_rate"] <= 0.01 and out["offroad_rate"] <= 0.01, out
 
 
@@ -52,7 +52,7 @@ def test_expert_replay_on_real_womd_scenes():
         sim = Simulator([load_gpudrive_json(f)], EngineConfig(max_agents=128), "cpu")
         out = run_rollout(sim, expert_policy, sim.episode_length)
         assert out["goal_rate"] == 1.0 and out["collision_rate"] == 0.0 and out["offroad_rate"] == 0.0, (f, out)
-    assert [int(Simulator([load_gpudrive_json(f)], EngineConfig(max_agents=128), "cpu").controlled.sum())
+    assert [int(Simulator([load_gpudrive_json(f)], EngineConfig(max_agents=128), "cpu").policy_agents.sum())
             for f in WOMD_FILES] == [2, 11]
 
 

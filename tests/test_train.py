@@ -158,7 +158,7 @@ def test_small_cpu_config_learns(tmp_path):
     beat the built-in constant and random policies on goal rate and on off-road; a policy collapsed
     to one action (entropy ~0, or the constant policy's rates) fails."""
     from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.learn.train import load_policy
+    from tg_gpudrive.policy import load_policy
     from tg_gpudrive.rollout import builtin_policy, run_rollout
 
     cfg = dataclasses.replace(load_config(TrainConfig, SMALL), out_dir=str(tmp_path))

@@ -24,9 +24,10 @@ from tg_gpudrive.worldmodel import WorldModel, WorldModelDriver, WorldModelPrior
 from tg_gpudrive.worldmodel.closed_loop import corrective_from_log, corrective_target
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 from tg_gpudrive.worldmodel.prior import SHIPPED, save_world_model
-from tg_gpudrive.worldmodel.train import (WorldModelConfig, background_rates, baseline_nlls, build_model, collect,
-                                          dataset_nll, fit, model_policy_factory, sampled_displacement,
-                                          train_world_model)
+from tg_gpudrive.worldmodel.data import collect
+from tg_gpudrive.worldmodel.metrics import (background_rates, baseline_nlls, dataset_nll, model_policy_factory,
+                                            sampled_displacement)
+from tg_gpudrive.worldmodel.train import WorldModelConfig, build_model, fit, train_world_model
 
 WM_CONFIG = REPO_CONFIGS / "worldmodel" / "small_cpu.yaml"
 
@@ -220,7 +221,7 @@ def test_magnet_kl_of_the_trainer_matches_a_hand_computed_case(tmp_path):
                               quantiles=8, out_dir=str(tmp_path), prior="world_model", eta1=0.5)
     tr = Trainer(cfg, progress=False)
     n = tr.sim.num_actions
-    noop = (cfg.env.accel_bins // 2) * cfg.env.curvature_bins + cfg.env.curvature_bins // 2
+    noop = cfg.env.noop_index
     p = torch.full((n,), 0.5 / (n - 1))
     p[noop] = 0.5
     wm = WorldModel(num_actions=n, hidden=16, heads=2, history=4, partner_k=cfg.env.partner_k,
@@ -508,10 +509,10 @@ def test_corrective_target_recovers_a_displaced_vehicle(heldout, wm_cfg):
     import warp as wp
 
     from tg_gpudrive.engine.simulator import Simulator
-    from tg_gpudrive.worldmodel.train import _eval_env
+    from tg_gpudrive.worldmodel.data import full_horizon_env
 
     cfg = _cont_cfg(wm_cfg)
-    sim = Simulator(heldout[:1], _eval_env(cfg.env), "cpu")
+    sim = Simulator(heldout[:1], full_horizon_env(cfg.env), "cpu")
     sim.reset()
     W, A, T = 1, sim.max_agents, sim.model.num_steps
     log_pos = wp.to_torch(sim.model.log_pos).view(W, A, T, 2)
@@ -519,14 +520,14 @@ def test_corrective_target_recovers_a_displaced_vehicle(heldout, wm_cfg):
     log_speed = wp.to_torch(sim.model.log_vel).view(W, A, T, 2).norm(dim=-1)
     t = int(sim.world_step[0])
     tgt = corrective_target(sim)
-    v = tgt.valid & (sim.controlled != 0) & (sim.speed > 1.0)
+    v = tgt.valid & (sim.integrated != 0) & (sim.speed > 1.0)
     accel = (log_speed[:, :, t + 1] - log_speed[:, :, t]) / sim.model.dt
     arc = log_speed[:, :, t] * sim.model.dt + 0.5 * accel * sim.model.dt**2
     kappa = torch.remainder(log_yaw[:, :, t + 1] - log_yaw[:, :, t] + np.pi, 2 * np.pi) - np.pi
     want = torch.stack([accel, (kappa / arc).clamp(-0.3, 0.3)], -1)
     assert int(v.sum()) >= 4
     torch.testing.assert_close(tgt.action[v], want[v], atol=2e-3, rtol=0.05)
-    ctrl = (sim.controlled[0] != 0) & (sim.speed[0] > 3.0)
+    ctrl = (sim.integrated[0] != 0) & (sim.speed[0] > 3.0)
     i = int(ctrl.nonzero()[0])
     yaw0 = float(sim.yaw[0, i])
     left = torch.tensor([-np.sin(yaw0), np.cos(yaw0)], dtype=torch.float32)

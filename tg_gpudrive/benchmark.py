@@ -19,8 +19,10 @@ import torch
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.rollout import constant_policy
-from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.types import ControlMode
 
 
 def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: int, warmup: int = 5) -> dict:
@@ -49,7 +51,7 @@ def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: in
         "steps": steps,
         "agent_steps_per_s": slots * steps / dt,
         "valid_agent_steps_per_s": int(sim.slot_valid.sum()) * steps / dt,
-        "controlled_agent_steps_per_s": int(sim.controlled.sum()) * steps / dt,
+        "controlled_agent_steps_per_s": int(sim.policy_agents.sum()) * steps / dt,
         "ms_per_step": 1000 * dt / steps,
         "obs_dim": sim.obs_dim,
         "build_s": build_s,
@@ -69,11 +71,8 @@ def run_benchmark(scenes, worlds_list, cfg: EngineConfig, device: str, steps: in
 
 
 def main(args) -> int:
-    from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.engine.simulator import resolve_device
-
     device = resolve_device(args.device, flag="--device")  # the rows name the device that ran
-    cfg = dataclasses.replace(args.engine_config, control="all_agents",
+    cfg = dataclasses.replace(args.engine_config, control=ControlMode.ALL_AGENTS,
                               use_graph=not args.no_graph)
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
     scenes = [src.get(i) for i in range(min(len(src), args.num_scenes))]

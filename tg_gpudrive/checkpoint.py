@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from tg_gpudrive.engine.model import agents_needed
+
 if TYPE_CHECKING:
     from tg_gpudrive.config import EngineConfig, TrainConfig
 
@@ -110,8 +112,6 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
     evaluating or rendering on denser scenes than the training ones drops no agent: the actor is per
     agent (heads = 1, the slot index unused) and works at any slot count. A checkpoint with per-slot
     heads (heads > 1) keeps its max_agents, with a warning that agents beyond it are dropped."""
-    from tg_gpudrive.engine.model import agents_needed
-
     env = cfg.env
     need = max((agents_needed(s) for s in scenes), default=0)
     if need <= env.max_agents:

@@ -4,6 +4,11 @@
 included) from a YAML file and `key.sub=value` overrides; an unknown key, or
 a value of the wrong kind, is an error naming the key and the file. Dataclass
 defaults equal configs/env/default.yaml (a test keeps them in step).
+
+Modes are `tg_gpudrive.types` IntEnums in Python and their lowercase names in YAML,
+JSON and checkpoints: the dataclasses turn names into members in `__post_init__`
+(so `dataclasses.replace(cfg, collision_mode="stop")` works too) and `to_dict`
+turns members back into names. This module must not import the engine or Warp.
 """
 
 from __future__ import annotations
@@ -16,13 +21,30 @@ from typing import Any
 
 import yaml
 
-from tg_gpudrive.types import CollisionMode, parse_enum
+from tg_gpudrive.types import (
+    ENGINE_CONTROL,
+    SELECT_CONTROL,
+    ActionSpace,
+    CollisionMode,
+    ControlMode,
+    Dynamics,
+    GoalBehaviour,
+    NamedMode,
+)
 
 REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
 class ConfigError(ValueError):
     pass
+
+
+def _set_mode(cfg, name: str, mode: type[NamedMode], allowed: tuple[NamedMode, ...] | None = None) -> None:
+    """Field `name` of the frozen dataclass `cfg` as a member of `mode` (from a member or its name)."""
+    try:
+        object.__setattr__(cfg, name, mode.parse(getattr(cfg, name), name, allowed))
+    except ValueError as e:
+        raise ConfigError(str(e)) from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,8 +66,8 @@ class EngineConfig:
     """Everything the engine needs besides the scenes. Units: metres, seconds, radians."""
 
     max_agents: int = 64  # agent slots per world (A)
-    dynamics: str = "bicycle"  # bicycle | delta_local
-    action_space: str = "discrete"  # discrete | continuous (discrete only for bicycle)
+    dynamics: Dynamics = Dynamics.BICYCLE  # bicycle | delta_local
+    action_space: ActionSpace = ActionSpace.DISCRETE  # discrete | continuous (discrete only for bicycle)
     accel_bins: int = 7
     curvature_bins: int = 13
     max_accel: float = 6.0  # m/s^2
@@ -53,9 +75,9 @@ class EngineConfig:
     delta_max: tuple[float, float, float] = (6.0, 1.0, 0.5)  # m, m, rad per step (delta_local)
     init_steps: int = 10  # steps of log warm-up before control starts
     goal_radius: float = 2.0
-    collision_mode: str = "ignore"  # ignore | stop | remove
-    goal_behaviour: str = "remove"  # continue | stop | remove
-    control: str = "vehicles"  # vehicles | all_agents | none : who is driven by the policy
+    collision_mode: CollisionMode = CollisionMode.IGNORE  # ignore | stop | remove
+    goal_behaviour: GoalBehaviour = GoalBehaviour.REMOVE  # continue | stop | remove
+    control: ControlMode = ControlMode.VEHICLES  # vehicles | all_agents | none: whom the policy drives by default
     beta: float = 4.0  # m, distance under which the cost is 1
     partner_k: int = 16
     partner_radius: float = 50.0
@@ -70,17 +92,13 @@ class EngineConfig:
     reward: RewardConfig = RewardConfig()
 
     def __post_init__(self):
-        if self.dynamics not in ("bicycle", "delta_local"):
-            raise ConfigError(f"dynamics: expected bicycle or delta_local, got {self.dynamics!r}")
-        if self.action_space not in ("discrete", "continuous"):
-            raise ConfigError(f"action_space: expected discrete or continuous, got {self.action_space!r}")
-        if self.dynamics == "delta_local" and self.action_space == "discrete":
+        _set_mode(self, "dynamics", Dynamics)
+        _set_mode(self, "action_space", ActionSpace)
+        _set_mode(self, "collision_mode", CollisionMode)
+        _set_mode(self, "goal_behaviour", GoalBehaviour)
+        _set_mode(self, "control", ControlMode, ENGINE_CONTROL)
+        if self.dynamics == Dynamics.DELTA_LOCAL and self.action_space == ActionSpace.DISCRETE:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
-        parse_enum(CollisionMode, self.collision_mode, "collision_mode")
-        if self.goal_behaviour not in ("continue", "stop", "remove"):
-            raise ConfigError(f"goal_behaviour: expected continue, stop or remove, got {self.goal_behaviour!r}")
-        if self.control not in ("vehicles", "all_agents", "none"):
-            raise ConfigError(f"control: expected vehicles, all_agents or none, got {self.control!r}")
         if not 1 <= self.max_agents <= 1024:
             raise ConfigError(f"max_agents: expected 1..1024, got {self.max_agents}")
         if self.init_steps < 0:
@@ -88,7 +106,22 @@ class EngineConfig:
 
     @property
     def num_actions(self) -> int:
+        """Size of the discrete action grid (accel x curvature)."""
         return self.accel_bins * self.curvature_bins
+
+    @property
+    def discrete(self) -> bool:
+        return self.action_space == ActionSpace.DISCRETE
+
+    @property
+    def act_dim(self) -> int:
+        """Values of one continuous action: (accel, curvature) for the bicycle, (dx, dy, dyaw) for delta-local."""
+        return 2 if self.dynamics == Dynamics.BICYCLE else 3
+
+    @property
+    def noop_index(self) -> int:
+        """Grid index of zero acceleration and zero curvature (the middle bin of each axis)."""
+        return (self.accel_bins // 2) * self.curvature_bins + self.curvature_bins // 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,7 +133,7 @@ class TrainConfig:
     num_scenes: int = 1000  # distinct scenes drawn from the source
     num_worlds: int = 64
     resample_every: int = 0  # updates between scene resamples (0: never)
-    control: str = "vehicles"  # vehicles | nearest_conflict | ids
+    control: ControlMode = ControlMode.VEHICLES  # vehicles | nearest_conflict | ids (engine.control)
     control_k: int = 5  # nearest_conflict: how many
     control_ids: list[int] = dataclasses.field(default_factory=list)
     device: str = "auto"  # auto (cuda when Warp and torch see one, else cpu) | cpu | cuda | cuda:N
@@ -147,8 +180,7 @@ class TrainConfig:
     out_dir: str = "runs/train"
 
     def __post_init__(self):
-        if self.control not in ("vehicles", "nearest_conflict", "ids"):
-            raise ConfigError(f"control: expected vehicles, nearest_conflict or ids, got {self.control!r}")
+        _set_mode(self, "control", ControlMode, SELECT_CONTROL)
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):
@@ -165,6 +197,11 @@ class TrainConfig:
 
 def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
     origin = typing.get_origin(tp)
+    if isinstance(tp, type) and issubclass(tp, NamedMode):
+        if not isinstance(value, (str, tp)):  # names only: an integer in YAML is a typo, not a mode
+            names = ", ".join(str(m) for m in tp)
+            raise ConfigError(f"{source}: key '{key}': expected one of {names}, got {value!r}")
+        return value  # the dataclass parses it (and checks the modes it allows)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{source}: key '{key}': expected a mapping, got {value!r}")
@@ -258,4 +295,15 @@ def load_config(cls, path: str | Path | None = None, overrides: list[str] | None
 
 
 def to_dict(cfg) -> dict:
-    return dataclasses.asdict(cfg)
+    """`cfg` as plain data for YAML, JSON and checkpoints (modes as their names); `from_dict` reads it back."""
+    return _plain(dataclasses.asdict(cfg))
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, NamedMode):
+        return str(value)
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(v) for v in value)
+    return value

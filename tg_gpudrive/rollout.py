@@ -25,8 +25,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.types import Dynamics
+from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
 
 Policy = Callable[[Simulator], None]
 
@@ -38,8 +42,8 @@ def expert_policy(sim: Simulator) -> None:
 def constant_policy(sim: Simulator) -> None:
     """Zero acceleration, zero curvature (or no motion for delta-local)."""
     cfg = sim.cfg
-    if cfg.action_space == "discrete":
-        sim.actions_index.fill_((cfg.accel_bins // 2) * cfg.curvature_bins + cfg.curvature_bins // 2)
+    if cfg.discrete:
+        sim.actions_index.fill_(cfg.noop_index)
     else:
         sim.actions.zero_()
 
@@ -49,11 +53,11 @@ def make_random_policy(seed: int, device: str) -> Policy:
 
     def random_policy(sim: Simulator) -> None:
         cfg = sim.cfg
-        if cfg.action_space == "discrete":
+        if cfg.discrete:
             sim.actions_index.copy_(torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen,
                                                   device=sim.actions_index.device, dtype=torch.int32))
         else:
-            hi = (torch.tensor([cfg.max_accel, cfg.max_curvature, 0.0]) if cfg.dynamics == "bicycle"
+            hi = (torch.tensor([cfg.max_accel, cfg.max_curvature, 0.0]) if cfg.dynamics == Dynamics.BICYCLE
                   else torch.tensor(cfg.delta_max)).to(sim.actions.device)
             u = torch.rand(sim.actions.shape, generator=gen, device=sim.actions.device)
             sim.actions.copy_((2 * u - 1) * hi)
@@ -82,21 +86,11 @@ def check_background(background: str, option: str = "background") -> str:
 
 def background_masks(scenes: Sequence, cfg, background: str = "log",
                      controlled: Sequence[np.ndarray] | None = None) -> list[np.ndarray] | None:
-    """The Simulator's `background` argument: None for log replay; for the world model, per scene,
-    (N,) bool over its agents: the vehicles the engine could control (present at init_step, away
-    from their goal: control.eligible) that the policy does not. With `controlled` None the
-    engine's default controlled agents are taken out by the Simulator itself."""
-    from tg_gpudrive.engine.control import eligible
-
+    """The Simulator's `background` argument: None for log replay; for the world model
+    `engine.control.background_masks` (the eligible vehicles the policy does not drive)."""
     if check_background(background) == "log":
         return None
-    out = []
-    for w, scene in enumerate(scenes):
-        m = eligible(scene, cfg)
-        if controlled is not None:
-            m &= ~np.asarray(controlled[w], bool)
-        out.append(m)
-    return out
+    return control.background_masks(scenes, cfg, controlled)
 
 
 def make_background_driver(sim: Simulator, background: str = "log", model: str | Path | None = None,
@@ -109,8 +103,6 @@ def make_background_driver(sim: Simulator, background: str = "log", model: str |
         if model is not None:
             raise ValueError(f"{option}: only used with background world_model, got background log")
         return None
-    from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
-
     if model is None:
         wm = load_shipped(sim)
     else:
@@ -172,7 +164,7 @@ class EpisodeStats:
                 "collision_rate": d["collided"] / n,
                 "offroad_rate": d["offroad"] / n,
                 "mean_cost": d["cost"] / max(d["steps"], 1.0),  # per controlled agent-step
-                "mean_min_distance": d["min_dist"] / n,  # m, capped at the broad-phase cell size
+                "mean_min_distance": d["min_dist"] / n,  # m, of distances capped at Model.nearest_cap
                 "mean_return": d["return"] / n,
             }
 
@@ -196,8 +188,6 @@ def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = Fal
     stats = EpisodeStats(sim)
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=steps, desc=desc, unit="step", leave=False)
     if sim.is_cuda:
         torch.cuda.synchronize(sim.device)

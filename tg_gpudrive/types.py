@@ -1,7 +1,11 @@
-"""Integer kinds shared by loaders, kernels and the learner.
+"""Integer kinds and modes shared by loaders, kernels, configs and the learner.
 
-The values are stored in scene files and in kernel arrays, so they must never
-be renumbered: add new members at the end.
+The values are stored in scene files, kernel arrays and checkpoints, so they must never be
+renumbered: add new members at the end. Modes (`NamedMode` subclasses) are spelled in YAML,
+on the command line and in JSON reports by their lowercase names (`str(CollisionMode.STOP)
+== "stop"`, `CollisionMode("stop") is CollisionMode.STOP`); the kernels see their integer
+values through `wp.constant`s declared once in kernels/kinds.py. Python code compares
+members, never the strings.
 """
 
 from __future__ import annotations
@@ -30,12 +34,77 @@ class RoadType(enum.IntEnum):
     DRIVEWAY = 7
 
 
-class CollisionMode(enum.IntEnum):
+class NamedMode(enum.IntEnum):
+    """An IntEnum that parses from and prints as its lowercase member name (the YAML / CLI spelling)."""
+
+    @classmethod
+    def _missing_(cls, value):
+        if isinstance(value, str):
+            return cls.__members__.get(value.strip().upper())
+        return None
+
+    @classmethod
+    def parse(cls, value, what: str | None = None, allowed: tuple[NamedMode, ...] | None = None) -> NamedMode:
+        """`value` (a member, its name in any case, or its integer) as a member of `allowed` (default:
+        all); anything else is a ValueError naming `what` and the accepted names."""
+        allowed = tuple(cls) if allowed is None else allowed
+        try:
+            member = cls(value) if not isinstance(value, bool) else None
+        except ValueError:
+            member = None
+        if member not in allowed:
+            choices = ", ".join(str(m) for m in allowed)
+            raise ValueError(f"{what or cls.__name__}: expected one of {choices}, got {value!r}")
+        return member
+
+    def __str__(self) -> str:
+        return self.name.lower()
+
+    def __format__(self, spec: str) -> str:
+        return format(str(self), spec)
+
+
+class CollisionMode(NamedMode):
     """What happens to a controlled agent after it collides or leaves the road."""
 
     IGNORE = 0  # event counted, agent keeps driving
     STOP = 1  # agent frozen in place and done
     REMOVE = 2  # agent taken out of the scene and of later collision checks, done
+
+
+class GoalBehaviour(NamedMode):
+    """What happens to a controlled agent when it reaches its goal."""
+
+    CONTINUE = 0  # counted, the agent keeps driving
+    STOP = 1  # frozen in place and done
+    REMOVE = 2  # taken out of the scene, done (GPUDrive's default)
+
+
+class Dynamics(NamedMode):
+    BICYCLE = 0  # action (accel m/s^2, curvature 1/m)
+    DELTA_LOCAL = 1  # action (dx m, dy m, dyaw rad) in the agent's frame
+
+
+class ActionSpace(NamedMode):
+    DISCRETE = 0  # an index into the accel x curvature grid (bicycle only)
+    CONTINUOUS = 1  # the action values themselves
+
+
+class ControlMode(NamedMode):
+    """Which agents the policy drives (tg_gpudrive.engine.control decides the masks).
+
+    The engine config's `control` takes NONE, VEHICLES or ALL_AGENTS (`ENGINE_CONTROL`); a training
+    run's `control` takes VEHICLES, NEAREST_CONFLICT or IDS (`SELECT_CONTROL`)."""
+
+    NONE = 0  # nobody: every agent replays its log
+    VEHICLES = 1  # every vehicle present at init_step and away from its goal
+    ALL_AGENTS = 2  # every agent present at init_step and away from its goal
+    NEAREST_CONFLICT = 3  # the k eligible vehicles nearest the scene's conflict point
+    IDS = 4  # the agents whose source track ids are listed
+
+
+ENGINE_CONTROL = (ControlMode.VEHICLES, ControlMode.ALL_AGENTS, ControlMode.NONE)
+SELECT_CONTROL = (ControlMode.VEHICLES, ControlMode.NEAREST_CONFLICT, ControlMode.IDS)
 
 
 class TrafficLightState(enum.IntEnum):

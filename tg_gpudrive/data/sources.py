@@ -22,12 +22,18 @@ from __future__ import annotations
 
 import logging
 import math
+import multiprocessing
+import os
 from collections import OrderedDict
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+from tqdm import tqdm
 
+from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
+from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store, load_file, open_store
 from tg_gpudrive.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -117,8 +123,6 @@ class ProceduralSource(SceneSource):
         return self.types[i % len(self.types)], self.seed + i, self.params
 
     def get(self, i: int) -> Scene:
-        from tg_gpudrive.data.procedural import generate_scene
-
         i = self._check(i)
         cache = self.__dict__.setdefault("_cache", OrderedDict())
         if i not in cache:
@@ -129,15 +133,10 @@ class ProceduralSource(SceneSource):
 
     def get_many(self, indices: Sequence[int]) -> list[Scene]:
         """Scenes for `indices`; missing ones are generated in worker processes when there are many."""
-        import os
-
         cache = self.__dict__.setdefault("_cache", OrderedDict())
         missing = sorted({self._check(i) for i in indices} - set(cache))
         workers = min(os.cpu_count() or 1, 16)
         if len(missing) >= 64 and workers > 2:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
             # spawn, not fork: the parent may already hold a CUDA context
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
                 for i, sc in zip(missing, pool.map(_generate, [self._args(i) for i in missing], chunksize=16)):
@@ -148,8 +147,6 @@ class ProceduralSource(SceneSource):
 
 
 def _generate(args: tuple) -> Scene:
-    from tg_gpudrive.data.procedural import generate_scene
-
     return generate_scene(*args)
 
 
@@ -157,8 +154,6 @@ class StoreSource(SceneSource):
     """A packed store; scenes are read-only views of its memory-mapped arrays."""
 
     def __init__(self, path: str | Path, n: int | None = None):
-        from tg_gpudrive.data.store import open_store
-
         self.store = open_store(path)
         self.n = len(self.store) if n is None else min(int(n), len(self.store))
         self.name = f"store:{Path(path)}"
@@ -181,8 +176,6 @@ class FileSource(SceneSource):
 
     def __init__(self, json_files: Sequence[Path], tfrecord_files: Sequence[Path], name: str,
                  n: int | None = None, cache_size: int = 256):
-        from tg_gpudrive.data.store import load_file
-
         self.name, self.cache_size = name, int(cache_size)
         self._cache: OrderedDict[int, Scene] = OrderedDict()
         self._load: Callable[[Path], list[Scene]] = load_file
@@ -191,8 +184,6 @@ class FileSource(SceneSource):
         files = [(f, True) for f in json_files] + [(f, False) for f in tfrecord_files]
         bar = None
         if len(files) > 64:
-            from tqdm import tqdm
-
             bar = tqdm(total=len(files), desc=f"checking {name}", unit="file", leave=False)
         for f, is_json in files:
             if n is not None and len(self._items) >= n:
@@ -500,10 +491,6 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
         return _resolve_mix(spec, spec[4:], n, seed)
     if spec.lower().startswith("procedural:"):
         kind = spec.split(":", 1)[1].strip().lower()
-        try:
-            from tg_gpudrive.data.procedural import SCENARIO_TYPES
-        except ImportError as e:
-            raise _spec_error(spec, f"the procedural generator is unavailable ({e})") from e
         if kind == "all":
             types = list(SCENARIO_TYPES)
         elif kind in SCENARIO_TYPES:
@@ -512,8 +499,6 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
             raise _spec_error(spec, f"unknown scenario type {kind!r} (types: {', '.join(SCENARIO_TYPES)})")
         return ProceduralSource(types, DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed,
                                 name=f"procedural:{kind}")
-
-    from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store
 
     path = Path(spec).expanduser()
     if is_store(path):

@@ -58,11 +58,16 @@ import os
 import re
 import shutil
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
 import numpy as np
+from tqdm import tqdm
 
+from tg_gpudrive.data.simplify import simplify_scene
+from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
+from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes
 from tg_gpudrive.scene import Scene, SceneError
 
 FORMAT = "tg_gpudrive.scene_store"
@@ -176,8 +181,6 @@ def _prepared(scenes: list[Scene], simplify_tolerance: float | None) -> list[Sce
         # fails this input (TypeError) rather than the whole shard write later
         s.metadata = json.loads(json.dumps(s.metadata, default=_json_default))
     if simplify_tolerance is not None:
-        from tg_gpudrive.data.simplify import simplify_scene
-
         scenes = [simplify_scene(s, simplify_tolerance)[0] for s in scenes]
     return scenes
 
@@ -288,8 +291,6 @@ def write_store(scenes: Iterable[Scene], out: str | Path, *, shard_size: int = D
     out = Path(out)
     if (out / MANIFEST).exists() and not overwrite:
         raise FileExistsError(f"{out} already holds a scene store; pass overwrite=True to replace it")
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     w = _Writer(out, resume=False, shard_size=shard_size, simplify_tolerance=simplify_tolerance)
     count = 0
@@ -364,12 +365,8 @@ def load_file(path: str | Path) -> list[Scene]:
     """
     p = Path(path)
     if _is_json(p):
-        from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-
         return [load_gpudrive_json(p)]
     if _is_tfrecord(p):
-        from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes
-
         return list(read_tfrecord_scenes(p))
     raise ValueError(_UNKNOWN_TYPE.format(p))
 
@@ -403,7 +400,6 @@ def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, p
     written with. `workers` > 1 parses files in that many processes (parsing
     JSON dominates); the store's order is the input order either way.
     """
-    from tqdm import tqdm
 
     t0 = time.perf_counter()
     out = Path(out)
@@ -418,8 +414,6 @@ def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, p
             todo.append(f)
     pool = None
     if workers > 1 and len(todo) > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
         pool = ProcessPoolExecutor(min(workers, len(todo)))
         results = pool.map(_load_prepared, todo, [simplify_tolerance] * len(todo))
     else:

@@ -4,12 +4,13 @@ W worlds x A agent slots; slot i = w * A + a in every flat array. T logged
 steps (the longest scene; shorter scenes are padded invalid). S road
 segments over all worlds (CSR by world).
 
-Model (fixed while a batch of scenes is loaded):
+Model (fixed while a batch of scenes is loaded; every kernel scalar is copied
+here from the EngineConfig once, so launchers read the Model, never the config):
 
     field               shape           dtype   unit / meaning
     slot_valid          (W*A,)          int32   slot holds an agent
-    controlled          (W*A,)          int32   integrated from the action buffers (else log replay)
-    background          (W*A,)          int32   controlled, but driven by a background model (reactive
+    integrated          (W*A,)          int32   moved from the action buffers (policy + background), else log replay
+    background          (W*A,)          int32   integrated, but driven by a background model (reactive
                                                 traffic), not the policy; outcomes count for the policy only
     agent_type          (W*A,)          int32   AgentType
     length, width       (W*A,)          f32     m
@@ -22,7 +23,10 @@ Model (fixed while a batch of scenes is loaded):
     expert_index        (W*A, T)        int32   nearest grid index of it, -1 when there is no expert action
     expert_track        (W*A, T)        vec2    m, positions the expert actions produce from init_step
     last_step           (W,)            int32   last logged step of the world's scene
-    collision_cell_size (W,)            f32     m, agent broad-phase cell
+    collision_cell_size (W,)            f32     m, agent broad-phase cell, >= the largest box diagonal and >= beta
+    nearest_cap         (W,)            f32     m, cap of State.nearest (and so of ep_min_dist, mean_min_distance):
+                                                the broad phase sees one cell around an agent, so this is the
+                                                cell size; the cost (nearest < beta) is exact as it is >= beta
     seg_a, seg_b        (S,)            vec2    m, road segment end points
     seg_type            (S,)            int32   RoadType
     world_seg_offset    (W+1,)          int64   (host) segments of world w
@@ -31,34 +35,43 @@ Model (fixed while a batch of scenes is loaded):
     grid_cell_offset    (W,)            int32   first cell of world w
     cell_start          (C+1,)          int32   CSR of segments per cell
     cell_items          (S,)            int32   segment index
+    reward_weights      (NUM_TERMS,)    f32     weights of REWARD_TERMS
 
-State (changes every step): pos/vel (W*A,) vec2, yaw/speed (W*A,) f32,
-step (W,) int32, world_ended / world_reset / world_done (W,) int32, flags present/alive/active/agent_done/removed/collided/
-offroad/goal_event/terminated/truncated (W*A,) int32, episode accumulators
-ep_* and the outcomes of the last finished episode final_* (W*A,), world_reset
-and world_truncated (W,), reward (W*A,), reward_terms (W*A, NUM_TERMS),
-cost (W*A,), obs (W*A, obs_dim), and the scratch of the broad phases.
+    scalar              meaning
+    dt, init_step       s per step; log step episodes start from
+    dynamics, discrete  Dynamics value; 1 for grid-index actions
+    collision_mode      CollisionMode value
+    goal_behaviour      GoalBehaviour value
+    auto_reset          1: a world resets inside the step its episode ends
+    max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
+    goal_radius, beta, speed_limit, lane_cap                            reward and cost parameters
+    partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
+    road_query_radius, road_cell_size, seg_pad, collision_cells         road queries and broad phases
 
-Control: action (W*A,) vec3 (continuous), action_index (W*A,) int32 (discrete).
+State: see `State` (its shape table is built from the field declarations, which also
+make the Simulator's torch views). Control: action (W*A,) vec3 (continuous),
+action_index (W*A,) int32 (discrete).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
 import logging
+from typing import Generic, TypeVar
 
 import numpy as np
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.engine.control import select_slots, slot_masks
+from tg_gpudrive.kernels.dynamics import launch_expert_actions
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.kernels.reward import NUM_TERMS, REWARD_TERMS
 from tg_gpudrive.scene import Scene, SceneError
-from tg_gpudrive.types import AgentType, CollisionMode, parse_enum
+from tg_gpudrive.types import ActionSpace
 
 log = logging.getLogger("tg_gpudrive")
-
-GOAL_BEHAVIOURS = {"continue": 0, "stop": 1, "remove": 2}
 
 
 def obs_dim(cfg: EngineConfig) -> int:
@@ -70,7 +83,7 @@ class BuildReport:
     """What the builder dropped or changed, per world, so nothing is lost silently."""
 
     truncated_agents: list[int]  # agents beyond max_agents, per world
-    controlled: list[int]  # policy-controlled agents per world (background-driven ones not counted)
+    controlled: list[int]  # the policy's agents per world (background-driven ones not counted)
     skipped_at_goal: list[int]  # vehicles not controlled because they start within goal_radius
     segments: list[int]  # road segments per world after splitting
 
@@ -79,39 +92,9 @@ class BuildReport:
         return int(sum(self.truncated_agents))
 
 
-# ------------------------------------------------------------------ selection
 def agents_needed(scene: Scene) -> int:
     """Slots `scene` needs to keep every agent: those valid at some step (the ones `select_slots` keeps)."""
     return int(scene.log_valid.any(axis=1).sum())
-
-
-def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
-    """Indices of the agents that get slots, most relevant first.
-
-    Order: the SDC, objects of interest, agents valid at `init_step`,
-    vehicles, then nearest to the SDC (or the scene centre)."""
-    init = min(init_step, scene.num_steps - 1)
-    valid_any = scene.log_valid.any(axis=1)
-    centre = scene.log_pos[scene.is_sdc, init].mean(0) if scene.is_sdc.any() else np.zeros(2, np.float32)
-    dist = np.linalg.norm(scene.log_pos[:, init] - centre, axis=1)
-    dist = np.where(scene.log_valid[:, init], dist, 1e9)
-    keys = (dist, ~(scene.agent_type == AgentType.VEHICLE), ~scene.log_valid[:, init], ~scene.is_interest,
-            ~scene.is_sdc)
-    order = np.lexsort(keys)
-    order = order[valid_any[order]]
-    return np.sort(order[:max_agents])
-
-
-def default_controlled(scene: Scene, idx: np.ndarray, cfg: EngineConfig) -> tuple[np.ndarray, int]:
-    """Controlled mask over the selected agents and the count skipped for starting at their goal."""
-    if cfg.control == "none":
-        return np.zeros(len(idx), bool), 0
-    init = min(cfg.init_steps, scene.num_steps - 1)
-    ok = scene.log_valid[idx, init].copy()
-    if cfg.control == "vehicles":
-        ok &= scene.agent_type[idx] == AgentType.VEHICLE
-    at_goal = np.linalg.norm(scene.log_pos[idx, init] - scene.goal[idx], axis=1) < cfg.goal_radius
-    return ok & ~at_goal, int((ok & at_goal).sum())
 
 
 # --------------------------------------------------------------------- roads
@@ -161,10 +144,12 @@ def build_road_grid(mid: np.ndarray, cell: float) -> tuple[np.ndarray, int, int,
 
 # --------------------------------------------------------------------- model
 class Model:
-    """Fixed arrays of a batch of scenes (see the module docstring for fields)."""
+    """Fixed arrays and scalars of a batch of scenes (see the module docstring for fields)."""
 
     def __init__(self, scenes: list[Scene], cfg: EngineConfig, device: str,
                  controlled: list[np.ndarray] | None = None, background: list[np.ndarray] | None = None):
+        """`controlled` / `background`: per scene, (N,) bool masks of the policy's and the
+        background model's agents (tg_gpudrive.engine.control); None: the engine default / nobody."""
         if not scenes:
             raise ValueError("Model needs at least one scene")
         self.cfg, self.device = cfg, device
@@ -175,19 +160,11 @@ class Model:
         self.num_worlds, self.max_agents, self.num_steps = W, A, T
         self.num_slots = W * A
         self.dt = float(scenes[0].dt)
-        self.init_step = cfg.init_steps
-        self.dynamics = 0 if cfg.dynamics == "bicycle" else 1
-        self.discrete = int(cfg.action_space == "discrete")
-        self.collision_mode = int(parse_enum(CollisionMode, cfg.collision_mode, "collision_mode"))
-        self.goal_behaviour = GOAL_BEHAVIOURS[cfg.goal_behaviour]
-        self.collision_cells = cfg.collision_cells
-        self.auto_reset = int(cfg.auto_reset)
-        self.obs_dim = obs_dim(cfg)
-        self.road_cell_size = float(cfg.road_cell_size)
         self.scenes = scenes
+        self._copy_scalars(cfg)
 
         h = {  # host arrays, (W, A, ...)
-            "slot_valid": np.zeros((W, A), np.int32), "controlled": np.zeros((W, A), np.int32),
+            "slot_valid": np.zeros((W, A), np.int32), "integrated": np.zeros((W, A), np.int32),
             "background": np.zeros((W, A), np.int32),
             "agent_type": np.zeros((W, A), np.int32), "length": np.ones((W, A), np.float32),
             "width": np.ones((W, A), np.float32), "goal": np.zeros((W, A, 2), np.float32),
@@ -212,21 +189,17 @@ class Model:
                          sc.scene_id, dropped, A)
             report.truncated_agents.append(max(dropped, 0))
             n, t = len(idx), sc.num_steps
-            if controlled is not None:
-                ctrl = np.asarray(controlled[w], bool)[idx]
-                skipped = 0
-            else:
-                ctrl, skipped = default_controlled(sc, idx, cfg)
-            bg = np.zeros(len(idx), bool) if background is None else np.asarray(background[w], bool)[idx] & ~ctrl
+            policy, bg, skipped = slot_masks(sc, idx, cfg, None if controlled is None else controlled[w],
+                                             None if background is None else background[w])
             # policy agents take the first slots (a learner views obs[:, :max_controlled]), then the
             # background-driven ones, then the replayed ones
-            order = np.lexsort((bg, ~(ctrl | bg)))
-            idx, ctrl, bg = idx[order], ctrl[order], bg[order]
-            report.controlled.append(int(ctrl.sum()))
+            order = np.lexsort((bg, ~(policy | bg)))
+            idx, policy, bg = idx[order], policy[order], bg[order]
+            report.controlled.append(int(policy.sum()))
             report.skipped_at_goal.append(skipped)
             self.slot_agent[w, :n] = idx
             h["slot_valid"][w, :n] = 1
-            h["controlled"][w, :n] = ctrl | bg
+            h["integrated"][w, :n] = policy | bg
             h["background"][w, :n] = bg
             h["agent_type"][w, :n] = sc.agent_type[idx]
             h["length"][w, :n] = sc.length[idx]
@@ -239,6 +212,10 @@ class Model:
             last_step[w] = t - 1
             diag = np.sqrt(sc.length[idx] ** 2 + sc.width[idx] ** 2).max() if n else 1.0
             cell[w] = max(float(diag), cfg.beta, 1.0) * 1.001
+            # the collision pass visits the 3 x 3 cells around an agent, so it finds every partner
+            # within one cell size and reports `nearest` capped there (nearest_cap); the cost
+            # (nearest < beta) is exact only while no partner within beta can be missed
+            assert cell[w] >= self.beta, "broad-phase cell smaller than beta: the distance cost would miss partners"
 
             a, b, ty = scene_segments(sc, cfg.max_segment_length)
             origin, nx, ny, start, items = build_road_grid(0.5 * (a + b), self.road_cell_size)
@@ -265,7 +242,7 @@ class Model:
             return wp.array(x.reshape(W * A, *x.shape[2:]), dtype=dtype, device=dev)
 
         self.slot_valid = flat(h["slot_valid"], wp.int32)
-        self.controlled = flat(h["controlled"], wp.int32)
+        self.integrated = flat(h["integrated"], wp.int32)
         self.background = flat(h["background"], wp.int32)
         self.agent_type = flat(h["agent_type"], wp.int32)
         self.length = flat(h["length"], float)
@@ -277,6 +254,7 @@ class Model:
         self.log_valid = wp.array(h["log_valid"].reshape(W * A, T), dtype=wp.int32, device=dev)
         self.last_step = wp.array(last_step, dtype=wp.int32, device=dev)
         self.collision_cell_size = wp.array(cell, dtype=float, device=dev)
+        self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
         self.seg_a = wp.array(all_a, dtype=wp.vec2, device=dev)
         self.seg_b = wp.array(all_b, dtype=wp.vec2, device=dev)
         self.seg_type = wp.array(np.concatenate(seg_t) if n_seg else np.zeros(1, np.int32), dtype=wp.int32,
@@ -294,52 +272,173 @@ class Model:
         self.expert_action = wp.zeros((W * A, T), dtype=wp.vec3, device=dev)
         self.expert_index = wp.zeros((W * A, T), dtype=wp.int32, device=dev)
         self.expert_track = wp.zeros((W * A, T), dtype=wp.vec2, device=dev)
+        launch_expert_actions(self)
 
-        from tg_gpudrive.kernels.dynamics import launch_expert_actions
+    def _copy_scalars(self, cfg: EngineConfig) -> None:
+        """The kernel scalars, as the types the kernels take (modes as their integer values)."""
+        self.init_step = int(cfg.init_steps)
+        self.dynamics = int(cfg.dynamics)
+        self.discrete = int(cfg.action_space == ActionSpace.DISCRETE)
+        self.collision_mode = int(cfg.collision_mode)
+        self.goal_behaviour = int(cfg.goal_behaviour)
+        self.auto_reset = int(cfg.auto_reset)
+        self.max_accel, self.max_curvature = float(cfg.max_accel), float(cfg.max_curvature)
+        self.accel_bins, self.curvature_bins = int(cfg.accel_bins), int(cfg.curvature_bins)
+        self.delta_max = wp.vec3(*cfg.delta_max)
+        self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
+        self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
+        self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
+        self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
+        self.obs_dim = obs_dim(cfg)
+        self.road_query_radius = float(cfg.road_query_radius)
+        self.road_cell_size = float(cfg.road_cell_size)
+        self.collision_cells = int(cfg.collision_cells)
 
-        launch_expert_actions(self, cfg)
+
+# --------------------------------------------------------------------- state
+class Dims(enum.Enum):
+    """Shape kinds of the State arrays: the flat shape they are allocated with and the
+    (W, A, ...) / (W,) shape of their torch views (vector dtypes add a last axis)."""
+
+    SLOT = "(W*A,)"
+    WORLD = "(W,)"
+    TERMS = "(W*A, NUM_TERMS)"
+    OBS = "(W*A, obs_dim)"
+    COUNTER = "(1,)"
+    CELLS = "(W*collision_cells,)"  # broad-phase scratch, not viewed
+    PARTNERS = "(W*A*partner_k,)"  # observation scratch, not viewed
+    ROADS = "(W*A*road_k,)"  # observation scratch, not viewed
+
+    def alloc_shape(self, m: Model) -> tuple[int, ...]:
+        n, W = m.num_slots, m.num_worlds
+        return {Dims.SLOT: (n,), Dims.WORLD: (W,), Dims.TERMS: (n, NUM_TERMS), Dims.OBS: (n, m.obs_dim),
+                Dims.COUNTER: (1,), Dims.CELLS: (W * m.collision_cells,),
+                Dims.PARTNERS: (max(n * m.partner_k, 1),), Dims.ROADS: (max(n * m.road_k, 1),)}[self]
+
+    def view_shape(self, m: Model) -> tuple[int, ...]:
+        W, A = m.num_worlds, m.max_agents
+        return {Dims.SLOT: (W, A), Dims.WORLD: (W,), Dims.TERMS: (W, A, NUM_TERMS), Dims.OBS: (W, A, m.obs_dim),
+                Dims.COUNTER: (1,)}[self]
 
 
-class State:
-    """Per-step arrays (see the engine module docstring)."""
+def view_shape(f: dataclasses.Field, m: Model) -> tuple[int, ...]:
+    """Shape of the torch view of State field `f`: its `Dims.view_shape`, plus the vector length."""
+    return (*f.metadata["dims"].view_shape(m), *((f.metadata["dtype"]._length_,) if f.metadata["dtype"] in
+                                                 (wp.vec2, wp.vec3) else ()))
 
-    INT_FIELDS = ("present", "alive", "active", "agent_done", "removed", "collided", "offroad", "goal_event",
-                  "terminated", "truncated", "ep_collided", "ep_offroad", "ep_goal", "ep_steps", "final_goal",
-                  "final_collided", "final_offroad", "final_steps", "agent_cell")
-    FLOAT_FIELDS = ("yaw", "speed", "goal_dist", "edge_dist", "lane_dist", "nearest", "reward", "cost",
-                    "ep_return", "ep_cost", "ep_min_dist", "final_return", "final_cost", "final_min_dist")
 
-    def __init__(self, model: Model, cfg: EngineConfig):
-        n, W, dev = model.num_slots, model.num_worlds, model.device
-        for name in self.INT_FIELDS:
-            setattr(self, name, wp.zeros(n, dtype=wp.int32, device=dev))
-        for name in self.FLOAT_FIELDS:
-            setattr(self, name, wp.zeros(n, dtype=float, device=dev))
-        self.pos = wp.zeros(n, dtype=wp.vec2, device=dev)
-        self.vel = wp.zeros(n, dtype=wp.vec2, device=dev)
-        self.applied_action = wp.zeros(n, dtype=wp.vec3, device=dev)
-        self.step = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.world_reset = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.world_ended = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.world_done = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.world_truncated = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.episode_count = wp.zeros(W, dtype=wp.int32, device=dev)
-        self.bad_actions = wp.zeros(1, dtype=wp.int32, device=dev)  # unusable actions met by step_agents, summed
-        self.reward_terms = wp.zeros((n, NUM_TERMS), dtype=float, device=dev)
-        self.obs = wp.zeros((n, model.obs_dim), dtype=float, device=dev)
-        # broad-phase scratch
-        g = model.collision_cells
-        self.grid_count = wp.zeros(W * g, dtype=wp.int32, device=dev)
-        self.grid_start = wp.zeros(W * g, dtype=wp.int32, device=dev)
-        self.grid_fill = wp.zeros(W * g, dtype=wp.int32, device=dev)
-        self.grid_items = wp.zeros(n, dtype=wp.int32, device=dev)
-        self.part_d = wp.zeros(max(n * cfg.partner_k, 1), dtype=float, device=dev)
-        self.part_j = wp.zeros(max(n * cfg.partner_k, 1), dtype=wp.int32, device=dev)
-        self.heap_d = wp.zeros(max(n * cfg.road_k, 1), dtype=float, device=dev)
-        self.heap_j = wp.zeros(max(n * cfg.road_k, 1), dtype=wp.int32, device=dev)
+def array_field(dims: Dims, dtype, meaning: str):
+    """A State field: its shape kind, Warp dtype and meaning (unit first), declared once."""
+    return dataclasses.field(metadata={"dims": dims, "dtype": dtype, "meaning": meaning})
+
+
+_DTYPE_NAMES = {wp.int32: "int32", wp.float32: "f32", wp.vec2: "vec2", wp.vec3: "vec3"}
+
+
+def shape_table(cls) -> str:
+    """The column-aligned field table of a State-like dataclass: name, shape, dtype, meaning."""
+    rows = [(f.name, f.metadata["dims"].value, _DTYPE_NAMES[f.metadata["dtype"]], f.metadata["meaning"])
+            for f in dataclasses.fields(cls)]
+    rows.insert(0, ("field", "shape", "dtype", "unit / meaning"))
+    w0, w1, w2 = (max(len(r[k]) for r in rows) for k in range(3))
+    return "\n".join(f"    {a:<{w0}}  {b:<{w1}}  {c:<{w2}}  {d}" for a, b, c, d in rows)
+
+
+ArrayT = TypeVar("ArrayT")
+
+SLOT, WORLD = Dims.SLOT, Dims.WORLD
+
+
+@dataclasses.dataclass(eq=False, repr=False)
+class StepState(Generic[ArrayT]):
+    """The per-step arrays a learner reads: in `State` Warp arrays (flat), in the `Simulator`
+    torch views of them shaped (W, A, ...) or (W,) (`Dims.view_shape`). Declared once here."""
+
+    # kinematics
+    pos: ArrayT = array_field(SLOT, wp.vec2, "m, box centre")
+    yaw: ArrayT = array_field(SLOT, wp.float32, "rad")
+    vel: ArrayT = array_field(SLOT, wp.vec2, "m/s")
+    speed: ArrayT = array_field(SLOT, wp.float32, "m/s, |vel|")
+    applied_action: ArrayT = array_field(SLOT, wp.vec3, "the action the last step applied, decoded and clipped")
+    # worlds
+    world_step: ArrayT = array_field(WORLD, wp.int32, "log step the world is at")
+    world_ended: ArrayT = array_field(WORLD, wp.int32, "0/1, the world's episode ended in the last step")
+    world_reset: ArrayT = array_field(WORLD, wp.int32, "0/1, ... and the world was reset to init_step")
+    world_done: ArrayT = array_field(WORLD, wp.int32, "0/1, episode over, frozen until reset() (auto_reset off)")
+    world_truncated: ArrayT = array_field(WORLD, wp.int32, "0/1, the episode ended at the time limit")
+    episode_count: ArrayT = array_field(WORLD, wp.int32, "episodes the world finished since the build")
+    bad_actions: ArrayT = array_field(Dims.COUNTER, wp.int32, "unusable actions met by the steps since the build")
+    # agent flags, this step
+    present: ArrayT = array_field(SLOT, wp.int32, "0/1, in the scene")
+    alive: ArrayT = array_field(SLOT, wp.int32, "0/1, integrated and acted in this step")
+    active: ArrayT = array_field(SLOT, wp.int32, "0/1, integrated and acts in the next step (the action mask)")
+    agent_done: ArrayT = array_field(SLOT, wp.int32, "0/1, the agent's episode is over: frozen or removed")
+    removed: ArrayT = array_field(SLOT, wp.int32, "0/1, taken out of the scene")
+    collided: ArrayT = array_field(SLOT, wp.int32, "0/1, its box overlaps another present agent's")
+    offroad: ArrayT = array_field(SLOT, wp.int32, "0/1, its box crosses a road edge")
+    goal_event: ArrayT = array_field(SLOT, wp.int32, "0/1, it reached its goal (on the road)")
+    terminated: ArrayT = array_field(SLOT, wp.int32, "0/1, its episode ended (goal, collision, off-road per mode)")
+    truncated: ArrayT = array_field(SLOT, wp.int32, "0/1, its episode ended at the time limit")
+    # distances
+    goal_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to goal")
+    edge_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest road edge, <= road_query_radius")
+    lane_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest lane, <= road_query_radius")
+    nearest: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest present agent, <= Model.nearest_cap")
+    # reward and cost
+    reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
+    reward_terms: ArrayT = array_field(Dims.TERMS, wp.float32, "the named terms (kernels/reward.py), unweighted")
+    cost: ArrayT = array_field(SLOT, wp.float32, "0/1, a present agent is nearer than beta")
+    # the running episode
+    ep_goal: ArrayT = array_field(SLOT, wp.int32, "0/1, reached its goal")
+    ep_collided: ArrayT = array_field(SLOT, wp.int32, "0/1, collided")
+    ep_offroad: ArrayT = array_field(SLOT, wp.int32, "0/1, went off the road")
+    ep_return: ArrayT = array_field(SLOT, wp.float32, "sum of reward")
+    ep_cost: ArrayT = array_field(SLOT, wp.float32, "sum of cost")
+    ep_min_dist: ArrayT = array_field(SLOT, wp.float32, "m, least `nearest` (capped)")
+    ep_steps: ArrayT = array_field(SLOT, wp.int32, "steps acted")
+    # the last finished episode (valid where world_ended)
+    final_goal: ArrayT = array_field(SLOT, wp.int32, "0/1, ep_goal at the end")
+    final_collided: ArrayT = array_field(SLOT, wp.int32, "0/1, ep_collided at the end")
+    final_offroad: ArrayT = array_field(SLOT, wp.int32, "0/1, ep_offroad at the end")
+    final_return: ArrayT = array_field(SLOT, wp.float32, "ep_return at the end")
+    final_cost: ArrayT = array_field(SLOT, wp.float32, "ep_cost at the end")
+    final_min_dist: ArrayT = array_field(SLOT, wp.float32, "m, ep_min_dist at the end")
+    final_steps: ArrayT = array_field(SLOT, wp.int32, "ep_steps at the end")
+    # observation
+    obs: ArrayT = array_field(Dims.OBS, wp.float32, "ego, partner and road blocks (kernels/observation.py)")
+
+
+@dataclasses.dataclass(eq=False, repr=False)
+class State(StepState[wp.array]):
+    """Per-step arrays of the engine (Warp, flat), the scratch of its broad phases included:
+
+    {table}
+    """
+
+    # scratch of the broad phases, rewritten every step
+    agent_cell: wp.array = array_field(SLOT, wp.int32, "hashed collision cell, -1 when absent")
+    grid_count: wp.array = array_field(Dims.CELLS, wp.int32, "agents per collision cell")
+    grid_start: wp.array = array_field(Dims.CELLS, wp.int32, "first agent of each cell")
+    grid_fill: wp.array = array_field(Dims.CELLS, wp.int32, "end of each cell after the scatter")
+    grid_items: wp.array = array_field(SLOT, wp.int32, "agents sorted by cell (order from atomics)")
+    part_d: wp.array = array_field(Dims.PARTNERS, wp.float32, "m^2, nearest partners, sorted")
+    part_j: wp.array = array_field(Dims.PARTNERS, wp.int32, "their slots")
+    heap_d: wp.array = array_field(Dims.ROADS, wp.float32, "m, nearest road segments, a max-heap")
+    heap_j: wp.array = array_field(Dims.ROADS, wp.int32, "their segment indices")
+
+    @classmethod
+    def allocate(cls, model: Model) -> State:
+        """Zeroed arrays of every field on the model's device."""
+        return cls(**{f.name: wp.zeros(f.metadata["dims"].alloc_shape(model), dtype=f.metadata["dtype"],
+                                       device=model.device) for f in dataclasses.fields(cls)})
+
+
+State.__doc__ = State.__doc__.format(table=shape_table(State).strip())
 
 
 class Control:
+    """Per-step inputs: the action buffers the policy (and a background driver) writes."""
+
     def __init__(self, model: Model):
-        self.action = wp.zeros(model.num_slots, dtype=wp.vec3, device=model.device)
-        self.action_index = wp.zeros(model.num_slots, dtype=wp.int32, device=model.device)
+        self.action = wp.zeros(model.num_slots, dtype=wp.vec3, device=model.device)  # continuous, (W*A,)
+        self.action_index = wp.zeros(model.num_slots, dtype=wp.int32, device=model.device)  # grid index, (W*A,)

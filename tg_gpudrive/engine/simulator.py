@@ -8,7 +8,12 @@
         sim.reward, sim.cost, sim.terminated, sim.truncated, sim.obs   # torch views, no copies
 
 Every tensor attribute is a zero-copy torch view of an engine array on the
-engine's device, shaped (W, A, ...) or (W,). On CUDA the whole step is
+engine's device, shaped (W, A, ...) or (W,): the State's fields under their
+own names (declared once in `engine.model.StepState`, which `Simulator`
+inherits, so `sim.collided` is a typed attribute), and the Model's per-slot
+arrays. Agents: `policy_agents` (bool, the policy's), `background` (driven by
+a background model) and `integrated` (both: moved from the action buffers);
+the others replay their logs (tg_gpudrive.engine.control decides who is which). On CUDA the whole step is
 captured once as a CUDA graph; step() allocates nothing after the first call.
 Worlds whose episode ended (`world_ended`) are reset to their scene's
 `init_step` inside the step (`world_reset` says which; with
@@ -18,6 +23,7 @@ outcomes of the finished episode are kept in the `final_*` tensors.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import re
@@ -28,7 +34,7 @@ import torch
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.engine.model import Control, Model, State
+from tg_gpudrive.engine.model import Control, Model, State, StepState, view_shape
 from tg_gpudrive.kernels.collision import launch_collision
 from tg_gpudrive.kernels.dynamics import launch_corrective_expert, launch_expert_to_control, launch_step_agents
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM, launch_observations
@@ -36,16 +42,9 @@ from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_fin
 from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
 from tg_gpudrive.kernels.road import launch_road_query
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import RoadType
+from tg_gpudrive.types import ActionSpace, RoadType
 
 log = logging.getLogger("tg_gpudrive")
-
-_VIEWS_WA = ("present", "alive", "active", "agent_done", "removed", "collided", "offroad", "goal_event",
-             "terminated", "truncated", "ep_collided", "ep_offroad", "ep_goal", "ep_steps", "final_goal",
-             "final_collided", "final_offroad", "final_steps", "yaw", "speed", "goal_dist", "edge_dist",
-             "lane_dist", "nearest", "reward", "cost", "ep_return", "ep_cost", "ep_min_dist", "final_return",
-             "final_cost", "final_min_dist")
-_VIEWS_W = ("world_reset", "world_ended", "world_done", "world_truncated", "episode_count")
 
 
 def cuda_unavailable() -> str | None:
@@ -95,7 +94,9 @@ def resolve_device(device: str | torch.device | None = "auto", flag: str | None 
 DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # raise at the first unusable action (syncs each step)
 
 
-class Simulator:
+class Simulator(StepState[torch.Tensor]):
+    """The engine behind a torch API: a Model, its State and Control, and torch views of them."""
+
     def __init__(self, scenes: Sequence[Scene], config: EngineConfig | None = None, device: str = "auto",
                  controlled: Sequence[np.ndarray] | None = None, background: Sequence[np.ndarray] | None = None):
         """`device`: "auto" (cuda:0 when CUDA is usable, else cpu), "cpu", "cuda" or "cuda:N"
@@ -112,7 +113,7 @@ class Simulator:
     def _build(self, scenes: list[Scene], controlled, background=None) -> None:
         with wp.ScopedDevice(self.device):
             self.model = Model(scenes, self.cfg, self.device, controlled, background)
-            self.state = State(self.model, self.cfg)
+            self.state = State.allocate(self.model)
             self.control = Control(self.model)
         self._graph = None
         self._corr = None  # corrective_expert's output buffers, allocated on first use
@@ -137,21 +138,12 @@ class Simulator:
         m, s, c = self.model, self.state, self.control
         W, A, T = m.num_worlds, m.max_agents, m.num_steps
         t = wp.to_torch
-        for name in _VIEWS_WA:
-            setattr(self, name, t(getattr(s, name)).view(W, A))
-        for name in _VIEWS_W:
-            setattr(self, name, t(getattr(s, name)))
-        self.world_step = t(s.step)  # (W,) log step each world is at
-        self.bad_actions = t(s.bad_actions)  # (1,) unusable actions met since the build (report())
-        self.pos = t(s.pos).view(W, A, 2)
-        self.vel = t(s.vel).view(W, A, 2)
-        self.applied_action = t(s.applied_action).view(W, A, 3)
-        self.reward_terms = t(s.reward_terms).view(W, A, len(REWARD_TERMS))
-        self.obs = t(s.obs).view(W, A, m.obs_dim)
-        self.controlled = t(m.controlled).view(W, A)  # integrated from actions (policy + background)
+        for f in dataclasses.fields(StepState):  # every State field a learner reads, as (W, A, ...) / (W,)
+            setattr(self, f.name, t(getattr(s, f.name)).view(view_shape(f, m)))
+        self.integrated = t(m.integrated).view(W, A)  # moved from the action buffers (policy + background)
         self.background = t(m.background).view(W, A)
         # the policy's agents: what rates, returns and learners count
-        self.policy_agents = (self.controlled != 0) & (self.background == 0)
+        self.policy_agents = (self.integrated != 0) & (self.background == 0)
         self.slot_valid = t(m.slot_valid).view(W, A)
         self.goal = t(m.goal).view(W, A, 2)
         self.length = t(m.length).view(W, A)
@@ -213,30 +205,30 @@ class Simulator:
     def reset(self, worlds: torch.Tensor | None = None) -> None:
         """Worlds back to their scene's state at init_step (all, or where the (W,) mask `worlds`
         is true); observations refreshed. Needed after an episode ends when auto_reset is off."""
-        m, s = self.model, self.state
+        m, s, c = self.model, self.state, self.control
         with wp.ScopedDevice(self.device):
             self._sync_in()
             if worlds is None:
-                launch_force_reset(m, s)
-                launch_road_query(m, s, self.cfg)
+                launch_force_reset(m, s, c)
+                launch_road_query(m, s, c)
             else:
                 mask = torch.as_tensor(worlds, device=self.device).reshape(self.num_worlds).to(torch.int32)
-                launch_force_reset(m, s, wp.from_torch(mask.contiguous()))
-                launch_road_query(m, s, self.cfg, only_reset_worlds=True)
-            launch_observations(m, s, self.cfg)
+                launch_force_reset(m, s, c, wp.from_torch(mask.contiguous()))
+                launch_road_query(m, s, c, only_reset_worlds=True)
+            launch_observations(m, s, c)
             s.world_reset.zero_()
             s.world_ended.zero_()
             self._sync_out()
 
     def _launch_step(self) -> None:
-        m, s, c, cfg = self.model, self.state, self.control, self.cfg
-        launch_step_agents(m, s, c, cfg)
-        launch_collision(m, s)
-        launch_road_query(m, s, cfg)
-        launch_reward(m, s, cfg)
-        launch_respond_and_finish(m, s)
-        launch_road_query(m, s, cfg, only_reset_worlds=True)
-        launch_observations(m, s, cfg)
+        m, s, c = self.model, self.state, self.control
+        launch_step_agents(m, s, c)
+        launch_collision(m, s, c)
+        launch_road_query(m, s, c)
+        launch_reward(m, s, c)
+        launch_respond_and_finish(m, s, c)
+        launch_road_query(m, s, c, only_reset_worlds=True)
+        launch_observations(m, s, c)
 
     def step(self, actions: torch.Tensor | np.ndarray | None = None) -> None:
         """Advance every world by one step.
@@ -292,14 +284,14 @@ class Simulator:
         W, A = self.num_worlds, self.max_agents
         with wp.ScopedDevice(self.device):
             self._sync_in()
-            launch_corrective_expert(self.model, self.state, self.cfg, *self._corr)
+            launch_corrective_expert(self.model, self.state, self.control, *self._corr)
             self._sync_out()
         return wp.to_torch(self._corr[0]).view(W, A, 3), wp.to_torch(self._corr[1]).view(W, A)
 
     def _write_actions(self, actions) -> None:
         W, A = self.num_worlds, self.max_agents
         a = torch.as_tensor(actions, device=self.device)
-        if self.cfg.action_space == "discrete":
+        if self.cfg.action_space == ActionSpace.DISCRETE:
             if tuple(a.shape) != (W, A) or a.dtype.is_floating_point or a.dtype == torch.bool:
                 raise ValueError(f"discrete actions: expected integer tensor of shape ({W}, {A}), "
                                  f"got {a.dtype} {tuple(a.shape)}")
@@ -308,7 +300,7 @@ class Simulator:
                                  f"got [{int(a.min())}, {int(a.max())}]")
             self.actions_index.copy_(a)
         else:
-            k = 2 if self.cfg.dynamics == "bicycle" else 3
+            k = self.cfg.act_dim
             if tuple(a.shape) != (W, A, k) or not a.dtype.is_floating_point:
                 raise ValueError(f"continuous actions: expected float tensor of shape ({W}, {A}, {k}), "
                                  f"got {a.dtype} {tuple(a.shape)}")
@@ -337,17 +329,15 @@ class Simulator:
         }
 
     def snapshot(self) -> dict[str, np.ndarray]:
-        """A host copy of the whole State (tests, debugging, determinism checks)."""
-        out = {}
-        for name, arr in vars(self.state).items():
-            if isinstance(arr, wp.array):
-                out[name] = arr.numpy().copy()
-        return out
+        """A host copy of the whole State, keyed by field name (tests, debugging, determinism checks)."""
+        return {f.name: getattr(self.state, f.name).numpy().copy() for f in dataclasses.fields(self.state)}
 
     def restore(self, snapshot: dict[str, np.ndarray]) -> None:
         """Load a State saved by `snapshot()` (same scenes and config): exact resume mid-episode."""
-        for name, arr in vars(self.state).items():
-            if isinstance(arr, wp.array):
-                if name not in snapshot or tuple(snapshot[name].shape) != tuple(arr.numpy().shape):
-                    raise ValueError(f"snapshot does not match this simulator's State at field '{name}'")
-                arr.assign(snapshot[name])
+        if "world_step" not in snapshot and "step" in snapshot:  # saved before the field was renamed
+            snapshot = {**snapshot, "world_step": snapshot["step"]}
+        for f in dataclasses.fields(self.state):
+            arr = getattr(self.state, f.name)
+            if f.name not in snapshot or tuple(snapshot[f.name].shape) != tuple(arr.numpy().shape):
+                raise ValueError(f"snapshot does not match this simulator's State at field '{f.name}'")
+            arr.assign(snapshot[f.name])

@@ -34,7 +34,9 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from tg_gpudrive.engine.model import default_controlled, obs_dim, select_slots
+from tg_gpudrive.engine import control
+from tg_gpudrive.engine.model import obs_dim
+from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.envs.single import EpisodeWorld, check_action, write_action
 from tg_gpudrive.envs.vector import (
     ConfigLike,
@@ -46,7 +48,6 @@ from tg_gpudrive.envs.vector import (
     single_observation_space,
 )
 from tg_gpudrive.rollout import check_background
-from tg_gpudrive.engine.simulator import resolve_device
 
 
 class TGParallelEnv(ParallelEnv):
@@ -68,14 +69,9 @@ class TGParallelEnv(ParallelEnv):
         device = resolve_device(device)  # a CUDA request without CUDA fails here, before the scene loads
         self.render_mode = render_mode
         self.cfg = make_config(config, overrides, continuous)
-        self.discrete = self.cfg.action_space == "discrete"
+        self.discrete = self.cfg.discrete
         self.scene = scene = scene_source(scenes, seed).get(int(scene_index))
-        if controlled is None:
-            idx = select_slots(scene, self.cfg.max_agents, self.cfg.init_steps)
-            ctrl, _ = default_controlled(scene, idx, self.cfg)
-            controlled = np.zeros(scene.num_agents, bool)
-            controlled[idx[ctrl]] = True
-        controlled = np.asarray(controlled, bool)
+        controlled = control.default_mask(scene, self.cfg) if controlled is None else np.asarray(controlled, bool)
         if controlled.shape != (scene.num_agents,):
             raise ValueError(f"controlled: expected a bool mask of shape ({scene.num_agents},), "
                              f"got {controlled.shape}")
@@ -83,7 +79,7 @@ class TGParallelEnv(ParallelEnv):
         self.sim = self.world.sim
         if len(self.world.slots) == 0:
             raise ValueError(f"scene {scene.scene_id}: no agent is controlled (config.control="
-                             f"{self.cfg.control!r}); nothing to act")
+                             f"{str(self.cfg.control)!r}); nothing to act")
         self.possible_agents = [f"agent_{s}" for s in self.world.slots]
         self._slot = {name: int(s) for name, s in zip(self.possible_agents, self.world.slots)}
         self._obs_space = single_observation_space(obs_dim(self.cfg))

@@ -31,7 +31,9 @@ import numpy as np
 import torch
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.engine.model import default_controlled, obs_dim, select_slots
+from tg_gpudrive.engine import control
+from tg_gpudrive.engine.model import obs_dim
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.envs.vector import (
     ConfigLike,
     OverridesLike,
@@ -41,9 +43,9 @@ from tg_gpudrive.envs.vector import (
     single_action_space,
     single_observation_space,
 )
-from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
+from tg_gpudrive.rollout import background_masks, builtin_policy, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.types import ControlMode
 
 
 class EpisodeWorld:
@@ -132,8 +134,6 @@ def write_action(sim: Simulator, slot: int, value, discrete: bool) -> None:
 def resolve_policy(policy, seed: int, device: str) -> Callable[[Simulator], None] | None:
     if policy is None or callable(policy):
         return policy
-    from tg_gpudrive.rollout import builtin_policy
-
     return builtin_policy(str(policy), seed, device)
 
 
@@ -181,7 +181,7 @@ class TGSingleAgentEnv(gymnasium.Env):
         self.other_policy = resolve_policy(other_policy, seed, self.device)
         self.observation_space = single_observation_space(obs_dim(self.cfg))
         self.action_space = single_action_space(self.cfg)
-        self.discrete = self.cfg.action_space == "discrete"
+        self.discrete = self.cfg.discrete
         self._build(int(scene_index), agent)
 
     def _build(self, scene_index: int, agent: int | None) -> None:
@@ -189,11 +189,8 @@ class TGSingleAgentEnv(gymnasium.Env):
         a = choose_agent(scene, self.cfg, agent)
         if self.other_policy is None:
             mask = np.zeros(scene.num_agents, bool)
-        else:
-            idx = select_slots(scene, self.cfg.max_agents, self.cfg.init_steps)
-            ctrl, _ = default_controlled(scene, idx, self.cfg)
-            mask = np.zeros(scene.num_agents, bool)
-            mask[idx[ctrl]] = True
+        else:  # the others `other_policy` drives: the engine default
+            mask = control.default_mask(scene, self.cfg)
         mask[a] = True
         self.world = EpisodeWorld(scene, self.cfg, self.device, mask, self.background, self.background_model,
                                   self.seed)
@@ -254,8 +251,8 @@ class TGSingleAgentEnv(gymnasium.Env):
 
 def choose_agent(scene: Scene, cfg: EngineConfig, agent: int | None) -> int:
     """The scene agent index to control: `agent` checked, or the SDC / first default-controlled vehicle."""
-    idx = select_slots(scene, cfg.max_agents, cfg.init_steps)
-    init = min(cfg.init_steps, scene.num_steps - 1)
+    idx = control.select_slots(scene, cfg.max_agents, cfg.init_steps)
+    init = control.init_index(scene, cfg)
     if agent is not None:
         agent = int(agent)
         if not 0 <= agent < scene.num_agents:
@@ -266,8 +263,8 @@ def choose_agent(scene: Scene, cfg: EngineConfig, agent: int | None) -> int:
         if not scene.log_valid[agent, init]:
             raise ValueError(f"agent {agent} of scene {scene.scene_id} is not present at init_steps={cfg.init_steps}")
         return agent
-    ctrl, _ = default_controlled(scene, idx, dataclasses.replace(
-        cfg, control="vehicles" if cfg.control == "none" else cfg.control))
+    ctrl, _ = control.default_controlled(scene, idx, cfg,
+                                         ControlMode.VEHICLES if cfg.control == ControlMode.NONE else cfg.control)
     cand = idx[ctrl]
     if len(cand) == 0:
         raise ValueError(f"scene {scene.scene_id}: no vehicle can be controlled (none is present at "

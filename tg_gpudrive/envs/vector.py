@@ -78,11 +78,14 @@ import torch
 from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
+from tqdm import tqdm
 
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
+from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scenes
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.types import ActionSpace, Dynamics
 
 ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
 OverridesLike = Sequence[str] | Mapping[str, Any] | None
@@ -120,7 +123,7 @@ def make_config(config: ConfigLike = None, overrides: OverridesLike = None,
             overrides = [overrides]
         data = apply_overrides(data, list(overrides))
     if continuous is not None:
-        data["action_space"] = "continuous" if continuous else "discrete"
+        data["action_space"] = str(ActionSpace.CONTINUOUS if continuous else ActionSpace.DISCRETE)
     return from_dict(EngineConfig, data, "config")
 
 
@@ -132,8 +135,6 @@ def scene_source(scenes, seed: int = 0):
     procedural seeds are offset by `seed`. An unknown spec is a ValueError
     listing the accepted forms.
     """
-    from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scenes
-
     if isinstance(scenes, (str, Path)):
         return resolve_scenes(str(scenes), seed=seed)
     if isinstance(scenes, SceneSource):
@@ -152,8 +153,6 @@ def load_scenes(scenes, num_worlds: int | None = None, seed: int = 0, bar=None) 
     W defaults to the number of scenes given as a Scene list, else to 1. `bar`: a tqdm bar
     advanced once per scene (its total set to W).
     """
-    from tg_gpudrive.data.sources import SceneListSource
-
     if num_worlds is not None and int(num_worlds) <= 0:
         raise ValueError(f"num_worlds must be positive, got {num_worlds}")
     src = scene_source(scenes, seed)
@@ -187,9 +186,9 @@ def worlds_for(num_envs: int | None, num_worlds: int | None, max_agents: int) ->
 
 def single_action_space(cfg: EngineConfig) -> gymnasium.spaces.Space:
     """Discrete(num_actions), Box(2) for the continuous bicycle, Box(3) for delta-local."""
-    if cfg.action_space == "discrete":
+    if cfg.discrete:
         return gymnasium.spaces.Discrete(cfg.num_actions)
-    if cfg.dynamics == "bicycle":
+    if cfg.dynamics == Dynamics.BICYCLE:
         hi = np.array([cfg.max_accel, cfg.max_curvature], np.float32)
     else:
         hi = np.array(cfg.delta_max, np.float32)
@@ -201,14 +200,9 @@ def single_observation_space(obs_dim: int) -> gymnasium.spaces.Box:
     return gymnasium.spaces.Box(-np.inf, np.inf, (obs_dim,), np.float32)
 
 
-def noop_index(cfg: EngineConfig) -> int:
-    """Grid index of zero acceleration and zero curvature."""
-    return (cfg.accel_bins // 2) * cfg.curvature_bins + cfg.curvature_bins // 2
-
-
 def render_world(sim: Simulator, world: int = 0, **kwargs) -> np.ndarray:
     """`tg_gpudrive.render.render_frame`, imported on first use."""
-    try:
+    try:  # matplotlib is an optional extra: import it only when a frame is asked for
         from tg_gpudrive.render import render_frame
     except ImportError as e:
         raise RuntimeError(f"rendering needs tg_gpudrive.render and its extras (pip install -e '.[render]'): {e}"
@@ -270,8 +264,6 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
 
     def _bar(self):
         """A tqdm bar over the scenes, then a note while the engine builds; shown after progress_delay_s."""
-        from tqdm import tqdm
-
         return tqdm(desc="TGVectorEnv: scenes", unit="world", delay=self.progress_delay_s, leave=False,
                     disable=not self.progress)
 
@@ -290,7 +282,7 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
         self.single_action_space = single_action_space(cfg)
         self.observation_space = batch_space(self.single_observation_space, N)
         self.action_space = batch_space(self.single_action_space, N)
-        self.discrete = cfg.action_space == "discrete"
+        self.discrete = cfg.discrete
         self.action_dim = 0 if self.discrete else self.single_action_space.shape[0]
         # views of the engine arrays, made once
         self._obs = sim.obs.view(N, sim.obs_dim)
@@ -321,7 +313,7 @@ class TGVectorEnv(gymnasium.vector.VectorEnv):
             self._terms_buf = torch.zeros((N, K), dtype=terms.dtype, device=dev)
             self._terms = {name: self._terms_buf[:, k] for k, name in enumerate(sim.reward_term_names)}
         if self.discrete:
-            self.noop_action = noop_index(cfg)
+            self.noop_action = cfg.noop_index
             self._action_view = sim.actions_index.view(N)
         else:
             self.noop_action = 0.0

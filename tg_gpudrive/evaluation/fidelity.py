@@ -163,6 +163,7 @@ def compare(logged: Trajectories, generated: Trajectories) -> dict:
 
 def plot_histograms(logged: Trajectories, generated: dict[str, Trajectories], path) -> None:
     """One panel per feature: the logged histogram and each generated set's, as probabilities."""
+    # matplotlib is the optional render extra: the metrics above work without it
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -38,18 +38,29 @@ import dataclasses
 import json
 import math
 import sys
+import textwrap
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
+from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+from tg_gpudrive.cli_help import HelpFormatter
+from tg_gpudrive.config import TrainConfig, from_dict
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
 from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts
+from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.policy import load_policy
+from tg_gpudrive.rollout import expert_policy
 
 FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "summary.json")
 
@@ -70,8 +81,6 @@ class ReportOptions:
 
 # ------------------------------------------------------------------ helpers
 def _run_config(run: Path):
-    from tg_gpudrive.config import TrainConfig, from_dict
-
     path = run / "config.json"
     if not path.exists():
         raise FileNotFoundError(f"{run}: no config.json (not a training run directory?)")
@@ -81,9 +90,6 @@ def _run_config(run: Path):
 def _run_files(run: Path):
     """(TrainConfig, checkpoint path) of a run: a run directory (config.json, checkpoint.pt), a checkpoint
     file or "shipped", the packaged policy (checkpoint.checkpoint_path; the config from the checkpoint)."""
-    from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
-    from tg_gpudrive.config import TrainConfig, from_dict
-
     if run.is_dir():
         ckpt = run / "checkpoint.pt"
         if not ckpt.exists():
@@ -99,9 +105,6 @@ def run_kind(cfg) -> str:
 
 
 def _scenes(cfg, n: int):
-    from tg_gpudrive.engine.control import control_masks
-    from tg_gpudrive.data.sources import resolve_scenes
-
     src = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
     scenes = [src.get(i) for i in range(min(n, len(src)))]
     return scenes, control_masks(scenes, cfg.env, cfg.control, cfg.control_k, cfg.control_ids)
@@ -109,8 +112,6 @@ def _scenes(cfg, n: int):
 
 def prior_policy(sim):
     """Sample every slot's action from the expert prior (learn/prior.py): "the behaviour prior alone"."""
-    from tg_gpudrive.learn.prior import ExpertPrior
-
     prior = ExpertPrior(sim)
 
     def policy(sim_):
@@ -124,11 +125,11 @@ def prior_policy(sim):
 def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.ndarray:
     """Last frame of world 0's episode under the run's policy (engine without auto-reset, so the
     final state is still there to draw; only that frame is drawn), also saved to `path`."""
+    # drawing needs the render extra (matplotlib, Pillow): imported when a report draws, so that the
+    # report's parser and its numbers do not need it
     from PIL import Image
 
-    from tg_gpudrive.learn.train import load_policy
     from tg_gpudrive.render import render_episode
-    from tg_gpudrive.engine.simulator import Simulator
 
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     torch.manual_seed(0)
@@ -139,8 +140,6 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.nda
 
 def _gap_game_sim(cfg, scenes, masks, device):
     """Worlds = each scene once per policy agent, so every agent deviates in one world."""
-    from tg_gpudrive.engine.simulator import Simulator
-
     k = max(1, max(int(m.sum()) for m in masks))
     return Simulator([s for s in scenes for _ in range(k)], cfg.env, device,
                      controlled=[m for m in masks for _ in range(k)])
@@ -175,6 +174,7 @@ def _tail_means(rows: list[dict], keys: Sequence[str], tail: int = 5) -> dict:
 
 
 def _fig():
+    # matplotlib (the render extra) only when a figure is drawn, as in _last_frame
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -191,8 +191,6 @@ MAX_FIG_W, MAX_FIG_H = 26.0, 20.0
 
 def _wrapped(text: str, width_in: float, fontsize: float) -> str:
     """`text` wrapped to lines that fit `width_in` inches at `fontsize` points (about 0.55 em a character)."""
-    import textwrap
-
     return "\n".join(textwrap.wrap(text, max(12, int(width_in * 72 / (0.55 * fontsize)))))
 
 
@@ -395,21 +393,14 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
 # --------------------------------------------------------------------- main
 def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOptions | None = None) -> dict:
     """Evaluate the runs and the baselines, write the report files (FILES) into `out`; return the summary."""
-    from tg_gpudrive.checkpoint import policy_engine_config
-    from tg_gpudrive.learn.train import load_policy
-    from tg_gpudrive.rollout import expert_policy
-    from tg_gpudrive.engine.simulator import Simulator, resolve_device
-
     opts = options or ReportOptions()
     runs = [Path(r) for r in runs]
     if not runs:
         raise ValueError("report: give at least one run directory")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    from tqdm import tqdm
-
     threads = torch.get_num_threads()
-    discrete = _run_files(runs[0])[0].env.action_space == "discrete"  # the behaviour-prior baseline needs it
+    discrete = _run_files(runs[0])[0].env.discrete  # the behaviour-prior baseline needs it
     bar = tqdm(total=len(runs) + 1 + discrete, desc="report", unit="policy", disable=not opts.progress)
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
 
@@ -478,8 +469,6 @@ def _json_default(o):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from tg_gpudrive.cli import HelpFormatter  # every option's help ends with its default
-
     p = argparse.ArgumentParser(prog="tg-gpudrive report", description=__doc__, formatter_class=HelpFormatter)
     d = ReportOptions()
     p.add_argument("--runs", nargs="+", required=True,

@@ -48,6 +48,8 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from tg_gpudrive.types import Dynamics
+
 NEAREST_CAP = 50.0  # m
 
 _PER_STEP = ("pos", "yaw", "vel", "speed", "accel", "curvature", "nearest", "valid", "acted", "collided",
@@ -164,7 +166,7 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
         if not live.any():
             break
     out["nearest"] = nearest_distance(out["pos"], out["valid"], NEAREST_CAP)
-    if sim.cfg.dynamics != "bicycle":  # delta-local actions are displacements: derive from the path instead
+    if sim.cfg.dynamics != Dynamics.BICYCLE:  # delta-local actions are displacements: derive from the path instead
         d = derive_controls(out["speed"], out["yaw"], out["pos"], out["valid"], sim.model.dt)
         out["accel"], out["curvature"] = d
     return Trajectories(

@@ -13,11 +13,15 @@ multicast setting (NCCL_NVLS_ENABLE) is left as the environment has it.
 from __future__ import annotations
 
 import contextlib
+import gc
 import os
 import socket
 
+import numpy as np
 import torch
 import torch.distributed as dist
+
+from tg_gpudrive.engine.simulator import cuda_available
 
 
 def is_dist() -> bool:
@@ -56,8 +60,6 @@ def _kind(device: str) -> str:
     """A config's device with "auto" made concrete: "cuda" when CUDA is usable, else "cpu"."""
     if device != "auto":
         return device
-    from tg_gpudrive.engine.simulator import cuda_available
-
     return "cuda" if cuda_available() else "cpu"
 
 
@@ -95,8 +97,6 @@ class ShardSource:
     SHUFFLE_SEED = 20_240_601
 
     def __init__(self, source, rank_: int, world: int):
-        import numpy as np
-
         self.source, self.rank, self.world = source, rank_, world
         self.name = f"{getattr(source, 'name', 'scenes')}[shard {rank_}/{world}]"
         order = np.random.default_rng(self.SHUFFLE_SEED).permutation(len(source))
@@ -122,8 +122,6 @@ def cleanup(together: bool = True) -> None:
     as SIGABRT, "terminate called without an active exception"). A rank leaving on an error
     passes together=False: its peers may never reach the barrier."""
     if is_dist():
-        import gc
-
         gc.collect()
         if together:
             dist.barrier()

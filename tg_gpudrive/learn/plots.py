@@ -43,6 +43,7 @@ PANELS = (
 
 
 def plot_curves(csv_path: str | Path, out: str | Path) -> Path:
+    # matplotlib is an optional extra, and pyplot (with its backend switch) only once a plot is drawn
     import matplotlib
 
     matplotlib.use("Agg")

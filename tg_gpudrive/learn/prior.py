@@ -1,11 +1,8 @@
-"""Behaviour priors: the "magnet" of CCE-MAPPO's magnetic mirror descent.
+"""The hand-made behaviour prior: the "magnet" of CCE-MAPPO built from the logs alone.
 
-A prior gives, for every controlled agent and step, a distribution over the
-engine's actions that stands for human driving. It works in two phases so the
-rollout buffer stays small: `context(sim)` returns a compact per-step tensor
-that the learner stores (here the logged expert action), and
-`distribution(context, obs)` rebuilds the distribution from it at update time:
-logits (..., num_actions) for discrete actions, (mean, log_std) for continuous.
+The interface (`context(sim)` -> a compact per-step tensor the learner stores,
+here the logged expert action; `distribution(context, obs)` -> logits or
+(mean, log_std) at update time) is `tg_gpudrive.policy.BehaviourPrior`.
 
 `ExpertPrior` centres the distribution on the inverse-dynamics expert action
 of the log at the current step (kernels/dynamics.py), so the magnet is real
@@ -15,7 +12,7 @@ log is pulled back towards it (a DAgger-style teacher); `closed_loop=False`
 uses the logged actions as they were computed along the log, which say
 nothing about how to recover from a drift. Where no expert action exists (the log is invalid at
 the next step) the prior is uniform (discrete) or wide (continuous). The
-learned world model plugs in by implementing the same two methods.
+learned world model (worldmodel.WorldModelPrior) implements the same two methods.
 """
 
 from __future__ import annotations
@@ -25,22 +22,8 @@ import math
 import torch
 
 from tg_gpudrive.engine.simulator import Simulator
-
-
-class BehaviourPrior:
-    def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
-        """Per-step data for the first `num_controlled` slots of every world: (W, C, ctx)."""
-        raise NotImplementedError
-
-    def distribution(self, context: torch.Tensor, obs: torch.Tensor):
-        raise NotImplementedError
-
-    def state_dict(self) -> dict:
-        """What an exact resume needs besides the simulator (a stateless prior: nothing)."""
-        return {}
-
-    def load_state_dict(self, sim: Simulator, state: dict) -> None:
-        pass
+from tg_gpudrive.policy import BehaviourPrior
+from tg_gpudrive.types import Dynamics
 
 
 class ExpertPrior(BehaviourPrior):
@@ -63,8 +46,9 @@ class ExpertPrior(BehaviourPrior):
         if not 0.0 <= floor < 1.0:
             raise ValueError(f"prior floor must lie in [0, 1), got {floor}")
         self.floor = floor
-        self.discrete = cfg.action_space == "discrete"
-        self.bicycle = cfg.dynamics == "bicycle"
+        self.discrete = cfg.discrete
+        self.bicycle = cfg.dynamics == Dynamics.BICYCLE
+        self.act_dim = cfg.act_dim
         dev = sim.reward.device
         if self.discrete:
             a = torch.linspace(-cfg.max_accel, cfg.max_accel, cfg.accel_bins, device=dev)
@@ -96,7 +80,7 @@ class ExpertPrior(BehaviourPrior):
                 logits = torch.logaddexp(torch.log_softmax(logits, -1) + math.log1p(-self.floor),
                                          torch.full_like(logits, math.log(self.floor / n)))
             return logits * valid  # invalid: all zeros = uniform
-        k = 2 if self.bicycle else 3
+        k = self.act_dim
         mean = act[..., :k]
         log_std = torch.log(self.sigma[:k]).expand_as(mean) + (1 - valid) * 3.0
         return mean, log_std

@@ -36,56 +36,28 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torch.nn.parallel import DistributedDataParallel as DDP
+from tqdm import tqdm
+
 from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
 from tg_gpudrive.config import TrainConfig, to_dict
+from tg_gpudrive.data.sampler import SceneSampler
+from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.networks import Actor, CentralCritic
-from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, windowed_rates
-from tg_gpudrive.learn.prior import BehaviourPrior, ExpertPrior
-from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, plot_curves, windowed_rates
+from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.policy import BehaviourPrior, PolicyHead, build_models
+from tg_gpudrive.policy import load_policy  # noqa: F401  (its old home: scripts and the README's layout name it here)
+from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
 log = logging.getLogger(__name__)
 
 
 class TrainingError(RuntimeError):
     pass
-
-
-# ---------------------------------------------------------------- policy I/O
-class PolicyHead:
-    """Sampling, log-probs, entropy and KLs for the engine's action space."""
-
-    def __init__(self, discrete: bool):
-        self.discrete = discrete
-
-    def dist(self, out):
-        # no argument validation: it reads values back from the GPU (a sync per call), and
-        # non-finite outputs are caught once per rollout / update with a clear message instead
-        if self.discrete:
-            return torch.distributions.Categorical(logits=out, validate_args=False)
-        mean, log_std = out
-        return torch.distributions.Independent(
-            torch.distributions.Normal(mean, log_std.exp(), validate_args=False), 1, validate_args=False)
-
-    def kl(self, out_p, out_q) -> torch.Tensor:
-        if self.discrete:
-            return L.categorical_kl(out_p, out_q)
-        if hasattr(out_q, "kl_from"):  # a prior without a closed form (worldmodel.mixture.LaplaceMixture)
-            return out_q.kl_from(out_p)
-        return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
-
-
-def build_models(cfg: TrainConfig, sim: Simulator, device: str):
-    e = cfg.env
-    discrete = e.action_space == "discrete"
-    act_dim = 2 if e.dynamics == "bicycle" else 3
-    scale = [e.max_accel, e.max_curvature] if e.dynamics == "bicycle" else list(e.delta_max)
-    actor = Actor(e.partner_k, e.road_k, discrete=discrete, num_actions=sim.num_actions, act_dim=act_dim,
-                  act_scale=scale, hidden=cfg.hidden, heads=cfg.heads).to(device)
-    critic = CentralCritic(e.partner_k, e.road_k, quantiles=cfg.quantiles, hidden=cfg.hidden).to(device)
-    return actor, critic
 
 
 def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
@@ -96,43 +68,9 @@ def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
     if cfg.eta1 <= 0:
         return BehaviourPrior()
     if cfg.prior == "world_model":
-        from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
-
         model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
         return WorldModelPrior(model, sim, top_component=cfg.prior_top_component)
     return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop, cfg.prior_floor)
-
-
-def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
-    """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
-
-    `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
-    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
-    ck = load_checkpoint(path, "checkpoint", map_location=sim.device)
-    from tg_gpudrive.config import from_dict
-
-    cfg = from_dict(TrainConfig, ck["config"], str(path))
-    e, s = cfg.env, sim.cfg
-    if (e.action_space, e.dynamics, e.partner_k, e.road_k) != (s.action_space, s.dynamics, s.partner_k, s.road_k):
-        raise ValueError(f"{path}: checkpoint expects action_space={e.action_space}, dynamics={e.dynamics}, "
-                         f"partner_k={e.partner_k}, road_k={e.road_k}; the simulator differs")
-    actor, _ = build_models(cfg, sim, sim.device)
-    actor.load_state_dict(ck["actor"])
-    actor.eval()
-    head = PolicyHead(e.action_space == "discrete")
-    slots = torch.arange(sim.max_agents, device=sim.device)
-
-    @torch.no_grad()
-    def policy(sim_: Simulator) -> None:
-        out = actor(sim_.obs, slots)
-        if head.discrete:
-            a = out.argmax(-1) if deterministic else head.dist(out).sample()
-            sim_.actions_index.copy_(a.to(torch.int32))
-        else:
-            a = out[0] if deterministic else head.dist(out).sample()
-            sim_.actions[..., : a.shape[-1]].copy_(a)
-
-    return policy
 
 
 @torch.no_grad()
@@ -174,9 +112,6 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
 class Trainer:
     def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                  progress: bool = True):
-        from tg_gpudrive.data.sampler import SceneSampler
-        from tg_gpudrive.data.sources import resolve_scenes
-
         self.cfg = cfg
         self.out = Path(out_dir or cfg.out_dir)
         self.rank, self.world = dist_util.rank(), dist_util.world_size()
@@ -207,14 +142,12 @@ class Trainer:
             self.critic.load_state_dict(ck["critic"])
         self.actor_fwd, self.critic_fwd = self.actor, self.critic
         if self.world > 1:
-            from torch.nn.parallel import DistributedDataParallel as DDP
-
             ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
             self.actor_fwd = DDP(self.actor, device_ids=ids)
             self.critic_fwd = DDP(self.critic, device_ids=ids)
-        self.head = PolicyHead(cfg.env.action_space == "discrete")
+        self.head = PolicyHead(cfg.env.discrete)
         e = cfg.env
-        self._noop = (e.accel_bins // 2) * e.curvature_bins + e.curvature_bins // 2  # zero accel and curvature
+        self._noop = e.noop_index
         self.prior = make_prior(cfg, self.sim)
         self.prior_logits = self.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
@@ -346,7 +279,7 @@ class Trainer:
             return self._buf
         cfg, sim, dev = self.cfg, self.sim, self.device
         self._buf = None  # drop the old storage before allocating the new one
-        act = (T, W, C) if self.head.discrete else (T, W, C, self._act_dim())
+        act = (T, W, C) if self.head.discrete else (T, W, C, self.cfg.env.act_dim)
         # under bf16 autocast the networks round their inputs to bf16 anyway: store them so
         obs_dtype = torch.bfloat16 if sim.is_cuda and cfg.amp else torch.float32
         buf = {
@@ -371,9 +304,6 @@ class Trainer:
         if self.cfg.eta1 <= 0:
             return 0
         return self.sim.num_actions if self.prior_logits else getattr(self.prior, "context_dim", 4)
-
-    def _act_dim(self) -> int:
-        return 2 if self.cfg.env.dynamics == "bicycle" else 3
 
     # --------------------------------------------------------------- update
     def learn(self, buf: dict) -> dict:
@@ -503,8 +433,6 @@ class Trainer:
         cfg = self.cfg
         bar = None
         if self.progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=cfg.updates, initial=self.update, desc="train", unit="update")
         last = {}
         while self.update < cfg.updates:
@@ -612,7 +540,8 @@ class Trainer:
         if not hasattr(self, "_tb"):
             self._tb = None
             try:
-                from torch.utils.tensorboard import SummaryWriter  # needs the tensorboard package
+                # optional (the tensorboard extra), and slow to import: only when a run logs
+                from torch.utils.tensorboard import SummaryWriter
             except ImportError:
                 return None
             self._tb = SummaryWriter(log_dir=str(self.out), purge_step=self.update or None)
@@ -622,8 +551,6 @@ class Trainer:
         """PNG of the training curves (metrics.csv -> curves.png)."""
         if not self.csv_path.exists():
             return None
-        from tg_gpudrive.learn.plots import plot_curves
-
         return plot_curves(self.csv_path, self.out / "curves.png")
 
     # -------------------------------------------------------- checkpoints

@@ -4,11 +4,17 @@
     trainer.prior = WorldModelPrior(load_shipped(sim), sim)
     driver = WorldModelDriver(load_shipped(sim))      # driver(sim) writes the background rows
 
-model.py holds the network (a discrete-grid or a mixture-of-Laplace head) and the
-history window, mixture.py the continuous head's distribution and its KL from a
-Gaussian policy, prior.py its uses and checkpoints, closed_loop.py the corrective
-labels of closed-loop (DAgger) fine-tuning, train.py `train_world_model` / `main`
-and the evaluation helpers.
+    model.py        the network (a discrete-grid or a mixture-of-Laplace head) and the history window
+    mixture.py      the continuous head's distribution and its KL from a Gaussian policy
+    prior.py        its uses (the magnet, the driver) and its checkpoints
+    data.py         teacher-forced samples of the logged expert
+    closed_loop.py  corrective labels of closed-loop (DAgger) fine-tuning
+    metrics.py      NLL and baselines, minADE / minFDE, closed-loop collision / off-road
+    train.py        `train_world_model`: fitting, DAgger rounds, logging, checkpoints
+    cli.py          `tg-gpudrive train-world-model`
+
+It depends on the engine and tg_gpudrive.policy (the BehaviourPrior interface), never on the
+learner (tg_gpudrive.learn), which imports it for the magnet.
 """
 
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture

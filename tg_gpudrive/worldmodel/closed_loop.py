@@ -26,16 +26,13 @@ check it). Off the log the feedback is gentle on purpose. The engine's
 closed-loop expert (kernels/dynamics.py `tracking_target` + `bicycle_inverse`,
 `sim.corrective_expert()`) reaches the wanted speed and heading in one step,
 with TRACK_GAIN_LONG 0.3 of the along-track error per 0.1 s step and an aim
-at the logged position at t+2; that is right on the log but dead-beat off it.
-Fine-tuning the shipped model on a torch copy of it raised the validation
-scenes' closed-loop collision rate from 0.05 to 0.51 and off-road from 0.08
-to 0.55 (the aim can lie behind an agent that got ahead of its log: a
-full-lock turn back); with its references projected on the path (as here)
-but still dead-beat, 77 % of the labels on the states the model visits were
-full braking or full throttle, and after one round its own roll-outs collided
-0.73 of the time. States whose log has no state at t or t+1, or fewer than
-two valid points, get no label. This module only collects samples; train.py
-aggregates them with the teacher-forced set and fits.
+at the logged position at t+2; that is right on the log but dead-beat off it
+(the aim can lie behind an agent that got ahead of its log: a full-lock turn
+back), and fine-tuning on its labels, or on dead-beat labels projected on the
+path, made the model's roll-outs collide far more (BENCHMARKS.md, "World
+model"). States whose log has no state at t or t+1, or fewer than two valid
+points, get no label. This module only collects samples; train.py aggregates
+them with the teacher-forced set and fits.
 """
 
 from __future__ import annotations
@@ -43,6 +40,11 @@ from __future__ import annotations
 import dataclasses
 
 import torch
+import warp as wp
+
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.worldmodel.data import full_horizon_env, truncate_obs
+from tg_gpudrive.worldmodel.prior import WorldModelDriver
 
 _MIN_ARC = 1.0e-3  # as kernels/dynamics.py: below this arc length curvature is undefined (0)
 _TIME_WEIGHT = 0.05  # m of projection cost per step between a segment and the current step
@@ -138,8 +140,6 @@ def corrective_from_log(pos, yaw, vel, step, log_pos, log_yaw, log_vel, log_vali
 
 def corrective_target(sim) -> CorrectiveTarget:
     """Corrective labels from `sim`'s current state (sim.pos / yaw / vel) and its Model's log."""
-    import warp as wp
-
     m = sim.model
     W, A, T = m.num_worlds, m.max_agents, m.num_steps
     tgt = corrective_from_log(sim.pos, sim.yaw, sim.vel, sim.world_step, wp.to_torch(m.log_pos).view(W, A, T, 2),
@@ -157,17 +157,11 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
     agents drive on through contacts and goals so every track lasts) and label each visited
     state of an active vehicle with its corrective target.
 
-    Returns (samples, stats): samples as train.collect (obs, hist, target: grid index or
+    Returns (samples, stats): samples as data.collect (obs, hist, target: grid index or
     (accel, curvature), layout); stats: mean distance (m) of the visited states from the log,
     and the share of vehicles that collided / went off-road during the roll-outs."""
-    import warp as wp
-
-    from tg_gpudrive.engine.simulator import Simulator
-    from tg_gpudrive.worldmodel.prior import WorldModelDriver
-    from tg_gpudrive.worldmodel.train import _eval_env, _truncate_obs
-
-    env = _eval_env(env)
-    continuous = env.action_space == "continuous"
+    env = full_horizon_env(env)
+    continuous = not env.discrete
     kp, krr = min(env.partner_k, max_partners), min(env.road_k, max_roads)
     out = {"obs": [], "hist": [], "target": []}
     dev_sum = dev_n = 0.0
@@ -181,7 +175,7 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
         W, A, T = sim.num_worlds, sim.max_agents, sim.model.num_steps
         log_pos = wp.to_torch(sim.model.log_pos).view(W, A, T, 2)
         log_valid = wp.to_torch(sim.model.log_valid).view(W, A, T) != 0
-        rows_all = sim.controlled != 0
+        rows_all = sim.integrated != 0
         coll = torch.zeros_like(rows_all)
         off = torch.zeros_like(rows_all)
         for _ in range(min(horizon, sim.episode_length)):
@@ -189,7 +183,7 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
             tgt = corrective_target(sim)
             rows = (sim.active != 0) & rows_all & tgt.valid
             w, a = rows.nonzero(as_tuple=True)
-            out["obs"].append(_truncate_obs(sim.obs[w, a], env.partner_k, env.road_k, kp, krr).cpu())
+            out["obs"].append(truncate_obs(sim.obs[w, a], env.partner_k, env.road_k, kp, krr).cpu())
             out["hist"].append(driver.history.features(sim)[w, a].cpu())
             out["target"].append((tgt.action[w, a] if continuous else tgt.index[w, a]).cpu())
             s = sim.world_step.long().view(W, 1, 1).expand(W, A, 1)

@@ -26,9 +26,8 @@ while pi sits under one component, and above the true KL when pi straddles
 several (which only pushes the policy towards one mode, as the reverse KL
 does anyway); it is deterministic, cheap (no samples) and differentiable in
 the policy's mean and log_std. It was preferred to a fixed-sample Monte Carlo
-estimate, which with 16 reparameterised draws was off by 0.5 nats when the
-policy is wider than the prior's components (0.89 against the exact 0.40 in
-test_gaussian_to_laplace_kl); `kl_from(g, samples=S)` still gives that
+estimate, which with few draws is far off when the policy is wider than the
+prior's components (BENCHMARKS.md, "World model"); `kl_from(g, samples=S)` still gives that
 estimate (antithetic standard-normal draws, seed 0, the same every call;
 x = mean + std * eps) for checks.
 

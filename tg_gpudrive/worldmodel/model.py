@@ -40,10 +40,12 @@ from __future__ import annotations
 import math
 
 import torch
+import warp as wp
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+from tg_gpudrive.types import ActionSpace, Dynamics
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 
 HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
@@ -66,7 +68,7 @@ _LOG_SCALE_MIN, _LOG_SCALE_MAX = -4.0, 1.0
 
 
 def require_bicycle(cfg) -> None:
-    if cfg.dynamics != "bicycle":
+    if cfg.dynamics != Dynamics.BICYCLE:
         raise NotImplementedError(
             "the world model predicts bicycle actions (accel, curvature) only; got dynamics="
             f"{cfg.dynamics} (action_space={cfg.action_space})")
@@ -113,18 +115,17 @@ class WorldModel(nn.Module):
 
     def __init__(self, *, num_actions: int = 91, hidden: int = 64, heads: int = 4, history: int = 10,
                  max_partners: int = 8, max_roads: int = 32, partner_k: int = 8, road_k: int = 32,
-                 action_space: str = "discrete", mixtures: int = 4, max_accel: float = 6.0,
+                 action_space: ActionSpace | str = ActionSpace.DISCRETE, mixtures: int = 4, max_accel: float = 6.0,
                  max_curvature: float = 0.3):
         super().__init__()
-        if action_space not in ("discrete", "continuous"):
-            raise ValueError(f"action_space: expected discrete or continuous, got {action_space!r}")
+        action_space = ActionSpace.parse(action_space, "action_space")
         self.hparams = dict(num_actions=num_actions, hidden=hidden, heads=heads, history=history,
                             max_partners=max_partners, max_roads=max_roads)
         self.action_space, self.mixtures = action_space, mixtures
-        if action_space == "continuous":  # discrete checkpoints keep their old hparams
+        if action_space == ActionSpace.CONTINUOUS:  # discrete checkpoints keep their old hparams
             if mixtures < 1:
                 raise ValueError(f"mixtures must be >= 1, got {mixtures}")
-            self.hparams.update(action_space=action_space, mixtures=mixtures, max_accel=max_accel,
+            self.hparams.update(action_space=str(action_space), mixtures=mixtures, max_accel=max_accel,
                                 max_curvature=max_curvature)
         self.register_buffer("action_scale", torch.tensor([max_accel, max_curvature]), persistent=False)
         self.num_actions, self.history = num_actions, history
@@ -144,12 +145,12 @@ class WorldModel(nn.Module):
         self.ca_map = _CrossAttention(d, heads)
         self.ca_agent = _CrossAttention(d, heads)
         self.self_attn = nn.TransformerEncoderLayer(d, heads, dim_feedforward=2 * d, dropout=0.0, batch_first=True)
-        out = num_actions if action_space == "discrete" else mixtures * 5  # logit, 2 locations, 2 log-scales
+        out = num_actions if action_space == ActionSpace.DISCRETE else mixtures * 5  # logit, 2 locations, 2 log-scales
         self.head = nn.Sequential(nn.Linear(4 * d, 2 * d), nn.ReLU(), nn.Linear(2 * d, out))
 
     @property
     def discrete(self) -> bool:
-        return self.action_space == "discrete"
+        return self.action_space == ActionSpace.DISCRETE
 
     @property
     def grad_scale(self) -> float:
@@ -225,8 +226,6 @@ class HistoryBuffer:
         self._last: torch.Tensor | None = None
 
     def _bind(self, sim) -> None:
-        import warp as wp
-
         m = sim.model
         W, A, T = m.num_worlds, m.max_agents, m.num_steps
         self._model = m

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import torch
 
-from tg_gpudrive.learn.prior import BehaviourPrior
+from tg_gpudrive.checkpoint import save_atomic
+from tg_gpudrive.policy import BehaviourPrior
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 from tg_gpudrive.worldmodel.model import HIST_DIM, HistoryBuffer, WorldModel, check_action_space
 
@@ -40,7 +41,7 @@ SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
 def grid_of(cfg) -> dict:
     """What a checkpoint must agree on with the simulator: the grid (discrete; the dict older
     checkpoints hold) or the action box (continuous)."""
-    if cfg.action_space == "continuous":
+    if not cfg.discrete:
         return {"action_space": "continuous", "max_accel": cfg.max_accel, "max_curvature": cfg.max_curvature}
     return {"accel_bins": cfg.accel_bins, "curvature_bins": cfg.curvature_bins, "max_accel": cfg.max_accel,
             "max_curvature": cfg.max_curvature}
@@ -48,8 +49,6 @@ def grid_of(cfg) -> dict:
 
 def save_world_model(model: WorldModel, path: str | Path, env_cfg, extra: dict | None = None) -> Path:
     """Weights + hyper-parameters + action grid; written atomically."""
-    from tg_gpudrive.checkpoint import save_atomic
-
     return save_atomic({"hparams": model.hparams, "grid": grid_of(env_cfg),
                         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
                         **(extra or {})}, path)
@@ -142,22 +141,8 @@ class WorldModelDriver:
 
     Why the continuous default is not 1: per-step draws are independent, so at T = 1 the
     curvature noise (and the occasional pick of a minor component) random-walks the heading over
-    an episode. Driving every background vehicle of the 12 validation scenes of small_cpu.yaml
-    (154 vehicles, one 9 s episode, `train.background_rates`) with the teacher-forced continuous
-    model, collision / off-road were (seed 0 / seed 1):
-
-        T = 1.0   0.36 / 0.40   0.49 / 0.47
-        T = 0.5   0.26 / 0.31   0.35 / 0.34
-        T = 0.3   0.25 / 0.30   0.23 / 0.22
-        T = 0.2   0.25 / 0.23   0.18 / 0.18
-        T = 0.1   0.21 / 0.23   0.16 / 0.14
-        greedy    0.23          0.14          (expert replay 0 / 0)
-
-    and on 24 other held-out procedural scenes (308 vehicles) T = 1: 0.35 / 0.49, T = 0.1: 0.15 /
-    0.17, greedy 0.12 / 0.16. Shrinking only the scales (logits untempered, scales x 0.2) gave
-    0.31 / 0.33, only the logits (T 0.2) 0.37 / 0.46: both matter. T = 0.1 keeps a little
-    diversity at greedy's rates; the remaining gap to the expert is the model's own drift
-    (greedy is no better), not sampling noise."""
+    an episode. Tempering both the logits and the scales is needed; T = 0.1 drives about as well
+    as greedy while keeping a little diversity (the sweep: BENCHMARKS.md, "World model")."""
 
     ROWS = ("background", "controlled", "policy")
     CONTINUOUS_TEMPERATURE = 0.1
@@ -186,7 +171,7 @@ class WorldModelDriver:
         if self.rows == "background":
             sel = sim.background != 0
         elif self.rows == "controlled":
-            sel = sim.controlled != 0
+            sel = sim.integrated != 0
         else:
             sel = sim.policy_agents
         sel = sel & (sim.present != 0)

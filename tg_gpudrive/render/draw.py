@@ -1,10 +1,7 @@
-"""Top-down pictures and videos of one world of a `Simulator` (matplotlib Agg, no display).
+"""Drawing: top-down pictures of one world of a `Simulator` (matplotlib Agg, no display).
 
     frame = render_frame(sim, world=0)                  # (H, W, 3) uint8 of the current state
-    rec = EpisodeRecorder(sim, world=0)                 # one figure reused for every frame
-    rec.capture()                                       # after reset and after each step
-    rec.save("episode.gif")                             # .gif, .mp4 or .png (last frame)
-    frames = render_episode(sim, policy, steps, out="episode.gif")
+    r = FrameRenderer(sim, world=0); r.draw(trails)     # one figure reused for many frames
 
 What is drawn: road edges (dark), lane centrelines (light, dashed), road lines,
 crosswalks and speed bumps (hatched polygons), driveways (faint polygons),
@@ -16,15 +13,12 @@ collided this episode outlined red, off-road orange; goals of controlled agents
 (star plus a thin line to the agent); trails of past positions.
 
 This module only reads the simulator's torch views (one world's host copy per
-frame) and its Model's scenes; it never writes engine state. It is for looking
-at single worlds (~0.1 s a frame), not for logging thousands of them.
+frame) and its Model's scenes; it never writes engine state, never steps the
+simulator and writes no files (record.py does). It is for looking at single
+worlds (~0.1 s a frame), not for logging thousands of them.
 """
 
 from __future__ import annotations
-
-import time
-from pathlib import Path
-from typing import Callable
 
 import numpy as np
 # Figure + the Agg canvas directly, never pyplot: no display, no global figure state, the user's backend untouched
@@ -66,15 +60,15 @@ SIGNAL_COLOUR = {  # TrafficLightState -> colour; UNKNOWN signals are not drawn
 
 HIGHLIGHT = ("controlled", "all", "none")  # whose collisions / off-road events get outlined
 DEFAULT_VIEW_RADIUS = 40.0  # m, half the shorter side of an agent-centred view
-_DPI = 100
+DPI = 100
 
 
-def _rgba(colour: str, alpha: float = 1.0) -> np.ndarray:
+def rgba(colour: str, alpha: float = 1.0) -> np.ndarray:
     return np.array(to_rgba(colour, alpha))
 
 
-def _darker(rgba: np.ndarray, f: float = 0.6) -> np.ndarray:
-    out = rgba.copy()
+def _darker(colour: np.ndarray, f: float = 0.6) -> np.ndarray:
+    out = colour.copy()
     out[..., :3] *= f
     return out
 
@@ -113,7 +107,8 @@ def _nice_length(span: float) -> float:
     return 1000.0
 
 
-def _np(t) -> np.ndarray:
+def as_numpy(t) -> np.ndarray:
+    """A host NumPy copy of a torch view."""
     return t.detach().cpu().numpy()
 
 
@@ -153,27 +148,27 @@ class FrameRenderer:
 
         # fixed per loaded batch: host copies once
         w = self.world
-        self.slot_valid = _np(sim.slot_valid[w]).astype(bool)
-        self.controlled = _np(sim.controlled[w]).astype(bool)
-        self.agent_type = _np(sim.agent_type[w]).astype(np.int64)
-        self.length = _np(sim.length[w]).astype(np.float64)
-        self.width = _np(sim.width[w]).astype(np.float64)
-        self.goal = _np(sim.goal[w]).astype(np.float64)
-        face = np.tile(_rgba(REPLAYED), (sim.max_agents, 1))
-        face[self.controlled] = _rgba(CONTROLLED)
+        self.slot_valid = as_numpy(sim.slot_valid[w]).astype(bool)
+        self.controlled = as_numpy(sim.integrated[w]).astype(bool)
+        self.agent_type = as_numpy(sim.agent_type[w]).astype(np.int64)
+        self.length = as_numpy(sim.length[w]).astype(np.float64)
+        self.width = as_numpy(sim.width[w]).astype(np.float64)
+        self.goal = as_numpy(sim.goal[w]).astype(np.float64)
+        face = np.tile(rgba(REPLAYED), (sim.max_agents, 1))
+        face[self.controlled] = rgba(CONTROLLED)
         for t, col in TYPE_COLOUR.items():
-            face[self.agent_type == t] = _rgba(col)
+            face[self.agent_type == t] = rgba(col)
         self.face = face
         self.edge = _darker(face)
         ctrl_other = self.controlled & (self.agent_type != int(AgentType.VEHICLE))
-        self.edge[ctrl_other] = _rgba(CONTROLLED)
+        self.edge[ctrl_other] = rgba(CONTROLLED)
 
-        self.fig = Figure(figsize=(w_px / _DPI, h_px / _DPI), dpi=_DPI, facecolor=BACKGROUND)
+        self.fig = Figure(figsize=(w_px / DPI, h_px / DPI), dpi=DPI, facecolor=BACKGROUND)
         self.canvas = FigureCanvasAgg(self.fig)
         self._legend_ncol = 6 if w_px >= 560 else 4
         self._legend_fs = 7.2 * max(self.scale, 0.8)
         rows = -(-12 // self._legend_ncol)  # 12 legend entries
-        strip = int(round(rows * self._legend_fs * _DPI / 72 * 1.5 + 8)) if legend else 0
+        strip = int(round(rows * self._legend_fs * DPI / 72 * 1.5 + 8)) if legend else 0
         self.ax = self.fig.add_axes((0, strip / h_px, 1, 1 - strip / h_px))
         self.ax.set_facecolor(BACKGROUND)
         self.ax.set_axis_off()
@@ -207,8 +202,8 @@ class FrameRenderer:
         valid = sc.log_valid[idx, init:]
         pts = [sc.log_pos[idx, init:][valid].reshape(-1, 2)]
         pts.append(self.goal[self.controlled & self.slot_valid])
-        present = _np(self.sim.present[w]).astype(bool)
-        pts.append(_np(self.sim.pos[w])[present])
+        present = as_numpy(self.sim.present[w]).astype(bool)
+        pts.append(as_numpy(self.sim.pos[w])[present])
         pts = np.concatenate([p.astype(np.float64).reshape(-1, 2) for p in pts])
         pts = pts[np.isfinite(pts).all(1)]
         if len(pts) == 0:
@@ -303,10 +298,10 @@ class FrameRenderer:
     def _add_legend(self, strip_frac: float) -> None:
         box = lambda face, edge, lw=0.6: Patch(facecolor=face, edgecolor=edge, linewidth=lw)  # noqa: E731
         handles = [
-            (box(CONTROLLED, _darker(_rgba(CONTROLLED))), "controlled"),
-            (box(REPLAYED, _darker(_rgba(REPLAYED))), "log replay"),
-            (box(PEDESTRIAN, _darker(_rgba(PEDESTRIAN))), "pedestrian"),
-            (box(CYCLIST, _darker(_rgba(CYCLIST))), "cyclist"),
+            (box(CONTROLLED, _darker(rgba(CONTROLLED))), "controlled"),
+            (box(REPLAYED, _darker(rgba(REPLAYED))), "log replay"),
+            (box(PEDESTRIAN, _darker(rgba(PEDESTRIAN))), "pedestrian"),
+            (box(CYCLIST, _darker(rgba(CYCLIST))), "cyclist"),
             (box("white", COLLIDED, 2.0), "collided"),
             (box("white", OFFROAD, 2.0), "off-road"),
             (Line2D([], [], color=GOAL, marker="*", markersize=8, linestyle=(0, (2, 2)), lw=0.8), "goal"),
@@ -324,11 +319,11 @@ class FrameRenderer:
     # --------------------------------------------------------------- frame
     def _update(self, trails: dict | None) -> None:
         sim, w, k = self.sim, self.world, self.scale
-        pos = _np(sim.pos[w]).astype(np.float64)
-        yaw = _np(sim.yaw[w]).astype(np.float64)
-        shown = _np(sim.present[w]).astype(bool) & ~_np(sim.removed[w]).astype(bool) & self.slot_valid
-        hit = (_np(sim.ep_collided[w]) != 0) | (_np(sim.collided[w]) != 0)
-        off = (_np(sim.ep_offroad[w]) != 0) | (_np(sim.offroad[w]) != 0)
+        pos = as_numpy(sim.pos[w]).astype(np.float64)
+        yaw = as_numpy(sim.yaw[w]).astype(np.float64)
+        shown = as_numpy(sim.present[w]).astype(bool) & ~as_numpy(sim.removed[w]).astype(bool) & self.slot_valid
+        hit = (as_numpy(sim.ep_collided[w]) != 0) | (as_numpy(sim.collided[w]) != 0)
+        off = (as_numpy(sim.ep_offroad[w]) != 0) | (as_numpy(sim.offroad[w]) != 0)
         marked = {"controlled": self.controlled, "all": self.slot_valid, "none": np.zeros_like(shown)}[self.highlight]
         step = int(sim.world_step[w])
 
@@ -343,8 +338,8 @@ class FrameRenderer:
         ids = ids[np.argsort(((hit | off) & marked)[ids], kind="stable")]
         edge, lw = self.edge[ids].copy(), np.full(len(ids), 0.6 * k)
         hl_off, hl_hit = (off & marked)[ids], (hit & marked)[ids]
-        edge[hl_off] = _rgba(OFFROAD)
-        edge[hl_hit] = _rgba(COLLIDED)  # a collision outranks off-road
+        edge[hl_off] = rgba(OFFROAD)
+        edge[hl_hit] = rgba(COLLIDED)  # a collision outranks off-road
         lw[hl_off | hl_hit] = 2.2 * max(k, 0.8)  # stays visible in small pictures
         self.boxes.set_verts(_box_corners(pos[ids], yaw[ids], self.length[ids], self.width[ids]))
         self.boxes.set_facecolors(self.face[ids])
@@ -389,7 +384,7 @@ class FrameRenderer:
             self.text.set_text(
                 f"{head}\nworld {w}  step {step:>2}  t={step * sc.dt:4.1f}s\n"
                 f"controlled {int(ctrl.sum())}: collided {int((hit & ctrl).sum())}  "
-                f"off-road {int((off & ctrl).sum())}  goal {int((_np(sim.ep_goal[w]) != 0)[ctrl].sum())}")
+                f"off-road {int((off & ctrl).sum())}  goal {int((as_numpy(sim.ep_goal[w]) != 0)[ctrl].sum())}")
 
     def draw(self, trails: dict | None = None) -> np.ndarray:
         """(H, W, 3) uint8 picture of the current state; `trails`: {agent slot: (k, 2) past positions}."""
@@ -412,7 +407,7 @@ class FrameRenderer:
         w_px, h_px = self.size
         if img.shape[:2] != (h_px, w_px):  # figure size rounding: pad / crop to the exact request
             out = np.empty((h_px, w_px, 3), np.uint8)
-            out[:] = np.array(_rgba(BACKGROUND)[:3] * 255, np.uint8)
+            out[:] = np.array(rgba(BACKGROUND)[:3] * 255, np.uint8)
             hh, ww = min(h_px, img.shape[0]), min(w_px, img.shape[1])
             out[:hh, :ww] = img[:hh, :ww]
             return out
@@ -445,204 +440,3 @@ def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640
         return r.draw(trails)
     finally:
         r.close()
-
-
-class EpisodeRecorder:
-    """Frames of one world: call `capture()` after `reset()` and after each `step()`.
-
-    Keeps a trail of past positions per agent (the last `trail_length` steps,
-    all when None); a new episode (auto-reset, or the world's step going back)
-    starts the trails afresh. With `auto_reset` on, the step that ends an
-    episode already shows the world after its reset (the engine keeps no final
-    positions): `render_episode` stops before that frame, or run the engine
-    with `auto_reset: false` to see the final state. `capture(draw=False)`
-    only extends the trails. `seconds` accumulates drawing time, so
-    `seconds_per_frame` is the cost of a frame.
-    """
-
-    def __init__(self, sim, world: int = 0, *, trail_length: int | None = None, **render_kw):
-        self.sim, self.world, self.render_kw = sim, int(world), render_kw
-        self.trail_length = trail_length
-        self.frames: list[np.ndarray] = []
-        self.trails: dict[int, list[np.ndarray]] = {}
-        self.seconds = 0.0
-        self._renderer: FrameRenderer | None = None
-        self._last_step = -1
-
-    @property
-    def renderer(self) -> FrameRenderer:
-        # a new batch of scenes (sim.set_scenes) invalidates the road layer and the per-agent colours
-        if self._renderer is None or self._renderer.model is not self.sim.model:
-            if self._renderer is not None:
-                self._renderer.close()
-            self._renderer = FrameRenderer(self.sim, self.world, **self.render_kw)
-            self.trails = {}
-        return self._renderer
-
-    def _record_positions(self) -> None:
-        sim, w = self.sim, self.world
-        step = int(sim.world_step[w])
-        if int(sim.world_reset[w]) != 0 or step < self._last_step:
-            self.trails = {}
-        self._last_step = step
-        shown = (_np(sim.present[w]) != 0) & (_np(sim.removed[w]) == 0) & (_np(sim.slot_valid[w]) != 0)
-        pos = _np(sim.pos[w])
-        for a in np.nonzero(shown)[0]:
-            tr = self.trails.setdefault(int(a), [])
-            tr.append(pos[a].astype(np.float64))
-            if self.trail_length is not None and len(tr) > self.trail_length:
-                del tr[: len(tr) - self.trail_length]
-
-    def capture(self, draw: bool = True) -> np.ndarray | None:
-        renderer = self.renderer
-        self._record_positions()
-        if not draw:
-            return None
-        t0 = time.perf_counter()
-        frame = renderer.draw({a: np.asarray(tr) for a, tr in self.trails.items()})
-        self.seconds += time.perf_counter() - t0
-        self.frames.append(frame)
-        return frame
-
-    @property
-    def seconds_per_frame(self) -> float:
-        return self.seconds / max(len(self.frames), 1)
-
-    def save(self, path: str | Path, fps: float = 10, frame: int = -1) -> Path:
-        """Write .gif / .mp4 (all frames) or .png (frame `frame`, default the last)."""
-        path = Path(path)
-        ext = path.suffix.lower()
-        if ext not in (".gif", ".mp4", ".png"):
-            raise ValueError(f"{path}: expected a .gif, .mp4 or .png file name")
-        if not self.frames:
-            if ext != ".png":
-                raise ValueError("nothing to save: no frames captured")
-            self.capture()  # a .png of the current state
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if ext == ".png":
-            from PIL import Image
-
-            Image.fromarray(self.frames[frame]).save(path)
-        elif ext == ".gif":
-            save_gif(self.frames, path, fps)
-        else:
-            save_mp4(self.frames, path, fps)
-        return path
-
-    def close(self) -> None:
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
-
-
-def save_gif(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> None:
-    """Looping GIF. Note: GIF writers merge consecutive identical frames (the step counter keeps ours distinct)."""
-    from PIL import Image
-
-    # one shared adaptive palette (no per-frame colour flicker, a smaller file), made from a few frames plus
-    # swatches of the key colours so that an outline appearing late in the episode keeps its colour
-    keys = np.array([_rgba(c)[:3] * 255 for c in (COLLIDED, OFFROAD, CONTROLLED, REPLAYED, PEDESTRIAN, CYCLIST,
-                                                   OTHER, STOP_SIGN, ROAD_EDGE, BACKGROUND)], np.uint8)
-    w = frames[0].shape[1]
-    swatch = np.repeat(np.repeat(keys[None], 8, 0), -(-w // len(keys)), 1)[:, :w]
-    sample = np.concatenate([frames[i][::2] for i in sorted({0, len(frames) // 2, len(frames) - 1})]
-                            + [swatch] * 40)
-    pal = Image.fromarray(sample).quantize(colors=255, method=Image.Quantize.MEDIANCUT)
-    ims = [Image.fromarray(f).quantize(palette=pal, dither=Image.Dither.NONE) for f in frames]
-    ims[0].save(path, save_all=True, append_images=ims[1:], duration=max(int(round(1000 / fps)), 20), loop=0)
-
-
-def mp4_backend() -> str | None:
-    """How .mp4 would be written: "imageio" (imageio-ffmpeg installed), "matplotlib" (ffmpeg on PATH) or None."""
-    try:
-        import imageio_ffmpeg  # noqa: F401
-
-        return "imageio"
-    except ImportError:
-        pass
-    from matplotlib import animation
-
-    return "matplotlib" if animation.writers.is_available("ffmpeg") else None
-
-
-def check_mp4() -> None:
-    """Raise a RuntimeError telling the user what to do when no .mp4 writer is available."""
-    if mp4_backend() is None:
-        raise RuntimeError("writing .mp4 needs ffmpeg (pip install imageio-ffmpeg, or put an ffmpeg on PATH); "
-                           "save a .gif instead")
-
-
-def save_mp4(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> None:
-    """H.264 MP4 through imageio's ffmpeg plugin, else matplotlib's FFMpegWriter (needs ffmpeg on PATH)."""
-    check_mp4()
-    h, w = frames[0].shape[:2]
-    if mp4_backend() == "imageio":
-        import imageio.v2 as iio
-
-        with iio.get_writer(path, fps=fps, codec="libx264", quality=7, macro_block_size=2,
-                            pixelformat="yuv420p") as wr:
-            for f in frames:
-                wr.append_data(f[: h - h % 2, : w - w % 2])  # yuv420p wants even sides
-        return
-    from matplotlib import animation
-
-    fig = Figure(figsize=(w / _DPI, h / _DPI), dpi=_DPI)
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes((0, 0, 1, 1))
-    ax.set_axis_off()
-    im = ax.imshow(frames[0], interpolation="none")
-    writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p"])
-    with writer.saving(fig, str(path), dpi=_DPI):
-        for f in frames:
-            im.set_data(f)
-            writer.grab_frame()
-
-
-def render_episode(sim, policy: Callable, steps: int | None = None, world: int = 0, out: str | Path | None = None,
-                   *, fps: float = 10, reset: bool = True, stop_at_end: bool = True, progress: bool = False,
-                   **kw) -> list[np.ndarray]:
-    """Reset `sim`, record world `world` under `policy(sim)` for `steps` steps; optionally save to `out`.
-
-    Returns the frames, the reset state first. `steps` defaults to one episode.
-    With `stop_at_end` (default) recording stops when the world's episode ends
-    (all its controlled agents done, or the log ran out): with the engine's
-    `auto_reset` on, the frame of that step would show the world reset, so it
-    is left out; with `auto_reset: false` the final state is the last frame.
-    Other keywords go to `EpisodeRecorder` / `render_frame`. For a .png `out`
-    without auto-reset only the last frame is drawn (and returned).
-    """
-    if out is not None and Path(out).suffix.lower() == ".mp4":
-        check_mp4()  # fail before the episode, not after it
-    if steps is None:
-        steps = sim.episode_length
-    if reset:
-        sim.reset()
-    rec = EpisodeRecorder(sim, world, **kw)
-    # a .png needs only the last frame; without auto-reset the final state stays to be drawn at the end
-    lazy = out is not None and Path(out).suffix.lower() == ".png" and not getattr(sim.cfg, "auto_reset", True)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=steps, desc="render", unit="step", leave=False)
-    try:
-        rec.capture(draw=not lazy)
-        for _ in range(steps):
-            policy(sim)
-            sim.step()
-            if bar is not None:
-                bar.update(1)
-            if stop_at_end and int(sim.world_reset[world]) != 0:
-                break
-            rec.capture(draw=not lazy)
-            if stop_at_end and int(sim.world_ended[world]) != 0:
-                break
-    finally:
-        if bar is not None:
-            bar.close()
-    if lazy:
-        rec.frames.append(rec.renderer.draw({a: np.asarray(tr) for a, tr in rec.trails.items()}))
-    if out is not None:
-        rec.save(out, fps=fps)
-    rec.close()
-    return rec.frames

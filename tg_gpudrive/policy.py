@@ -1,0 +1,120 @@
+"""What a trained policy is, for everyone who runs one: the behaviour-prior interface, the action
+distribution head, building the networks from a config and loading a policy from a checkpoint.
+
+    actor, critic = build_models(train_cfg, sim, device)     # the trainer's networks
+    head = PolicyHead(discrete=True)                         # sampling, log-probs, entropy, KLs
+    policy = load_policy("runs/small_cpu", sim)               # policy(sim) writes sim's actions
+
+It sits below the learner (learn.train), the world model and the evaluation, so that none of
+them reaches into another for these: it imports only the engine, the config, the checkpoint
+files and the learner's leaf modules (learn.networks, learn.losses: torch only). It must not
+import learn.train, worldmodel or evaluation.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from tg_gpudrive.checkpoint import load_checkpoint
+from tg_gpudrive.config import TrainConfig, from_dict
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.networks import Actor, CentralCritic
+from tg_gpudrive.types import Dynamics
+
+
+class BehaviourPrior:
+    """The "magnet" of CCE-MAPPO's magnetic mirror descent: for every controlled agent and step, a
+    distribution over the engine's actions that stands for human driving.
+
+    It works in two phases so the rollout buffer stays small: `context(sim)` returns a compact
+    per-step tensor that the learner stores, and `distribution(context, obs)` rebuilds the
+    distribution from it at update time: logits (..., num_actions) for discrete actions,
+    (mean, log_std) for continuous. Implementations: learn.prior.ExpertPrior (the logged expert)
+    and worldmodel.WorldModelPrior (the learned world model). The base class is also the
+    stateless prior of plain MAPPO, which is never asked."""
+
+    def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
+        """Per-step data for the first `num_controlled` slots of every world: (W, C, ctx)."""
+        raise NotImplementedError
+
+    def distribution(self, context: torch.Tensor, obs: torch.Tensor):
+        raise NotImplementedError
+
+    def state_dict(self) -> dict:
+        """What an exact resume needs besides the simulator (a stateless prior: nothing)."""
+        return {}
+
+    def load_state_dict(self, sim: Simulator, state: dict) -> None:
+        pass
+
+
+class PolicyHead:
+    """Sampling, log-probs, entropy and KLs for the engine's action space."""
+
+    def __init__(self, discrete: bool):
+        self.discrete = discrete
+
+    def dist(self, out):
+        # no argument validation: it reads values back from the GPU (a sync per call), and
+        # non-finite outputs are caught once per rollout / update with a clear message instead
+        if self.discrete:
+            return torch.distributions.Categorical(logits=out, validate_args=False)
+        mean, log_std = out
+        return torch.distributions.Independent(
+            torch.distributions.Normal(mean, log_std.exp(), validate_args=False), 1, validate_args=False)
+
+    def kl(self, out_p, out_q) -> torch.Tensor:
+        if self.discrete:
+            return L.categorical_kl(out_p, out_q)
+        if hasattr(out_q, "kl_from"):  # a prior without a closed form (worldmodel.mixture.LaplaceMixture)
+            return out_q.kl_from(out_p)
+        return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
+
+
+def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1) -> Actor:
+    """An actor for the engine config `env`'s action space (its grid of `num_actions`, or the
+    bicycle / delta-local action box), on the CPU."""
+    scale = [env.max_accel, env.max_curvature] if env.dynamics == Dynamics.BICYCLE else list(env.delta_max)
+    return Actor(env.partner_k, env.road_k, discrete=env.discrete, num_actions=num_actions,
+                 act_dim=env.act_dim, act_scale=scale, hidden=hidden, heads=heads)
+
+
+def build_models(cfg: TrainConfig, sim: Simulator, device: str):
+    """(actor, critic) of a CCE-MAPPO run with config `cfg`, laid out for `sim`, on `device`."""
+    e = cfg.env
+    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads).to(device)
+    critic = CentralCritic(e.partner_k, e.road_k, quantiles=cfg.quantiles, hidden=cfg.hidden).to(device)
+    return actor, critic
+
+
+def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
+    """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
+
+    `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
+    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
+    ck = load_checkpoint(path, "checkpoint", map_location=sim.device)
+    cfg = from_dict(TrainConfig, ck["config"], str(path))
+    e, s = cfg.env, sim.cfg
+    if (e.action_space, e.dynamics, e.partner_k, e.road_k) != (s.action_space, s.dynamics, s.partner_k, s.road_k):
+        raise ValueError(f"{path}: checkpoint expects action_space={e.action_space}, dynamics={e.dynamics}, "
+                         f"partner_k={e.partner_k}, road_k={e.road_k}; the simulator differs")
+    actor, _ = build_models(cfg, sim, sim.device)
+    actor.load_state_dict(ck["actor"])
+    actor.eval()
+    head = PolicyHead(e.discrete)
+    slots = torch.arange(sim.max_agents, device=sim.device)
+
+    @torch.no_grad()
+    def policy(sim_: Simulator) -> None:
+        out = actor(sim_.obs, slots)
+        if head.discrete:
+            a = out.argmax(-1) if deterministic else head.dist(out).sample()
+            sim_.actions_index.copy_(a.to(torch.int32))
+        else:
+            a = out[0] if deterministic else head.dist(out).sample()
+            sim_.actions[..., : a.shape[-1]].copy_(a)
+
+    return policy
