@@ -8,15 +8,15 @@ first; road rows are the nearest road segments (by midpoint) within
 bounded max-heap, so the work per agent grows with the road density around
 it, not with the map size.
 
-Layout constants below are the single source of truth for the learner and the
-envs (tg_gpudrive.obs_layout reads them).
+Layout constants below are the single source of truth for the observation's
+shape: engine/model.py (obs_dim), engine/simulator.py (the views), learn/networks.py
+and the world model (worldmodel/model.py, worldmodel/data.py) import them.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from tg_gpudrive.kernels.road import cell_range, road_grid_inputs
 
 # ego: speed, length, width, goal x, goal y, collided (episode), offroad (episode),
 #      lane distance, road-edge distance, time left (s)
@@ -166,105 +166,180 @@ def heap_sift_down(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: i
     return 0
 
 
+@wp.func
+def heap_push(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, n: int, d: float, j: int):
+    """Append (d, j) to the max-heap hd[b : b + n] and sift it up."""
+    hc = n
+    hd[b + hc] = d
+    hj[b + hc] = j
+    while hc > 0:
+        par = (hc - 1) / 2
+        if hd[b + par] >= hd[b + hc]:
+            break
+        heap_swap(hd, hj, b + par, b + hc)
+        hc = par
+    return 0
+
+
+@wp.func
+def rect_dist2(p: wp.vec2, lo: wp.vec2, size: float):
+    """Squared distance from p to the square [lo, lo + size]^2."""
+    dx = wp.max(wp.max(lo[0] - p[0], p[0] - (lo[0] + size)), 0.0)
+    dy = wp.max(wp.max(lo[1] - p[1], p[1] - (lo[1] + size)), 0.0)
+    return dx * dx + dy * dy
+
+
 @wp.kernel
-def road_obs_kernel(
+def road_select_kernel(
     agents_per_world: int,
     road_k: int,
     road_radius: float,
-    road_col: int,  # first column of the road block
     # model
     integrated: wp.array(dtype=wp.int32),
     seg_a: wp.array(dtype=wp.vec2),
     seg_b: wp.array(dtype=wp.vec2),
-    seg_type: wp.array(dtype=wp.int32),
     grid_origin: wp.array(dtype=wp.vec2),
     grid_nx: wp.array(dtype=wp.int32),
     grid_ny: wp.array(dtype=wp.int32),
     grid_cell_offset: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
-    cell_items: wp.array(dtype=wp.int32),
     cell_size: float,
-    seg_pad: float,
     # state
     pos: wp.array(dtype=wp.vec2),
-    yaw: wp.array(dtype=float),
-    # scratch
-    heap_d: wp.array(dtype=float),  # (world * agent * road_k,)
+    # out: the road_k nearest segment midpoints within road_radius, nearest first
+    heap_d: wp.array(dtype=float),  # (slot * road_k,) m^2
     heap_j: wp.array(dtype=wp.int32),
-    # out
-    obs_out: wp.array2d(dtype=float),
+    road_n: wp.array(dtype=wp.int32),
 ):
+    """Nearest road segments of one agent by midpoint distance. Segments are binned in the grid by
+    midpoint, so a cell can hold a midpoint within the radius only if the cell itself is that close.
+    Cells are visited in square rings around the agent's cell; ring q lies at least
+    (q - 1) * cell + (the agent's distance to its own cell's border) away, so once road_k
+    candidates are held and a ring starts beyond the farthest of them, no later cell can improve
+    the set and the search stops. The heap's root (the farthest held) stays in a register."""
     i = wp.tid()
+    road_n[i] = 0
     if integrated[i] == 0:
         return
     w = i / agents_per_world
+    nx = grid_nx[w]
+    ny = grid_ny[w]
+    if nx == 0:
+        return
     p = pos[i]
     b = i * road_k
     n = int(0)
-    nx = grid_nx[w]
-    ny = grid_ny[w]
     r2 = road_radius * road_radius
-    if nx > 0:
-        o = grid_origin[w]
-        r = road_radius + seg_pad
-        x0, x1 = cell_range(p[0] - r, p[0] + r, o[0], cell_size, nx)
-        y0, y1 = cell_range(p[1] - r, p[1] + r, o[1], cell_size, ny)
-        for gy in range(y0, y1 + 1):
-            for gx in range(x0, x1 + 1):
-                g = grid_cell_offset[w] + gy * nx + gx
-                for si in range(cell_start[g], cell_start[g + 1]):
-                    k = cell_items[si]
-                    m = 0.5 * (seg_a[k] + seg_b[k]) - p
-                    d2 = wp.dot(m, m)
-                    if d2 >= r2:
-                        continue
-                    if n < road_k:
-                        # push and sift up
-                        hc = n
-                        heap_d[b + hc] = d2
-                        heap_j[b + hc] = k
-                        while hc > 0:
-                            par = (hc - 1) / 2
-                            if heap_d[b + par] >= heap_d[b + hc]:
-                                break
-                            heap_swap(heap_d, heap_j, b + par, b + hc)
-                            hc = par
-                        n = n + 1
-                    elif d2 < heap_d[b]:
-                        heap_d[b] = d2
-                        heap_j[b] = k
-                        heap_sift_down(heap_d, heap_j, b, 0, n)
+    bound = r2  # candidates must lie strictly closer than this (the root once road_k are held)
+    o = grid_origin[w]
+    fx = (p[0] - o[0]) / cell_size
+    fy = (p[1] - o[1]) / cell_size
+    cx = int(wp.floor(fx))
+    cy = int(wp.floor(fy))
+    ux = (fx - float(cx)) * cell_size
+    uy = (fy - float(cy)) * cell_size
+    border = wp.min(wp.min(ux, cell_size - ux), wp.min(uy, cell_size - uy))
+    # rings beyond the radius cannot hold a midpoint closer than it
+    q_max = int(road_radius / cell_size) + 2
+    # an agent outside the grid: skip the empty rings between it and the grid
+    q0 = wp.max(wp.max(wp.max(-cx - 1, cx - nx), wp.max(-cy - 1, cy - ny)), 0)
+    for q in range(q0, q_max + 1):
+        if q > 0:
+            lb = float(q - 1) * cell_size + border
+            if lb > 0.0 and lb * lb >= bound:
+                break
+        m = wp.max(8 * q, 1)
+        for t in range(m):
+            gx = cx
+            gy = cy
+            if q > 0:
+                side = t / (2 * q)
+                j = t - side * 2 * q
+                if side == 0:
+                    gx = cx - q + j
+                    gy = cy - q
+                elif side == 1:
+                    gx = cx + q
+                    gy = cy - q + j
+                elif side == 2:
+                    gx = cx + q - j
+                    gy = cy + q
+                else:
+                    gx = cx - q
+                    gy = cy + q - j
+            if gx < 0 or gx >= nx or gy < 0 or gy >= ny:
+                continue
+            lo = wp.vec2(o[0] + float(gx) * cell_size, o[1] + float(gy) * cell_size)
+            if rect_dist2(p, lo, cell_size) >= bound:
+                continue
+            g = grid_cell_offset[w] + gy * nx + gx
+            for k in range(cell_start[g], cell_start[g + 1]):
+                mid = 0.5 * (seg_a[k] + seg_b[k]) - p
+                d2 = wp.dot(mid, mid)
+                if d2 >= bound:
+                    continue
+                if n < road_k:
+                    heap_push(heap_d, heap_j, b, n, d2, k)
+                    n = n + 1
+                    if n == road_k:
+                        bound = heap_d[b]
+                else:
+                    heap_d[b] = d2
+                    heap_j[b] = k
+                    heap_sift_down(heap_d, heap_j, b, 0, n)
+                    bound = heap_d[b]
     # heap sort: ascending distance, so row 0 is the nearest segment
     e = n
     while e > 1:
         e = e - 1
         heap_swap(heap_d, heap_j, b, b + e)
         heap_sift_down(heap_d, heap_j, b, 0, e)
+    road_n[i] = n
+
+
+@wp.kernel
+def road_rows_kernel(
+    road_k: int,
+    road_col: int,  # first column of the road block
+    integrated: wp.array(dtype=wp.int32),
+    seg_a: wp.array(dtype=wp.vec2),
+    seg_b: wp.array(dtype=wp.vec2),
+    seg_type: wp.array(dtype=wp.int32),
+    pos: wp.array(dtype=wp.vec2),
+    yaw: wp.array(dtype=float),
+    heap_j: wp.array(dtype=wp.int32),
+    road_n: wp.array(dtype=wp.int32),
+    obs_out: wp.array2d(dtype=float),
+):
+    """Row k of agent i's road block (one thread each, so a warp writes contiguous memory)."""
+    tid = wp.tid()
+    i = tid / road_k
+    k = tid - i * road_k
+    if integrated[i] == 0:
+        return
+    col = road_col + k * ROAD_DIM
+    if k >= road_n[i]:
+        for f in range(ROAD_DIM):
+            obs_out[i, col + f] = 0.0
+        return
     c = wp.cos(yaw[i])
     s = wp.sin(yaw[i])
-    col = road_col
-    for k in range(road_k):
-        if k < n:
-            sg = heap_j[b + k]
-            d = seg_b[sg] - seg_a[sg]
-            seg_len = wp.length(d)
-            dir = to_local(d, c, s)
-            if seg_len > 0.0:
-                dir = dir / seg_len
-            else:
-                dir = wp.vec2(1.0, 0.0)
-            m = to_local(0.5 * (seg_a[sg] + seg_b[sg]) - p, c, s)
-            obs_out[i, col + 0] = 1.0
-            obs_out[i, col + 1] = m[0]
-            obs_out[i, col + 2] = m[1]
-            obs_out[i, col + 3] = dir[0]
-            obs_out[i, col + 4] = dir[1]
-            obs_out[i, col + 5] = seg_len
-            obs_out[i, col + 6] = float(seg_type[sg])
-        else:
-            for f in range(ROAD_DIM):
-                obs_out[i, col + f] = 0.0
-        col += ROAD_DIM
+    sg = heap_j[tid]
+    d = seg_b[sg] - seg_a[sg]
+    seg_len = wp.length(d)
+    dir = to_local(d, c, s)
+    if seg_len > 0.0:
+        dir = dir / seg_len
+    else:
+        dir = wp.vec2(1.0, 0.0)
+    m = to_local(0.5 * (seg_a[sg] + seg_b[sg]) - pos[i], c, s)
+    obs_out[i, col + 0] = 1.0
+    obs_out[i, col + 1] = m[0]
+    obs_out[i, col + 2] = m[1]
+    obs_out[i, col + 3] = dir[0]
+    obs_out[i, col + 4] = dir[1]
+    obs_out[i, col + 5] = seg_len
+    obs_out[i, col + 6] = float(seg_type[sg])
 
 
 def launch_observations(model, state, control) -> None:
@@ -277,8 +352,12 @@ def launch_observations(model, state, control) -> None:
                       state.lane_dist, state.edge_dist, state.part_d, state.part_j],
               outputs=[state.obs, state.active])
     if model.road_k > 0:
-        wp.launch(road_obs_kernel, dim=n, device=dev,
-                  inputs=[model.max_agents, model.road_k, model.road_radius, EGO_DIM + model.partner_k * PARTNER_DIM,
-                          model.integrated, *road_grid_inputs(model), state.pos, state.yaw,
-                          state.heap_d, state.heap_j],
+        wp.launch(road_select_kernel, dim=n, device=dev,
+                  inputs=[model.max_agents, model.road_k, model.road_radius, model.integrated, model.seg_a,
+                          model.seg_b, model.grid_origin, model.grid_nx, model.grid_ny, model.grid_cell_offset,
+                          model.cell_start, model.road_cell_size, state.pos],
+                  outputs=[state.heap_d, state.heap_j, state.road_n])
+        wp.launch(road_rows_kernel, dim=n * model.road_k, device=dev,
+                  inputs=[model.road_k, EGO_DIM + model.partner_k * PARTNER_DIM, model.integrated, model.seg_a,
+                          model.seg_b, model.seg_type, state.pos, state.yaw, state.heap_j, state.road_n],
                   outputs=[state.obs])

@@ -87,8 +87,7 @@ def road_query_kernel(
     grid_nx: wp.array(dtype=wp.int32),
     grid_ny: wp.array(dtype=wp.int32),
     grid_cell_offset: wp.array(dtype=wp.int32),  # (world,)
-    cell_start: wp.array(dtype=wp.int32),  # (cells + 1,)
-    cell_items: wp.array(dtype=wp.int32),  # segment index
+    cell_start: wp.array(dtype=wp.int32),  # (cells + 1,) segments of cell g: [cell_start[g], cell_start[g + 1])
     cell_size: float,
     seg_pad: float,  # m, half the longest segment
     search_radius: float,  # m, cap of the reported distances
@@ -129,11 +128,10 @@ def road_query_kernel(
     edge_d = search_radius
     lane_d = search_radius
     off = int(0)
-    for gx in range(x0, x1 + 1):
-        for gy in range(y0, y1 + 1):
+    for gy in range(y0, y1 + 1):
+        for gx in range(x0, x1 + 1):
             g = grid_cell_offset[w] + gy * nx + gx
-            for s in range(cell_start[g], cell_start[g + 1]):
-                k = cell_items[s]
+            for k in range(cell_start[g], cell_start[g + 1]):
                 t = seg_type[k]
                 if t == ROAD_EDGE:
                     d = point_segment_distance(p, seg_a[k], seg_b[k])
@@ -151,7 +149,7 @@ def road_query_kernel(
 
 def road_grid_inputs(model) -> list:
     return [model.seg_a, model.seg_b, model.seg_type, model.grid_origin, model.grid_nx, model.grid_ny,
-            model.grid_cell_offset, model.cell_start, model.cell_items, model.road_cell_size, model.seg_pad]
+            model.grid_cell_offset, model.cell_start, model.road_cell_size, model.seg_pad]
 
 
 def launch_road_query(model, state, control, only_reset_worlds: bool = False) -> None:

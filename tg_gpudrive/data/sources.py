@@ -6,6 +6,8 @@ specs (`SPEC_FORMS`):
 
     procedural:<type>      one generator type, scene i = generate_scene(type, seed + i)
     procedural:all         all six types, scene i = generate_scene(type i % 6, seed + i)
+    procedural:dense       WOMD-size benchmark scenes, scene i = dense_scene(seed + i): 64-128 agents,
+                           20-40 k road points (tiles of all six types, data/procedural/dense.py)
     <dir with manifest>    a packed store (`store.open_store`)
     <file>.json            one GPUDrive processed WOMD JSON
     <file> *tfrecord*      one raw WOMD TFRecord (all its scenes, read at resolve time)
@@ -15,7 +17,7 @@ specs (`SPEC_FORMS`):
 
 File sources are for quick looks: each JSON is parsed on first use (a small LRU
 cache keeps recent ones); pack large sets with `store.convert` for training.
-Loaders and the generator are imported lazily so this module imports alone.
+Opening a source validates what it can cheaply (a directory's scenes are checked when it opens).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
+from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store, load_file, open_store
 from tg_gpudrive.scene import Scene
 
@@ -126,7 +129,7 @@ class ProceduralSource(SceneSource):
         i = self._check(i)
         cache = self.__dict__.setdefault("_cache", OrderedDict())
         if i not in cache:
-            cache[i] = generate_scene(*self._args(i))
+            cache[i] = _generate(self._args(i))
             if len(cache) > self.cache_size:
                 cache.popitem(last=False)
         return cache[i]
@@ -147,7 +150,8 @@ class ProceduralSource(SceneSource):
 
 
 def _generate(args: tuple) -> Scene:
-    return generate_scene(*args)
+    kind, seed, params = args
+    return dense_scene(seed) if kind == "dense" else generate_scene(kind, seed, params)
 
 
 class StoreSource(SceneSource):
@@ -491,12 +495,15 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
         return _resolve_mix(spec, spec[4:], n, seed)
     if spec.lower().startswith("procedural:"):
         kind = spec.split(":", 1)[1].strip().lower()
+        if kind == "dense":  # WOMD-size benchmark scenes (data/procedural/dense.py), not a paper type
+            return ProceduralSource(["dense"], DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed,
+                                    name="procedural:dense")
         if kind == "all":
             types = list(SCENARIO_TYPES)
         elif kind in SCENARIO_TYPES:
             types = [kind]
         else:
-            raise _spec_error(spec, f"unknown scenario type {kind!r} (types: {', '.join(SCENARIO_TYPES)})")
+            raise _spec_error(spec, f"unknown scenario type {kind!r} (types: {', '.join(SCENARIO_TYPES)}, all, dense)")
         return ProceduralSource(types, DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed,
                                 name=f"procedural:{kind}")
 

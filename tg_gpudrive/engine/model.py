@@ -27,14 +27,14 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     nearest_cap         (W,)            f32     m, cap of State.nearest (and so of ep_min_dist, mean_min_distance):
                                                 the broad phase sees one cell around an agent, so this is the
                                                 cell size; the cost (nearest < beta) is exact as it is >= beta
-    seg_a, seg_b        (S,)            vec2    m, road segment end points
+    seg_a, seg_b        (S,)            vec2    m, road segment end points; a world's segments are stored
+                                                in the order of its grid cells, so a cell's are contiguous
     seg_type            (S,)            int32   RoadType
     world_seg_offset    (W+1,)          int64   (host) segments of world w
     grid_origin         (W,)            vec2    m, road grid corner
     grid_nx, grid_ny    (W,)            int32   road grid size in cells
     grid_cell_offset    (W,)            int32   first cell of world w
-    cell_start          (C+1,)          int32   CSR of segments per cell
-    cell_items          (S,)            int32   segment index
+    cell_start          (C+1,)          int32   segments [cell_start[g], cell_start[g+1]) lie in cell g
     reward_weights      (NUM_TERMS,)    f32     weights of REWARD_TERMS
 
     scalar              meaning
@@ -124,7 +124,8 @@ def scene_segments(scene: Scene, max_len: float) -> tuple[np.ndarray, np.ndarray
 
 
 def build_road_grid(mid: np.ndarray, cell: float) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
-    """Uniform grid over segment midpoints: origin, nx, ny, cell_start (nx*ny+1), items (S)."""
+    """Uniform grid over segment midpoints: origin, nx, ny, cell_start (nx*ny+1) and `order` (S), the
+    segments sorted by cell (row-major), which the Model stores them in."""
     if len(mid) == 0:
         return np.zeros(2, np.float32), 0, 0, np.zeros(1, np.int32), np.zeros(0, np.int32)
     lo = mid.min(0) - 1e-3
@@ -178,7 +179,7 @@ class Model:
         seg_a, seg_b, seg_t, seg_off = [], [], [], [0]
         grid_origin = np.zeros((W, 2), np.float32)
         grid_nx, grid_ny, grid_off = np.zeros(W, np.int32), np.zeros(W, np.int32), np.zeros(W, np.int32)
-        cell_start, cell_items, n_cells, n_seg = [], [], 0, 0
+        cell_start, n_cells, n_seg = [], 0, 0
         for w, sc in enumerate(scenes):
             if abs(sc.dt - self.dt) > 1e-9:
                 raise SceneError(sc.scene_id, "dt", f"all scenes of a batch need one dt; {sc.dt} != {self.dt}")
@@ -218,11 +219,10 @@ class Model:
             assert cell[w] >= self.beta, "broad-phase cell smaller than beta: the distance cost would miss partners"
 
             a, b, ty = scene_segments(sc, cfg.max_segment_length)
-            origin, nx, ny, start, items = build_road_grid(0.5 * (a + b), self.road_cell_size)
-            seg_a.append(a), seg_b.append(b), seg_t.append(ty)
+            origin, nx, ny, start, order = build_road_grid(0.5 * (a + b), self.road_cell_size)
+            seg_a.append(a[order]), seg_b.append(b[order]), seg_t.append(ty[order])
             grid_origin[w], grid_nx[w], grid_ny[w], grid_off[w] = origin, nx, ny, n_cells
             cell_start.append(start[:-1] + n_seg)
-            cell_items.append(items + n_seg)
             n_cells += nx * ny
             n_seg += len(a)
             seg_off.append(n_seg)
@@ -264,8 +264,6 @@ class Model:
         self.grid_ny = wp.array(grid_ny, dtype=wp.int32, device=dev)
         self.grid_cell_offset = wp.array(grid_off, dtype=wp.int32, device=dev)
         self.cell_start = wp.array(np.concatenate(cell_start).astype(np.int32), dtype=wp.int32, device=dev)
-        self.cell_items = wp.array(np.concatenate(cell_items).astype(np.int32) if n_seg else np.zeros(1, np.int32),
-                                   dtype=wp.int32, device=dev)
         r = cfg.reward
         self.reward_weights = wp.array(np.array([getattr(r, k) for k in REWARD_TERMS], np.float32),
                                        dtype=float, device=dev)
@@ -423,8 +421,9 @@ class State(StepState[wp.array]):
     grid_items: wp.array = array_field(SLOT, wp.int32, "agents sorted by cell (order from atomics)")
     part_d: wp.array = array_field(Dims.PARTNERS, wp.float32, "m^2, nearest partners, sorted")
     part_j: wp.array = array_field(Dims.PARTNERS, wp.int32, "their slots")
-    heap_d: wp.array = array_field(Dims.ROADS, wp.float32, "m, nearest road segments, a max-heap")
+    heap_d: wp.array = array_field(Dims.ROADS, wp.float32, "m^2, nearest road segments: a max-heap, then sorted")
     heap_j: wp.array = array_field(Dims.ROADS, wp.int32, "their segment indices")
+    road_n: wp.array = array_field(SLOT, wp.int32, "road rows found (<= road_k)")
 
     @classmethod
     def allocate(cls, model: Model) -> State:
