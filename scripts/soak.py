@@ -29,6 +29,16 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 
 MODES = ("ignore", "stop", "remove")
+ACTION_BLOCK = 1000  # steps of random actions drawn at once: the loop stays one copy and one step per step
+
+
+def random_actions(sim: Simulator, gen: torch.Generator, bad_share: float) -> torch.Tensor:
+    """(ACTION_BLOCK, W, A) random grid indices on the engine's device, `bad_share` of them out of range."""
+    dev = sim.actions_index.device
+    shape = (ACTION_BLOCK, *sim.actions_index.shape)
+    a = torch.randint(0, sim.num_actions, shape, generator=gen, dtype=torch.int32, device=dev)
+    a[torch.rand(shape, generator=gen, device=dev) < bad_share] = sim.num_actions + 7
+    return a
 
 
 def host_rss_mb() -> float:
@@ -70,7 +80,7 @@ def main(argv=None) -> int:
     base = EngineConfig(max_agents=32, partner_k=8, road_k=32)
     reset_every = max(1, args.steps // max(args.resets, 1))
     gen = None  # made on the engine's device once it exists: drawing actions there keeps the host out of the loop
-    sim = None
+    sim = block = None
     mode_i = -1
     start = None
     resets = bad_total = 0
@@ -94,10 +104,9 @@ def main(argv=None) -> int:
         if step % reset_every == 0:
             sim.reset()
             resets += 1
-        dev = sim.actions_index.device
-        a = torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen, dtype=torch.int32, device=dev)
-        a[torch.rand(a.shape, generator=gen, device=dev) < args.bad_share] = sim.num_actions + 7  # out of range
-        sim.actions_index.copy_(a)
+        if step % ACTION_BLOCK == 0 or block is None or block.shape[1:] != sim.actions_index.shape:
+            block = random_actions(sim, gen, args.bad_share)
+        sim.actions_index.copy_(block[step % ACTION_BLOCK])
         sim.step()
         steps_done += 1
         bar.update(1)

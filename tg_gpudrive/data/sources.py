@@ -75,6 +75,19 @@ class SceneSource:
     def __getitem__(self, i: int) -> Scene:
         return self.get(i)
 
+    # scenes kept by `_cached` (the oldest dropped first)
+    cache_size = 20_000
+
+    def _cached(self, i: int, make: Callable[[int], Scene]) -> Scene:
+        """Scene i from the source's cache, made by `make(i)` when missing. One object per scene: a
+        batch that repeats a scene holds it once, and the Model builder does its work once."""
+        cache = self.__dict__.setdefault("_cache", OrderedDict())
+        if i not in cache:
+            cache[i] = make(i)
+            if len(cache) > self.cache_size:
+                cache.popitem(last=False)
+        return cache[i]
+
     def _check(self, i: int) -> int:
         n = len(self)
         i = int(i)
@@ -119,20 +132,12 @@ class ProceduralSource(SceneSource):
     def __len__(self) -> int:
         return self.n
 
-    # generated scenes are kept (about 50 kB each) so resampling does not generate them again
-    cache_size = 20_000
-
+    # generated scenes are kept (about 50 kB each, `cache_size`) so resampling does not generate them again
     def _args(self, i: int) -> tuple:
         return self.types[i % len(self.types)], self.seed + i, self.params
 
     def get(self, i: int) -> Scene:
-        i = self._check(i)
-        cache = self.__dict__.setdefault("_cache", OrderedDict())
-        if i not in cache:
-            cache[i] = _generate(self._args(i))
-            if len(cache) > self.cache_size:
-                cache.popitem(last=False)
-        return cache[i]
+        return self._cached(self._check(i), lambda j: _generate(self._args(j)))
 
     def get_many(self, indices: Sequence[int]) -> list[Scene]:
         """Scenes for `indices`; missing ones are generated in worker processes when there are many."""
@@ -155,7 +160,8 @@ def _generate(args: tuple) -> Scene:
 
 
 class StoreSource(SceneSource):
-    """A packed store; scenes are read-only views of its memory-mapped arrays."""
+    """A packed store; scenes are read-only views of its memory-mapped arrays, the same Scene
+    object each time a scene is asked for again (while it is among the last `cache_size`)."""
 
     def __init__(self, path: str | Path, n: int | None = None):
         self.store = open_store(path)
@@ -166,7 +172,7 @@ class StoreSource(SceneSource):
         return self.n
 
     def get(self, i: int) -> Scene:
-        return self.store.get(self._check(i))
+        return self._cached(self._check(i), self.store.get)
 
 
 class FileSource(SceneSource):

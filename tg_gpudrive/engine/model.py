@@ -2,7 +2,8 @@
 
 W worlds x A agent slots; slot i = w * A + a in every flat array. T logged
 steps (the longest scene; shorter scenes are padded invalid). S road
-segments over all worlds (CSR by world).
+segments over the batch's distinct scenes: worlds that hold the same Scene object share its
+segments and grid cells (kernels reach a world's segments only through its grid).
 
 Model (fixed while a batch of scenes is loaded; every kernel scalar is copied
 here from the EngineConfig once, so launchers read the Model, never the config):
@@ -30,11 +31,12 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     seg_a, seg_b        (S,)            vec2    m, road segment end points; a world's segments are stored
                                                 in the order of its grid cells, so a cell's are contiguous
     seg_type            (S,)            int32   RoadType
-    world_seg_offset    (W+1,)          int64   (host) segments of world w
+    world_segments      (W, 2)          int64   (host) first and end segment of world w (shared, see above)
     grid_origin         (W,)            vec2    m, road grid corner
     grid_nx, grid_ny    (W,)            int32   road grid size in cells
     grid_cell_offset    (W,)            int32   first cell of world w
-    cell_start          (C+1,)          int32   segments [cell_start[g], cell_start[g+1]) lie in cell g
+    cell_start          (C+1,)          int32   segments [cell_start[g], cell_start[g+1]) lie in cell g;
+                                                C cells over the distinct scenes
     reward_weights      (NUM_TERMS,)    f32     weights of REWARD_TERMS
 
     scalar              meaning
@@ -57,7 +59,9 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import logging
+import time
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -105,22 +109,24 @@ def scene_segments(scene: Scene, max_len: float) -> tuple[np.ndarray, np.ndarray
         return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)
     counts = np.diff(off)
     # a segment between consecutive points of the same polyline; single points become degenerate segments
-    starts = np.arange(len(pts) - 1)
-    same = np.searchsorted(off, starts, side="right") == np.searchsorted(off, starts + 1, side="right")
-    a, b = pts[starts[same]], pts[starts[same] + 1]
-    types = scene.road_type[np.searchsorted(off, starts[same], side="right") - 1]
+    same = np.ones(len(pts) - 1, bool)
+    same[off[1:-1] - 1] = False  # a polyline's last point and the next polyline's first
+    starts = np.nonzero(same)[0]
+    types = np.repeat(scene.road_type, counts - 1)
     single = np.nonzero(counts == 1)[0]
-    a = np.concatenate([a, pts[off[single]]])
-    b = np.concatenate([b, pts[off[single]]])
+    # np.take: row gathers of (S, 2) arrays, an order of magnitude faster than fancy indexing
+    a = np.concatenate([np.take(pts, starts, axis=0), pts[off[single]]])
+    b = np.concatenate([np.take(pts, starts + 1, axis=0), pts[off[single]]])
     types = np.concatenate([types, scene.road_type[single]]).astype(np.int32)
-    seg_len = np.linalg.norm(b - a, axis=1)
+    d = b - a
+    seg_len = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
     pieces = np.maximum(1, np.ceil(seg_len / max_len).astype(np.int64))
     rep = np.repeat(np.arange(len(a)), pieces)
     k = np.arange(len(rep)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
     f0 = (k / pieces[rep])[:, None].astype(np.float32)
     f1 = ((k + 1) / pieces[rep])[:, None].astype(np.float32)
-    d = (b - a)[rep]
-    return (a[rep] + f0 * d).astype(np.float32), (a[rep] + f1 * d).astype(np.float32), types[rep]
+    a, d = np.take(a, rep, axis=0), np.take(d, rep, axis=0)
+    return (a + f0 * d).astype(np.float32), (a + f1 * d).astype(np.float32), types[rep]
 
 
 def build_road_grid(mid: np.ndarray, cell: float) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
@@ -139,13 +145,80 @@ def build_road_grid(mid: np.ndarray, cell: float) -> tuple[np.ndarray, int, int,
     cid = iy * nx + ix
     items = np.argsort(cid, kind="stable").astype(np.int32)
     start = np.zeros(nx * ny + 1, np.int64)
-    np.add.at(start, cid + 1, 1)
+    start[1:] = np.bincount(cid, minlength=nx * ny)
     return lo.astype(np.float32), nx, ny, np.cumsum(start).astype(np.int32), items
+
+
+@dataclasses.dataclass
+class RoadGrid:
+    """One scene's road segments in grid-cell order and its grid; the Model builds one per distinct
+    scene of a batch and concatenates them (worlds holding the same scene share theirs)."""
+
+    seg_a: np.ndarray  # (S, 2) f32
+    seg_b: np.ndarray  # (S, 2) f32
+    seg_type: np.ndarray  # (S,) int32
+    origin: np.ndarray  # (2,) f32
+    nx: int
+    ny: int
+    cell_start: np.ndarray  # (nx*ny + 1,) int32, segments of cell c: [cell_start[c], cell_start[c + 1])
+
+    @classmethod
+    def build(cls, scene: Scene, cfg: EngineConfig) -> RoadGrid:
+        a, b, ty = scene_segments(scene, cfg.max_segment_length)
+        origin, nx, ny, start, order = build_road_grid(0.5 * (a + b), float(cfg.road_cell_size))
+        return cls(a[order], b[order], ty[order], origin, nx, ny, start)
+
+
+# --------------------------------------------------------------------- slots
+@dataclasses.dataclass
+class SlotPlan:
+    """Which agents of a scene fill a world's slots and who drives them, for one scene and its control
+    masks; the Model builds one per distinct (scene, masks) pair of a batch."""
+
+    scene: Scene
+    idx: np.ndarray  # (n,) scene agent of each slot: the policy's first, then background, then replayed
+    policy: np.ndarray  # (n,) bool
+    background: np.ndarray  # (n,) bool
+    skipped_at_goal: int
+    dropped: int  # agents beyond max_agents
+    cell: float  # m, collision broad-phase cell
+
+    @classmethod
+    def build(cls, scene: Scene, cfg: EngineConfig, controlled: np.ndarray | None,
+              background: np.ndarray | None) -> SlotPlan:
+        idx = select_slots(scene, cfg.max_agents, cfg.init_steps)
+        dropped = agents_needed(scene) - len(idx)
+        policy, bg, skipped = slot_masks(scene, idx, cfg, controlled, background)
+        # policy agents take the first slots (a learner views obs[:, :max_controlled]), then the
+        # background-driven ones, then the replayed ones
+        order = np.lexsort((bg, ~(policy | bg)))
+        idx, policy, bg = idx[order], policy[order], bg[order]
+        diag = np.sqrt(scene.length[idx] ** 2 + scene.width[idx] ** 2).max() if len(idx) else 1.0
+        cell = float(np.float32(max(float(diag), cfg.beta, 1.0) * 1.001))
+        # the collision pass visits the 3 x 3 cells around an agent, so it finds every partner
+        # within one cell size and reports `nearest` capped there (nearest_cap); the cost
+        # (nearest < beta) is exact only while no partner within beta can be missed
+        assert cell >= cfg.beta, "broad-phase cell smaller than beta: the distance cost would miss partners"
+        return cls(scene, idx, policy, bg, skipped, dropped, cell)
+
+
+def gather_rows(src: wp.array, rows: wp.array) -> wp.array:
+    """A new array on `src`'s device holding the rows `rows` of the 2-d array `src`."""
+    out = wp.empty((rows.shape[0], src.shape[1]), dtype=src.dtype, device=src.device)
+    wp.copy(out, wp.indexedarray(src, [rows, None]))
+    return out
 
 
 # --------------------------------------------------------------------- model
 class Model:
-    """Fixed arrays and scalars of a batch of scenes (see the module docstring for fields)."""
+    """Fixed arrays and scalars of a batch of scenes (see the module docstring for fields).
+
+    Work that depends only on a scene is done once per distinct scene of the batch (the same
+    Scene object in many worlds, as when a few scenes are cycled over thousands of worlds): slot
+    selection and logs once per distinct (scene, masks) pair, road grids once per scene, which
+    the worlds then share. `build_seconds` holds the build's phases: host (slot plans, road
+    grids, tables), upload, expert (expert actions of the distinct plans), gather (their logs
+    and expert actions copied into every world's slots, on the device)."""
 
     def __init__(self, scenes: list[Scene], cfg: EngineConfig, device: str,
                  controlled: list[np.ndarray] | None = None, background: list[np.ndarray] | None = None):
@@ -153,6 +226,7 @@ class Model:
         background model's agents (tg_gpudrive.engine.control); None: the engine default / nobody."""
         if not scenes:
             raise ValueError("Model needs at least one scene")
+        t0 = time.perf_counter()
         self.cfg, self.device = cfg, device
         W, A = len(scenes), cfg.max_agents
         T = max(s.num_steps for s in scenes)
@@ -164,113 +238,142 @@ class Model:
         self.scenes = scenes
         self._copy_scalars(cfg)
 
-        h = {  # host arrays, (W, A, ...)
-            "slot_valid": np.zeros((W, A), np.int32), "integrated": np.zeros((W, A), np.int32),
-            "background": np.zeros((W, A), np.int32),
-            "agent_type": np.zeros((W, A), np.int32), "length": np.ones((W, A), np.float32),
-            "width": np.ones((W, A), np.float32), "goal": np.zeros((W, A, 2), np.float32),
-            "log_pos": np.zeros((W, A, T, 2), np.float32), "log_yaw": np.zeros((W, A, T), np.float32),
-            "log_vel": np.zeros((W, A, T, 2), np.float32), "log_valid": np.zeros((W, A, T), np.int32),
-        }
-        self.slot_agent = np.full((W, A), -1, np.int64)  # scene agent index of each slot
-        last_step = np.zeros(W, np.int32)
-        cell = np.zeros(W, np.float32)
+        plans: dict[tuple, int] = {}  # (scene id, mask bytes) -> distinct slot plan
+        roads: dict[int, int] = {}  # scene id -> distinct road grid (`scenes` keeps every id alive)
+        plan_list: list[SlotPlan] = []
+        road_list: list[RoadGrid] = []
+        self.world_plan = np.zeros(W, np.int64)  # distinct slot plan of each world
+        world_road = np.zeros(W, np.int64)
         report = BuildReport([], [], [], [])
-        seg_a, seg_b, seg_t, seg_off = [], [], [], [0]
-        grid_origin = np.zeros((W, 2), np.float32)
-        grid_nx, grid_ny, grid_off = np.zeros(W, np.int32), np.zeros(W, np.int32), np.zeros(W, np.int32)
-        cell_start, n_cells, n_seg = [], 0, 0
         for w, sc in enumerate(scenes):
             if abs(sc.dt - self.dt) > 1e-9:
                 raise SceneError(sc.scene_id, "dt", f"all scenes of a batch need one dt; {sc.dt} != {self.dt}")
-            idx = select_slots(sc, A, cfg.init_steps)
-            dropped = agents_needed(sc) - len(idx)
-            if dropped > 0:
+            ctrl = None if controlled is None else np.asarray(controlled[w], bool)
+            bg = None if background is None else np.asarray(background[w], bool)
+            key = (id(sc), None if ctrl is None else ctrl.tobytes(), None if bg is None else bg.tobytes())
+            if key not in plans:
+                plans[key] = len(plan_list)
+                plan_list.append(SlotPlan.build(sc, cfg, ctrl, bg))
+            plan = plan_list[plans[key]]
+            self.world_plan[w] = plans[key]
+            if plan.dropped > 0:
                 log.info("scene %s: %d agents beyond max_agents=%d were dropped (least relevant first)",
-                         sc.scene_id, dropped, A)
-            report.truncated_agents.append(max(dropped, 0))
-            n, t = len(idx), sc.num_steps
-            policy, bg, skipped = slot_masks(sc, idx, cfg, None if controlled is None else controlled[w],
-                                             None if background is None else background[w])
-            # policy agents take the first slots (a learner views obs[:, :max_controlled]), then the
-            # background-driven ones, then the replayed ones
-            order = np.lexsort((bg, ~(policy | bg)))
-            idx, policy, bg = idx[order], policy[order], bg[order]
-            report.controlled.append(int(policy.sum()))
-            report.skipped_at_goal.append(skipped)
-            self.slot_agent[w, :n] = idx
-            h["slot_valid"][w, :n] = 1
-            h["integrated"][w, :n] = policy | bg
-            h["background"][w, :n] = bg
-            h["agent_type"][w, :n] = sc.agent_type[idx]
-            h["length"][w, :n] = sc.length[idx]
-            h["width"][w, :n] = sc.width[idx]
-            h["goal"][w, :n] = sc.goal[idx]
-            h["log_pos"][w, :n, :t] = sc.log_pos[idx]
-            h["log_yaw"][w, :n, :t] = sc.log_yaw[idx]
-            h["log_vel"][w, :n, :t] = sc.log_vel[idx]
-            h["log_valid"][w, :n, :t] = sc.log_valid[idx]
-            last_step[w] = t - 1
-            diag = np.sqrt(sc.length[idx] ** 2 + sc.width[idx] ** 2).max() if n else 1.0
-            cell[w] = max(float(diag), cfg.beta, 1.0) * 1.001
-            # the collision pass visits the 3 x 3 cells around an agent, so it finds every partner
-            # within one cell size and reports `nearest` capped there (nearest_cap); the cost
-            # (nearest < beta) is exact only while no partner within beta can be missed
-            assert cell[w] >= self.beta, "broad-phase cell smaller than beta: the distance cost would miss partners"
-
-            a, b, ty = scene_segments(sc, cfg.max_segment_length)
-            origin, nx, ny, start, order = build_road_grid(0.5 * (a + b), self.road_cell_size)
-            seg_a.append(a[order]), seg_b.append(b[order]), seg_t.append(ty[order])
-            grid_origin[w], grid_nx[w], grid_ny[w], grid_off[w] = origin, nx, ny, n_cells
-            cell_start.append(start[:-1] + n_seg)
-            n_cells += nx * ny
-            n_seg += len(a)
-            seg_off.append(n_seg)
-            report.segments.append(len(a))
-        cell_start.append(np.array([n_seg], np.int32))
+                         sc.scene_id, plan.dropped, A)
+            report.truncated_agents.append(max(plan.dropped, 0))
+            report.controlled.append(int(plan.policy.sum()))
+            report.skipped_at_goal.append(plan.skipped_at_goal)
+            if id(sc) not in roads:
+                roads[id(sc)] = len(road_list)
+                road_list.append(RoadGrid.build(sc, cfg))
+            world_road[w] = roads[id(sc)]
+            report.segments.append(len(road_list[world_road[w]].seg_a))
         self.report = report
         self.max_controlled = max(report.controlled)
-        self.world_seg_offset = np.asarray(seg_off, np.int64)
-        all_a = np.concatenate(seg_a) if n_seg else np.zeros((1, 2), np.float32)
-        all_b = np.concatenate(seg_b) if n_seg else np.zeros((1, 2), np.float32)
+
+        G = len(plan_list)
+        g = {  # host arrays of the distinct slot plans, (G, A, ...); worlds index them by world_plan
+            "slot_valid": np.zeros((G, A), np.int32), "integrated": np.zeros((G, A), np.int32),
+            "background": np.zeros((G, A), np.int32),
+            "agent_type": np.zeros((G, A), np.int32), "length": np.ones((G, A), np.float32),
+            "width": np.ones((G, A), np.float32), "goal": np.zeros((G, A, 2), np.float32),
+            "log_pos": np.zeros((G, A, T, 2), np.float32), "log_yaw": np.zeros((G, A, T), np.float32),
+            "log_vel": np.zeros((G, A, T, 2), np.float32), "log_valid": np.zeros((G, A, T), np.int32),
+        }
+        plan_agent = np.full((G, A), -1, np.int64)
+        for k, p in enumerate(plan_list):
+            sc, idx = p.scene, p.idx
+            n, t = len(idx), sc.num_steps
+            plan_agent[k, :n] = idx
+            g["slot_valid"][k, :n] = 1
+            g["integrated"][k, :n] = p.policy | p.background
+            g["background"][k, :n] = p.background
+            g["agent_type"][k, :n] = sc.agent_type[idx]
+            g["length"][k, :n] = sc.length[idx]
+            g["width"][k, :n] = sc.width[idx]
+            g["goal"][k, :n] = sc.goal[idx]
+            g["log_pos"][k, :n, :t] = sc.log_pos[idx]
+            g["log_yaw"][k, :n, :t] = sc.log_yaw[idx]
+            g["log_vel"][k, :n, :t] = sc.log_vel[idx]
+            g["log_valid"][k, :n, :t] = sc.log_valid[idx]
+        self._plan_host = g
+        self.slot_agent = plan_agent[self.world_plan]  # (W, A) scene agent index of each slot, -1: empty
+        cell = np.array([p.cell for p in plan_list], np.float32)[self.world_plan]
+        last_step = np.array([s.num_steps - 1 for s in scenes], np.int32)
+
+        seg_count = np.array([len(r.seg_a) for r in road_list], np.int64)
+        seg_first = np.cumsum(seg_count) - seg_count
+        n_seg = int(seg_count.sum())
+        cell_count = np.array([r.nx * r.ny for r in road_list], np.int64)
+        self.world_segments = np.stack([seg_first, seg_first + seg_count], 1)[world_road]
+        all_a = np.concatenate([r.seg_a for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
+        all_b = np.concatenate([r.seg_b for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
+        all_t = np.concatenate([r.seg_type for r in road_list]) if n_seg else np.zeros(1, np.int32)
+        cell_start = np.concatenate([r.cell_start[:-1] + f for r, f in zip(road_list, seg_first)] + [[n_seg]])
         seg_len = np.linalg.norm(all_b - all_a, axis=1)
         self.seg_pad = float(0.5 * seg_len.max()) + 1e-3 if n_seg else 0.0
-        self.host = h
+        grid_origin = np.array([r.origin for r in road_list], np.float32)[world_road]
+        grid_nx = np.array([r.nx for r in road_list], np.int32)[world_road]
+        grid_ny = np.array([r.ny for r in road_list], np.int32)[world_road]
+        grid_off = (np.cumsum(cell_count) - cell_count).astype(np.int32)[world_road]
+        seconds = {"host": time.perf_counter() - t0}
 
+        t0 = time.perf_counter()
         dev = device
-        def flat(x, dtype):
+        def flat(name, dtype):
+            x = g[name][self.world_plan]
             return wp.array(x.reshape(W * A, *x.shape[2:]), dtype=dtype, device=dev)
 
-        self.slot_valid = flat(h["slot_valid"], wp.int32)
-        self.integrated = flat(h["integrated"], wp.int32)
-        self.background = flat(h["background"], wp.int32)
-        self.agent_type = flat(h["agent_type"], wp.int32)
-        self.length = flat(h["length"], float)
-        self.width = flat(h["width"], float)
-        self.goal = flat(h["goal"], wp.vec2)
-        self.log_pos = wp.array(h["log_pos"].reshape(W * A, T, 2), dtype=wp.vec2, device=dev)
-        self.log_yaw = wp.array(h["log_yaw"].reshape(W * A, T), dtype=float, device=dev)
-        self.log_vel = wp.array(h["log_vel"].reshape(W * A, T, 2), dtype=wp.vec2, device=dev)
-        self.log_valid = wp.array(h["log_valid"].reshape(W * A, T), dtype=wp.int32, device=dev)
+        self.slot_valid = flat("slot_valid", wp.int32)
+        self.integrated = flat("integrated", wp.int32)
+        self.background = flat("background", wp.int32)
+        self.agent_type = flat("agent_type", wp.int32)
+        self.length = flat("length", float)
+        self.width = flat("width", float)
+        self.goal = flat("goal", wp.vec2)
+        logs = (wp.array(g["log_pos"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
+                wp.array(g["log_yaw"].reshape(G * A, T), dtype=float, device=dev),
+                wp.array(g["log_vel"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
+                wp.array(g["log_valid"].reshape(G * A, T), dtype=wp.int32, device=dev))
         self.last_step = wp.array(last_step, dtype=wp.int32, device=dev)
         self.collision_cell_size = wp.array(cell, dtype=float, device=dev)
         self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
         self.seg_a = wp.array(all_a, dtype=wp.vec2, device=dev)
         self.seg_b = wp.array(all_b, dtype=wp.vec2, device=dev)
-        self.seg_type = wp.array(np.concatenate(seg_t) if n_seg else np.zeros(1, np.int32), dtype=wp.int32,
-                                 device=dev)
+        self.seg_type = wp.array(all_t, dtype=wp.int32, device=dev)
         self.grid_origin = wp.array(grid_origin, dtype=wp.vec2, device=dev)
         self.grid_nx = wp.array(grid_nx, dtype=wp.int32, device=dev)
         self.grid_ny = wp.array(grid_ny, dtype=wp.int32, device=dev)
         self.grid_cell_offset = wp.array(grid_off, dtype=wp.int32, device=dev)
-        self.cell_start = wp.array(np.concatenate(cell_start).astype(np.int32), dtype=wp.int32, device=dev)
+        self.cell_start = wp.array(cell_start.astype(np.int32), dtype=wp.int32, device=dev)
         r = cfg.reward
         self.reward_weights = wp.array(np.array([getattr(r, k) for k in REWARD_TERMS], np.float32),
                                        dtype=float, device=dev)
-        self.expert_action = wp.zeros((W * A, T), dtype=wp.vec3, device=dev)
-        self.expert_index = wp.zeros((W * A, T), dtype=wp.int32, device=dev)
-        self.expert_track = wp.zeros((W * A, T), dtype=wp.vec2, device=dev)
-        launch_expert_actions(self)
+        wp.synchronize_device(dev)
+        seconds["upload"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        expert = (wp.zeros((G * A, T), dtype=wp.vec3, device=dev), wp.zeros((G * A, T), dtype=wp.int32, device=dev),
+                  wp.zeros((G * A, T), dtype=wp.vec2, device=dev))
+        launch_expert_actions(self, logs, expert)
+        wp.synchronize_device(dev)
+        seconds["expert"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        if G < W:  # else every world has its own plan, in world order: the plans' arrays are the worlds'
+            rows = (self.world_plan[:, None] * A + np.arange(A)).reshape(-1).astype(np.int32)
+            rows = wp.array(rows, dtype=wp.int32, device=dev)
+            logs, expert = (tuple(gather_rows(x, rows) for x in xs) for xs in (logs, expert))
+        self.log_pos, self.log_yaw, self.log_vel, self.log_valid = logs
+        self.expert_action, self.expert_index, self.expert_track = expert
+        wp.synchronize_device(dev)
+        seconds["gather"] = time.perf_counter() - t0
+        self.build_seconds = seconds
+
+    @functools.cached_property
+    def host(self) -> dict[str, np.ndarray]:
+        """The per-slot and log arrays on the host, (W, A, ...) each, named as the Model's fields
+        (gathered from the distinct slot plans on first use)."""
+        return {k: v[self.world_plan] for k, v in self._plan_host.items()}
 
     def _copy_scalars(self, cfg: EngineConfig) -> None:
         """The kernel scalars, as the types the kernels take (modes as their integer values)."""
