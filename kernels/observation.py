@@ -137,6 +137,10 @@ def ego_partner_obs_kernel(
         col += PARTNER_DIM
 
 
+# Element k of slot i's road heap lives at i * slot_mul + k * k_mul. On the GPU the heaps are strided
+# across slots (slot_mul 1, k_mul = slots), so the 32 threads of a warp touching the same heap
+# position touch one cache line; on the CPU, where one thread runs a slot's search alone, each heap
+# is contiguous (slot_mul road_k, k_mul 1).
 @wp.func
 def heap_swap(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), x: int, y: int):
     td = hd[x]
@@ -149,35 +153,36 @@ def heap_swap(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), x: int, y
 
 
 @wp.func
-def heap_sift_down(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, start: int, n: int):
-    """Restore the max-heap property below `start` in hd[b : b + n]."""
+def heap_sift_down(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, ks: int, start: int,
+                   n: int):
+    """Restore the max-heap property below position `start` of the heap of n elements at b, step ks."""
     k = start
+    dk = hd[b + k * ks]
     while True:
         l = 2 * k + 1
         if l >= n:
             break
         m = l
-        if l + 1 < n and hd[b + l + 1] > hd[b + l]:
-            m = l + 1
-        if hd[b + m] <= hd[b + k]:
+        dm = hd[b + l * ks]
+        if l + 1 < n:
+            dr = hd[b + (l + 1) * ks]
+            if dr > dm:
+                m = l + 1
+                dm = dr
+        if dm <= dk:
             break
-        heap_swap(hd, hj, b + k, b + m)
+        heap_swap(hd, hj, b + k * ks, b + m * ks)
         k = m
     return 0
 
 
 @wp.func
-def heap_push(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, n: int, d: float, j: int):
-    """Append (d, j) to the max-heap hd[b : b + n] and sift it up."""
-    hc = n
-    hd[b + hc] = d
-    hj[b + hc] = j
-    while hc > 0:
-        par = (hc - 1) / 2
-        if hd[b + par] >= hd[b + hc]:
-            break
-        heap_swap(hd, hj, b + par, b + hc)
-        hc = par
+def heapify(hd: wp.array(dtype=float), hj: wp.array(dtype=wp.int32), b: int, ks: int, n: int):
+    """Turn the first n elements at b, step ks, into a max-heap (bottom-up, O(n))."""
+    s = n / 2 - 1
+    while s >= 0:
+        heap_sift_down(hd, hj, b, ks, s, n)
+        s = s - 1
     return 0
 
 
@@ -194,10 +199,12 @@ def road_select_kernel(
     agents_per_world: int,
     road_k: int,
     road_radius: float,
+    sort_here: int,  # 1: leave the candidates sorted (CPU); 0: road_rows_kernel ranks them (GPU)
+    slot_mul: int,  # heap layout: element k of slot i at i * slot_mul + k * k_mul
+    k_mul: int,
     # model
     integrated: wp.array(dtype=wp.int32),
-    seg_a: wp.array(dtype=wp.vec2),
-    seg_b: wp.array(dtype=wp.vec2),
+    seg_mid: wp.array(dtype=wp.vec2),
     grid_origin: wp.array(dtype=wp.vec2),
     grid_nx: wp.array(dtype=wp.int32),
     grid_ny: wp.array(dtype=wp.int32),
@@ -206,8 +213,8 @@ def road_select_kernel(
     cell_size: float,
     # state
     pos: wp.array(dtype=wp.vec2),
-    # out: the road_k nearest segment midpoints within road_radius, nearest first
-    heap_d: wp.array(dtype=float),  # (slot * road_k,) m^2
+    # out: the road_k nearest segment midpoints within road_radius (sorted when sort_here)
+    heap_d: wp.array(dtype=float),  # (road_k * slots,) m^2
     heap_j: wp.array(dtype=wp.int32),
     road_n: wp.array(dtype=wp.int32),
 ):
@@ -216,7 +223,9 @@ def road_select_kernel(
     Cells are visited in square rings around the agent's cell; ring q lies at least
     (q - 1) * cell + (the agent's distance to its own cell's border) away, so once road_k
     candidates are held and a ring starts beyond the farthest of them, no later cell can improve
-    the set and the search stops. The heap's root (the farthest held) stays in a register."""
+    the set and the search stops. The first road_k candidates are appended as they come and
+    heapified once (the rings bring them roughly nearest first, the worst order for pushes);
+    the heap's root (the farthest held) stays in a register."""
     i = wp.tid()
     road_n[i] = 0
     if integrated[i] == 0:
@@ -226,8 +235,8 @@ def road_select_kernel(
     ny = grid_ny[w]
     if nx == 0:
         return
+    b = i * slot_mul
     p = pos[i]
-    b = i * road_k
     n = int(0)
     r2 = road_radius * road_radius
     bound = r2  # candidates must lie strictly closer than this (the root once road_k are held)
@@ -274,26 +283,31 @@ def road_select_kernel(
                 continue
             g = grid_cell_offset[w] + gy * nx + gx
             for k in range(cell_start[g], cell_start[g + 1]):
-                mid = 0.5 * (seg_a[k] + seg_b[k]) - p
+                mid = seg_mid[k] - p
                 d2 = wp.dot(mid, mid)
                 if d2 >= bound:
                     continue
                 if n < road_k:
-                    heap_push(heap_d, heap_j, b, n, d2, k)
+                    heap_d[b + n * k_mul] = d2
+                    heap_j[b + n * k_mul] = k
                     n = n + 1
                     if n == road_k:
+                        heapify(heap_d, heap_j, b, k_mul, n)
                         bound = heap_d[b]
                 else:
                     heap_d[b] = d2
                     heap_j[b] = k
-                    heap_sift_down(heap_d, heap_j, b, 0, n)
+                    heap_sift_down(heap_d, heap_j, b, k_mul, 0, n)
                     bound = heap_d[b]
-    # heap sort: ascending distance, so row 0 is the nearest segment
-    e = n
-    while e > 1:
-        e = e - 1
-        heap_swap(heap_d, heap_j, b, b + e)
-        heap_sift_down(heap_d, heap_j, b, 0, e)
+    if sort_here != 0:
+        # heap sort: ascending distance, so road row k is candidate k
+        if n < road_k:
+            heapify(heap_d, heap_j, b, k_mul, n)
+        e = n
+        while e > 1:
+            e = e - 1
+            heap_swap(heap_d, heap_j, b, b + e * k_mul)
+            heap_sift_down(heap_d, heap_j, b, k_mul, 0, e)
     road_n[i] = n
 
 
@@ -301,30 +315,50 @@ def road_select_kernel(
 def road_rows_kernel(
     road_k: int,
     road_col: int,  # first column of the road block
+    ranked: int,  # 1: rank the candidates here; 0: road_select_kernel sorted them
+    slot_mul: int,  # heap layout, as in road_select_kernel
+    k_mul: int,
     integrated: wp.array(dtype=wp.int32),
     seg_a: wp.array(dtype=wp.vec2),
     seg_b: wp.array(dtype=wp.vec2),
     seg_type: wp.array(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
+    heap_d: wp.array(dtype=float),
     heap_j: wp.array(dtype=wp.int32),
     road_n: wp.array(dtype=wp.int32),
     obs_out: wp.array2d(dtype=float),
 ):
-    """Row k of agent i's road block (one thread each, so a warp writes contiguous memory)."""
+    """Candidate k of agent i goes to road row `rank`, so the rows come out nearest first; rows
+    from road_n on are zeroed. Ranked (GPU): rank = how many of the agent's candidates are nearer
+    (ties by position), road_k independent counts in parallel instead of one thread's serial heap
+    sort, and the threads of a warp read the same heap entries (a broadcast). On the CPU, where
+    threads run one after another, the O(road_k^2) counts cost more than the heap sort that
+    road_select_kernel does there instead (rank = k)."""
     tid = wp.tid()
     i = tid / road_k
     k = tid - i * road_k
     if integrated[i] == 0:
         return
-    col = road_col + k * ROAD_DIM
-    if k >= road_n[i]:
+    b = i * slot_mul
+    n = road_n[i]
+    if k >= n:
+        col = road_col + k * ROAD_DIM
         for f in range(ROAD_DIM):
             obs_out[i, col + f] = 0.0
         return
+    rank = k
+    if ranked != 0:
+        dk = heap_d[b + k * k_mul]
+        rank = int(0)
+        for j in range(n):
+            dj = heap_d[b + j * k_mul]
+            if dj < dk or (dj == dk and j < k):
+                rank += 1
+    col = road_col + rank * ROAD_DIM
     c = wp.cos(yaw[i])
     s = wp.sin(yaw[i])
-    sg = heap_j[tid]
+    sg = heap_j[b + k * k_mul]
     d = seg_b[sg] - seg_a[sg]
     seg_len = wp.length(d)
     dir = to_local(d, c, s)
@@ -352,12 +386,16 @@ def launch_observations(model, state, control) -> None:
                       state.lane_dist, state.edge_dist, state.part_d, state.part_j],
               outputs=[state.obs, state.active])
     if model.road_k > 0:
+        ranked = int(model.rank_road_rows)
+        # GPU: heaps strided across slots (coalesced); CPU: each heap contiguous
+        layout = [1, n] if model.road_heaps_strided else [model.road_k, 1]
         wp.launch(road_select_kernel, dim=n, device=dev,
-                  inputs=[model.max_agents, model.road_k, model.road_radius, model.integrated, model.seg_a,
-                          model.seg_b, model.grid_origin, model.grid_nx, model.grid_ny, model.grid_cell_offset,
+                  inputs=[model.max_agents, model.road_k, model.road_radius, 1 - ranked, *layout, model.integrated, model.seg_mid,
+                          model.grid_origin, model.grid_nx, model.grid_ny, model.grid_cell_offset,
                           model.cell_start, model.road_cell_size, state.pos],
                   outputs=[state.heap_d, state.heap_j, state.road_n])
         wp.launch(road_rows_kernel, dim=n * model.road_k, device=dev,
-                  inputs=[model.road_k, EGO_DIM + model.partner_k * PARTNER_DIM, model.integrated, model.seg_a,
-                          model.seg_b, model.seg_type, state.pos, state.yaw, state.heap_j, state.road_n],
+                  inputs=[model.road_k, EGO_DIM + model.partner_k * PARTNER_DIM, ranked, *layout, model.integrated, model.seg_a,
+                          model.seg_b, model.seg_type, state.pos, state.yaw, state.heap_d, state.heap_j,
+                          state.road_n],
                   outputs=[state.obs])

@@ -406,10 +406,12 @@ def _assert_road_rows_match(sim, want):
         np.testing.assert_allclose(rows[:n][unique, 1:7], feats[unique], atol=2e-3)
 
 
+@pytest.mark.parametrize("ranked", [False, True], ids=["cpu-way", "gpu-way"])
 @pytest.mark.parametrize("kind", ["womd", "dense", "outside"])
-def test_road_rows_match_brute_force(device, kind):
+def test_road_rows_match_brute_force(device, kind, ranked):
     """The ring search with early exit returns exactly the road_k nearest midpoints within the radius
-    (up to ties) on real WOMD maps, a dense generated map and agents far outside the road grid."""
+    (up to ties) on real WOMD maps, a dense generated map and agents far outside the road grid, with
+    the rows ordered by either of the engine's two ways (the CPU's and the GPU's default)."""
     if kind == "womd":
         scenes = [load_gpudrive_json(f) for f in sorted((Path(__file__).parent / "data").glob("womd_*.json"))]
         c = EngineConfig(max_agents=128, control="all_agents")
@@ -427,5 +429,6 @@ def test_road_rows_match_brute_force(device, kind):
         scenes = [scene]
         c = cfg(control="all_agents", road_k=24, road_radius=60.0, road_cell_size=7.0)
     sim = Simulator(scenes, c, device)
+    sim.model.rank_road_rows = sim.model.road_heaps_strided = ranked
     sim.reset()
     _assert_road_rows_match(sim, _brute_force_road_rows(sim, scenes, c.road_k, c.road_radius, c.max_segment_length))

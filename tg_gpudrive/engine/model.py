@@ -30,6 +30,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
                                                 cell size; the cost (nearest < beta) is exact as it is >= beta
     seg_a, seg_b        (S,)            vec2    m, road segment end points; a world's segments are stored
                                                 in the order of its grid cells, so a cell's are contiguous
+    seg_mid             (S,)            vec2    m, their midpoints (the road observation's distance)
     seg_type            (S,)            int32   RoadType
     world_segments      (W, 2)          int64   (host) first and end segment of world w (shared, see above)
     grid_origin         (W,)            vec2    m, road grid corner
@@ -49,6 +50,8 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_radius, beta, speed_limit, lane_cap                            reward and cost parameters
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     road_query_radius, road_cell_size, seg_pad, collision_cells         road queries and broad phases
+    rank_road_rows      road rows sorted by parallel ranks (True on CUDA) or a per-agent heap sort
+    road_heaps_strided  road heaps strided across slots (True on CUDA) or contiguous per slot
 
 State: see `State` (its shape table is built from the field declarations, which also
 make the Simulator's torch views). Control: action (W*A,) vec3 (continuous),
@@ -237,6 +240,9 @@ class Model:
         self.dt = float(scenes[0].dt)
         self.scenes = scenes
         self._copy_scalars(cfg)
+        # road rows ranked by one thread per row from heaps strided across slots (GPU), or heap-sorted
+        # by the agent's thread in a contiguous heap (CPU): kernels/observation.py; the same rows
+        self.rank_road_rows = self.road_heaps_strided = wp.get_device(device).is_cuda
 
         plans: dict[tuple, int] = {}  # (scene id, mask bytes) -> distinct slot plan
         roads: dict[int, int] = {}  # scene id -> distinct road grid (`scenes` keeps every id alive)
@@ -339,6 +345,7 @@ class Model:
         self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
         self.seg_a = wp.array(all_a, dtype=wp.vec2, device=dev)
         self.seg_b = wp.array(all_b, dtype=wp.vec2, device=dev)
+        self.seg_mid = wp.array(0.5 * (all_a + all_b), dtype=wp.vec2, device=dev)
         self.seg_type = wp.array(all_t, dtype=wp.int32, device=dev)
         self.grid_origin = wp.array(grid_origin, dtype=wp.vec2, device=dev)
         self.grid_nx = wp.array(grid_nx, dtype=wp.int32, device=dev)
@@ -408,7 +415,7 @@ class Dims(enum.Enum):
     COUNTER = "(1,)"
     CELLS = "(W*collision_cells,)"  # broad-phase scratch, not viewed
     PARTNERS = "(W*A*partner_k,)"  # observation scratch, not viewed
-    ROADS = "(W*A*road_k,)"  # observation scratch, not viewed
+    ROADS = "(road_k*W*A,)"  # observation scratch, not viewed: element k of slot i at k * W*A + i
 
     def alloc_shape(self, m: Model) -> tuple[int, ...]:
         n, W = m.num_slots, m.num_worlds
