@@ -14,6 +14,13 @@ import time
 
 import torch
 
+from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.envs.vector import TGVectorEnv
+from tg_gpudrive.render import EpisodeRecorder
+from tg_gpudrive.rollout import expert_policy
+
 
 def timed(fn, steps: int, device: str) -> float:
     fn()  # warm-up (module load, graph capture)
@@ -37,13 +44,6 @@ def main() -> None:
     ap.add_argument("--num-scenes", type=int, default=36)
     ap.add_argument("--frames", type=int, default=20)
     args = ap.parse_args()
-
-    from tg_gpudrive.config import EngineConfig
-    from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.envs.vector import TGVectorEnv
-    from tg_gpudrive.render import EpisodeRecorder
-    from tg_gpudrive.rollout import expert_policy
-    from tg_gpudrive.engine.simulator import Simulator
 
     src = resolve_scenes(args.scenes, n=args.num_scenes)
     pool = [src.get(i) for i in range(len(src))]

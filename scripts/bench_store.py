@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import multiprocessing as mp
 import os
 import subprocess
 import sys
@@ -24,6 +25,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene  # noqa: E402  (after the path)
+from tg_gpudrive.data.sampler import SceneSampler  # noqa: E402
+from tg_gpudrive.data.sources import StoreSource  # noqa: E402
+from tg_gpudrive.data.store import is_store, open_store, write_store  # noqa: E402
+from tg_gpudrive.scene import make_scene  # noqa: E402
+from tg_gpudrive.types import RoadType  # noqa: E402
 
 
 def rss_mb(key: str = "VmRSS") -> float:
@@ -37,9 +45,6 @@ def rss_mb(key: str = "VmRSS") -> float:
 
 def synthetic_scene(k: int, n_agents: int = 48, steps: int = 91, polylines: int = 150, points: int = 60):
     """A WOMD-sized random scene: n_agents x 91 steps, 150 polylines of 60 points."""
-    from tg_gpudrive.scene import make_scene
-    from tg_gpudrive.types import RoadType
-
     rng = np.random.default_rng(k)
     pos = np.cumsum(rng.normal(size=(n_agents, steps, 2)), axis=1)
     roads = [(RoadType.LANE if r % 3 else RoadType.ROAD_EDGE, np.cumsum(rng.normal(size=(points, 2)), 0))
@@ -51,8 +56,6 @@ def synthetic_scene(k: int, n_agents: int = 48, steps: int = 91, polylines: int 
 def _one(args):
     i, kind = args
     if kind == "procedural":
-        from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
-
         return generate_scene(SCENARIO_TYPES[i % len(SCENARIO_TYPES)], i)  # = generate_scenes("all", n, 0)
     return synthetic_scene(i)
 
@@ -66,8 +69,6 @@ class TimedScenes:
     def __iter__(self):
         jobs = ((i, self.kind) for i in range(self.n))
         if self.workers > 1:
-            import multiprocessing as mp
-
             with mp.get_context("spawn").Pool(self.workers) as pool:
                 yield from self._timed(pool.imap(_one, jobs, chunksize=8))
         else:
@@ -86,9 +87,6 @@ class TimedScenes:
 
 def read_phase(out: Path, worlds: int) -> dict:
     """Open the store and fill `worlds` worlds; run in a fresh process."""
-    from tg_gpudrive.data.sampler import SceneSampler
-    from tg_gpudrive.data.sources import StoreSource
-
     res = {"rss_mb_before_open": rss_mb()}
     t0 = time.perf_counter()
     src = StoreSource(out)
@@ -130,8 +128,6 @@ def main(argv=None) -> None:
     if args.read_phase:
         print(json.dumps(read_phase(out, args.worlds)))
         return
-
-    from tg_gpudrive.data.store import is_store, open_store, write_store
 
     res: dict = {"n": args.n, "source": kind, "store": str(out), "rss_mb_start": rss_mb()}
     reuse = not args.rebuild and is_store(out) and len(open_store(out)) == args.n

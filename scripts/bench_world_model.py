@@ -30,6 +30,15 @@ from pathlib import Path
 
 import torch
 
+from tg_gpudrive.config import TrainConfig, load_config
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.learn.train import Trainer
+from tg_gpudrive.worldmodel import WorldModelDriver, load_world_model
+from tg_gpudrive.worldmodel.data import collect
+from tg_gpudrive.worldmodel.prior import SHIPPED
+from tg_gpudrive.worldmodel.train import WorldModelConfig, build_model, fit
+
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
 
@@ -39,10 +48,6 @@ def _sync(device: str) -> None:
 
 
 def _model(cfg, path, device):
-    from tg_gpudrive.worldmodel import load_world_model
-    from tg_gpudrive.worldmodel.prior import SHIPPED
-    from tg_gpudrive.worldmodel.train import build_model
-
     if path:
         return load_world_model(path, device=device)
     if cfg.env.discrete:
@@ -51,10 +56,6 @@ def _model(cfg, path, device):
 
 
 def bench_train(cfg, args, device: str) -> dict:
-    from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.worldmodel.data import collect
-    from tg_gpudrive.worldmodel.train import build_model, fit
-
     src = resolve_scenes(cfg.scenes, n=args.train_scenes, seed=cfg.seed)
     scenes = [src.get(i) for i in range(min(args.train_scenes, len(src)))]
     t0 = time.perf_counter()
@@ -79,10 +80,6 @@ def bench_train(cfg, args, device: str) -> dict:
 
 @torch.no_grad()
 def bench_inference(cfg, args, device: str) -> dict:
-    from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.engine.simulator import Simulator
-    from tg_gpudrive.worldmodel import WorldModelDriver
-
     src = resolve_scenes(args.scenes, n=args.pool, seed=0)
     pool = [src.get(i) for i in range(len(src))]
     scenes = [pool[i % len(pool)] for i in range(args.worlds)]
@@ -120,9 +117,6 @@ def bench_inference(cfg, args, device: str) -> dict:
 
 
 def bench_prior(args, device: str) -> dict:
-    from tg_gpudrive.config import TrainConfig, load_config
-    from tg_gpudrive.learn.train import Trainer
-
     overrides = [f"device={device}", *args.set]
     out = {}
     for prior in ("expert", "world_model"):
@@ -180,10 +174,6 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
-
-    from tg_gpudrive.config import load_config
-    from tg_gpudrive.engine.simulator import resolve_device
-    from tg_gpudrive.worldmodel.train import WorldModelConfig
 
     device = resolve_device(args.device)
     wm_cfg = load_config(WorldModelConfig, args.wm_config or CONFIGS / "worldmodel" / "small_cpu.yaml",

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import yaml
 
+from tg_gpudrive.evaluation.report import ReportOptions, report_main
+
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
 
@@ -136,8 +138,6 @@ def main(argv: list[str] | None = None) -> int:
     print((out / "flexibility.md").read_text(), flush=True)
     if args.no_report:
         return 0
-    from tg_gpudrive.evaluation.report import ReportOptions, report_main
-
     r = exp.get("report") or {}
     opts = ReportOptions(scenes=int(r.get("scenes", 4)), seeds=tuple(r.get("seeds", (0, 1))),
                          br_iters=int(r.get("br_iters", 5)), br_seeds=tuple(r.get("br_seeds", (0, 1))))

@@ -301,8 +301,9 @@ def test_modes_parse_print_and_round_trip_as_their_yaml_names():
     assert plain["control"] == "nearest_conflict" and plain["env"]["collision_mode"] == "stop"
     assert json.loads(json.dumps(plain))["env"]["dynamics"] == "bicycle"  # names, not integers
     assert from_dict(TrainConfig, plain).env == cfg  # checkpoints store names (old ones: the same strings)
-    assert (cfg.act_dim, cfg.noop_index) == (2, 45)
-    assert EngineConfig(dynamics="delta_local", action_space="continuous").act_dim == 3
+    assert (cfg.act_dim, cfg.noop_index, cfg.act_high) == (2, 45, (6.0, 0.3))
+    delta = EngineConfig(dynamics="delta_local", action_space="continuous")
+    assert (delta.act_dim, delta.act_high) == (3, (6.0, 1.0, 0.5))
     with pytest.raises(ConfigError, match="control: expected one of vehicles, all_agents, none"):
         EngineConfig(control="ids")
     with pytest.raises(ConfigError, match="collision_mode"):

@@ -160,16 +160,3 @@ def test_cli_render(tmp_path, capsys):
     assert main(["render", "--policy", str(tmp_path / "missing.pt"), "--out", str(gif)]) == 2
     assert "checkpoint" in capsys.readouterr().err
     assert main(["render", "--out", str(tmp_path / "ep.avi")]) == 2
-
-
-def test_cli_render_checkpoint_without_learner(tmp_path, monkeypatch, capsys):
-    """A checkpoint policy needs the learner's loader; without it the command says so instead of failing oddly."""
-    import sys
-
-    from tg_gpudrive.cli import main
-
-    ck = tmp_path / "checkpoint.pt"
-    ck.write_bytes(b"")
-    monkeypatch.setitem(sys.modules, "tg_gpudrive.policy", None)
-    assert main(["render", "--policy", str(tmp_path), "--steps", "1", "--out", str(tmp_path / "x.gif")]) == 2
-    assert "checkpoint policies need tg_gpudrive.policy" in capsys.readouterr().err

@@ -1,5 +1,10 @@
 """tg_gpudrive: TrafficGamer scenario generation on a batched NVIDIA Warp driving engine."""
 
+import ctypes
+import os
+import sys
+import tempfile
+
 import warp as _wp
 
 # the engine never differentiates through its kernels: skipping adjoints halves compile time;
@@ -12,9 +17,6 @@ NO_DRIVER_WARNING = "Could not find or load the NVIDIA CUDA driver"
 
 def _cuda_driver_loadable() -> bool:
     """Whether the CUDA driver library loads, tried as Warp's native init tries it."""
-    import ctypes
-    import sys
-
     names = {"win32": ("nvcuda.dll",), "linux": ("libcuda.so", "libcuda.so.1")}.get(sys.platform)
     if names is None:  # no CUDA build of Warp here (macOS): it prints nothing about a driver
         return True
@@ -33,10 +35,6 @@ def _init_warp_without_driver_warning() -> None:
     GPU execution will not be available."): Warp has no setting for that line, and device "auto"
     already means cpu there. Everything else printed meanwhile is passed on unchanged; where a driver
     loads, or stderr is not a file descriptor, nothing changes (Warp initialises on first use)."""
-    import os
-    import sys
-    import tempfile
-
     if _cuda_driver_loadable():
         return
     try:

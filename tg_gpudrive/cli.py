@@ -31,10 +31,39 @@ import sys
 import time
 from pathlib import Path
 
+import torch.multiprocessing as mp
+
+from tg_gpudrive.benchmark import main as benchmark_main
+from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
 from tg_gpudrive.cli_help import HelpFormatter
-from tg_gpudrive.config import REPO_CONFIGS, ConfigError, EngineConfig, load_config
+from tg_gpudrive.config import (
+    REPO_CONFIGS,
+    ConfigError,
+    EngineConfig,
+    TrainConfig,
+    apply_overrides,
+    from_dict,
+    load_config,
+    load_yaml,
+)
+from tg_gpudrive.data.sampler import SceneSampler
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.data.store import convert
+from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.evaluation.report import main as report_main
+from tg_gpudrive.learn import distributed
+from tg_gpudrive.learn.train import train_main
+from tg_gpudrive.policy import load_policy
+from tg_gpudrive.rollout import background_masks, builtin_policy, make_background_driver, run_rollout
+from tg_gpudrive.types import CollisionMode, ControlMode
+from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args
+from tg_gpudrive.worldmodel.cli import run as run_world_model
 
 log = logging.getLogger("tg_gpudrive")
+
+COLLISION_MODES = [str(m) for m in CollisionMode]  # ignore, stop, remove
+CONTROL_CHOICES = [str(ControlMode.VEHICLES), str(ControlMode.NEAREST_CONFLICT)]  # the --control selections
 
 
 def _engine_args(p: argparse.ArgumentParser) -> None:
@@ -60,7 +89,7 @@ def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all",
 
 
 def _background_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--control", choices=["vehicles", "nearest_conflict"], default=None,
+    p.add_argument("--control", choices=CONTROL_CHOICES, default=None,
                    help="who the policy drives: every eligible vehicle (default: the engine config's `control`) "
                         "or the --control-k vehicles nearest the scene's conflict point")
     p.add_argument("--control-k", type=int, default=5, help="nearest_conflict: how many (default 5)")
@@ -103,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--worlds", type=positive_int, default=16, help="worlds simulated in parallel, one scene each")
     p.add_argument("--steps", type=positive_int, default=None, help="steps to run (default: one episode)")
     p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"], help=POLICY_HELP)
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
+    p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     _background_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
@@ -131,9 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
 
     p = sub.add_parser("train-world-model", help="train the world model (behaviour prior / reactive traffic)")
-    from tg_gpudrive.worldmodel.cli import add_arguments as _world_model_args  # lazy: see _load_scenes
-
-    _world_model_args(p)
+    world_model_args(p)
 
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
@@ -143,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
     _engine_args(p)
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
+    p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     p.add_argument("--episodes", type=positive_int, default=64, help="scene episodes to run (worlds x rounds)")
     p.add_argument("--worlds", type=positive_int, default=None, help="parallel worlds (default: min(episodes, 256))")
     p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
@@ -160,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
     p.add_argument("--worlds", type=positive_int, default=None, help="worlds to simulate (default: world + 1)")
-    p.add_argument("--collision-mode", choices=["ignore", "stop", "remove"], default=None, help=COLLISION_HELP)
+    p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     p.add_argument("--out", default="episode.gif", help="episode.gif | episode.mp4 | frame.png")
     p.add_argument("--size", default="640", metavar="PX or WxH", help="picture size in pixels (default 640)")
     p.add_argument("--center-agent", type=int, default=None, metavar="SLOT",
@@ -192,16 +219,8 @@ def _engine_config(args) -> EngineConfig:
     return load_config(EngineConfig, args.env_config, overrides)
 
 
-# The commands below import what they run inside their functions, on purpose: a command pays only for
-# its own modules (the engine's kernels, the learner, the world model, the data loaders, matplotlib for
-# render, the report), and `tg-gpudrive report` skips the parser above. With every one of them at the
-# top of this module, `tg-gpudrive --help` took 4.0 s instead of 3.3 s and any command with
-# matplotlib 5.7 s (2-core CPU). The world model's arguments are the one import every parse makes.
 def _load_scenes(args, worlds: int) -> tuple[list, int]:
     """`worlds` scenes of --scenes, and how many files of it were skipped because they do not load."""
-    from tg_gpudrive.data.sampler import SceneSampler
-    from tg_gpudrive.data.sources import resolve_scenes
-
     n = args.num_scenes or worlds
     src = resolve_scenes(args.scenes, n=n, seed=args.seed)
     sampler = SceneSampler(src, worlds, replacement=False, seed=args.seed)
@@ -211,16 +230,12 @@ def _load_scenes(args, worlds: int) -> tuple[list, int]:
 def _check_background_args(args) -> None:
     if args.background_model is not None and args.background != "world_model":
         raise ValueError("--background-model: only used with --background world_model")
-    if args.control == "nearest_conflict" and args.control_k < 1:
+    if args.control == str(ControlMode.NEAREST_CONFLICT) and args.control_k < 1:
         raise ValueError(f"--control-k: expected >= 1, got {args.control_k}")
 
 
 def _simulator_with_background(args, cfg, scenes):
     """The Simulator with the --control agents as the policy's and the --background driver (None: log)."""
-    from tg_gpudrive.engine.control import control_masks
-    from tg_gpudrive.engine.simulator import Simulator
-    from tg_gpudrive.rollout import background_masks, make_background_driver
-
     ctrl = control_masks(scenes, cfg, args.control, args.control_k) if args.control else None
     sim = Simulator(scenes, cfg, args.device, ctrl, background_masks(scenes, cfg, args.background, ctrl))
     driver = make_background_driver(sim, args.background, args.background_model, args.seed, "--background-model")
@@ -236,8 +251,6 @@ def _background_report(args, cfg) -> dict:
 
 
 def cmd_simulate(args) -> int:
-    from tg_gpudrive.rollout import builtin_policy, run_rollout
-
     _check_background_args(args)
     cfg = _engine_config(args)
     scenes, skipped = _load_scenes(args, args.worlds)
@@ -264,18 +277,12 @@ def _print_rates(out: dict) -> None:
 
 
 def cmd_benchmark(args) -> int:
-    from tg_gpudrive.benchmark import main
-
     args.engine_config = _engine_config(args)
     args.num_scenes = args.num_scenes or 36
-    return main(args)
+    return benchmark_main(args)
 
 
 def cmd_train(args) -> int:
-    from tg_gpudrive.config import TrainConfig, apply_overrides, from_dict, load_yaml
-    from tg_gpudrive.engine.simulator import resolve_device
-    from tg_gpudrive.learn.train import train_main
-
     if args.resume:  # the run's own config, then any new overrides
         if not (Path(args.resume) / "checkpoint.pt").is_file() and not Path(args.resume).is_file():
             raise FileNotFoundError(f"--resume: no run to continue at {args.resume} (no checkpoint.pt)")
@@ -289,18 +296,12 @@ def cmd_train(args) -> int:
     if not args.resume:
         out_dir = str(_fresh_run_dir(Path(out_dir or cfg.out_dir), args.overwrite))
     if args.nproc > 1:
-        import torch.multiprocessing as mp
-
-        from tg_gpudrive.learn.distributed import free_port
-
         ctx = mp.get_context("spawn")
         result = ctx.SimpleQueue()
-        mp.spawn(_train_worker, args=(args.nproc, free_port(), cfg, out_dir, args.resume, result),
+        mp.spawn(_train_worker, args=(args.nproc, distributed.free_port(), cfg, out_dir, args.resume, result),
                  nprocs=args.nproc)
         out = result.get()
     else:
-        from tg_gpudrive.learn import distributed
-
         distributed.init_from_env(cfg.device)  # a torchrun launch: join its process group
         out = train_main(cfg, out_dir=out_dir, resume=args.resume, progress=True)
         out.setdefault("device", distributed.local_device(cfg.device))  # the one that ran ("auto" resolved)
@@ -337,9 +338,6 @@ def _fresh_run_dir(path: Path, overwrite: bool) -> Path:
 
 
 def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result) -> None:
-    from tg_gpudrive.learn import distributed
-    from tg_gpudrive.learn.train import train_main
-
     with distributed.process_group(rank, world, port, cfg.device):
         out = train_main(cfg, out_dir=out_dir, resume=resume, progress=rank == 0)
         out.setdefault("device", distributed.local_device(cfg.device))  # rank 0's, "auto" resolved
@@ -348,14 +346,8 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
 
 
 def cmd_evaluate(args) -> int:
-    from tg_gpudrive.config import TrainConfig, from_dict
-    from tg_gpudrive.rollout import builtin_policy, run_rollout
-
     _check_background_args(args)
     if args.checkpoint:
-        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
-        from tg_gpudrive.policy import load_policy
-
         path = checkpoint_path(args.checkpoint, "--checkpoint")  # a file, a run directory or "shipped"
         ck = load_checkpoint(path, "--checkpoint")
         trained = from_dict(TrainConfig, ck["config"], str(path))
@@ -384,9 +376,8 @@ def cmd_evaluate(args) -> int:
 
 
 def cmd_render(args) -> int:
-    from tg_gpudrive.engine.simulator import Simulator
+    # drawing needs the render extra (matplotlib, Pillow): imported by the one command that draws
     from tg_gpudrive.render import mp4_backend, render_episode
-    from tg_gpudrive.rollout import builtin_policy
 
     out = Path(args.out)
     if out.suffix.lower() not in (".gif", ".mp4", ".png"):
@@ -410,23 +401,11 @@ def cmd_render(args) -> int:
 
     checkpoint = None
     if args.policy not in ("expert", "random", "constant"):
-        from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
-
         try:  # a file, a run directory or "shipped"
             checkpoint = checkpoint_path(args.policy, "--policy")
         except FileNotFoundError as e:
             raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") \
                 from None
-        try:  # the policy loader is optional here: import it only for checkpoints
-            from tg_gpudrive.policy import load_policy
-        except ModuleNotFoundError as e:
-            if not (e.name or "").startswith(("tg_gpudrive.policy", "tg_gpudrive.learn")):
-                raise
-            print(f"tg-gpudrive render: error: checkpoint policies need tg_gpudrive.policy.load_policy "
-                  f"({e}); use --policy expert|random|constant", file=sys.stderr)
-            return 2
-        from tg_gpudrive.config import TrainConfig, from_dict
-
         trained = from_dict(TrainConfig, load_checkpoint(checkpoint, "--policy")["config"], str(checkpoint))
     else:
         cfg = _engine_config(args)
@@ -452,8 +431,6 @@ def cmd_render(args) -> int:
 
 
 def cmd_convert(args) -> int:
-    from tg_gpudrive.data.store import convert
-
     report = convert(args.inputs, args.out, resume=not args.no_resume, progress=True,
                      simplify_tolerance=args.simplify)
     d = dataclasses.asdict(report) if dataclasses.is_dataclass(report) else dict(vars(report))
@@ -466,9 +443,7 @@ def cmd_convert(args) -> int:
 
 
 def cmd_train_world_model(args) -> int:
-    from tg_gpudrive.worldmodel.cli import run
-
-    return run(args) or 0
+    return run_world_model(args) or 0
 
 
 COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
@@ -478,16 +453,12 @@ COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["report"]:  # its own argument parser (tg_gpudrive.evaluation.report)
-        from tg_gpudrive.evaluation.report import main as report_main
-
         return report_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         if getattr(args, "device", None) is not None:  # "auto" made concrete; CUDA without one fails here
-            from tg_gpudrive.engine.simulator import resolve_device
-
             args.device = resolve_device(args.device, flag="--device")
         return COMMANDS[args.command](args)
     except (ConfigError, ValueError, FileNotFoundError) as e:

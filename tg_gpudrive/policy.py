@@ -4,6 +4,7 @@ distribution head, building the networks from a config and loading a policy from
     actor, critic = build_models(train_cfg, sim, device)     # the trainer's networks
     head = PolicyHead(discrete=True)                         # sampling, log-probs, entropy, KLs
     policy = load_policy("runs/small_cpu", sim)               # policy(sim) writes sim's actions
+    grid = action_grid(env_cfg)                               # (num_actions, 2) values of the grid
 
 It sits below the learner (learn.train), the world model and the evaluation, so that none of
 them reaches into another for these: it imports only the engine, the config, the checkpoint
@@ -22,7 +23,6 @@ from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
-from tg_gpudrive.types import Dynamics
 
 
 class BehaviourPrior:
@@ -74,12 +74,19 @@ class PolicyHead:
         return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
 
 
+def action_grid(env, device=None) -> torch.Tensor:
+    """(num_actions, 2): the (accel, curvature) of each discrete action, row i = ia * curvature_bins + ik
+    as the engine indexes its grid (kernels/dynamics.py)."""
+    a = torch.linspace(-env.max_accel, env.max_accel, env.accel_bins, device=device)
+    k = torch.linspace(-env.max_curvature, env.max_curvature, env.curvature_bins, device=device)
+    return torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
+
+
 def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1) -> Actor:
     """An actor for the engine config `env`'s action space (its grid of `num_actions`, or the
     bicycle / delta-local action box), on the CPU."""
-    scale = [env.max_accel, env.max_curvature] if env.dynamics == Dynamics.BICYCLE else list(env.delta_max)
     return Actor(env.partner_k, env.road_k, discrete=env.discrete, num_actions=num_actions,
-                 act_dim=env.act_dim, act_scale=scale, hidden=hidden, heads=heads)
+                 act_dim=env.act_dim, act_scale=list(env.act_high), hidden=hidden, heads=heads)
 
 
 def build_models(cfg: TrainConfig, sim: Simulator, device: str):

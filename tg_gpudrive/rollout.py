@@ -29,7 +29,6 @@ from tqdm import tqdm
 
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import Dynamics
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
 
 Policy = Callable[[Simulator], None]
@@ -57,8 +56,9 @@ def make_random_policy(seed: int, device: str) -> Policy:
             sim.actions_index.copy_(torch.randint(0, sim.num_actions, sim.actions_index.shape, generator=gen,
                                                   device=sim.actions_index.device, dtype=torch.int32))
         else:
-            hi = (torch.tensor([cfg.max_accel, cfg.max_curvature, 0.0]) if cfg.dynamics == Dynamics.BICYCLE
-                  else torch.tensor(cfg.delta_max)).to(sim.actions.device)
+            hi = torch.zeros(sim.actions.shape[-1])  # the columns past act_dim stay 0
+            hi[:cfg.act_dim] = torch.tensor(cfg.act_high)
+            hi = hi.to(sim.actions.device)
             u = torch.rand(sim.actions.shape, generator=gen, device=sim.actions.device)
             sim.actions.copy_((2 * u - 1) * hi)
 

@@ -15,7 +15,7 @@
 In the vector envs an env is one agent slot (a row): make_vec's `num_envs`
 (a multiple of max_agents, 64 by default) is the env's own `num_envs`, here
 16 worlds x 64 slots; `num_worlds=` asks for worlds instead. The PettingZoo env (parallel.TGParallelEnv) has
-no gymnasium id. The env classes (and torch) load on first use. Every env
+no gymnasium id. Every env
 takes ``device=``: "auto" (the default: cuda:0 when CUDA is usable, else
 cpu), "cpu", "cuda" or "cuda:N"; asking for CUDA without one is a ValueError.
 """
@@ -23,6 +23,10 @@ cpu), "cpu", "cuda" or "cuda:N"; asking for CUDA without one is a ValueError.
 from __future__ import annotations
 
 import gymnasium
+
+from tg_gpudrive.envs.parallel import TGParallelEnv
+from tg_gpudrive.envs.single import TGSingleAgentEnv
+from tg_gpudrive.envs.vector import TGVectorEnv, make_vector_env
 
 __all__ = ["TGParallelEnv", "TGSingleAgentEnv", "TGVectorEnv", "make_vector_env"]
 
@@ -38,20 +42,3 @@ _IDS = {
 for _id, _spec in _IDS.items():
     if _id not in gymnasium.registry:
         gymnasium.register(id=_id, **_spec)
-
-
-def __getattr__(name: str):
-    # the env classes import torch and Warp: load them on first use only
-    if name in ("TGVectorEnv", "make_vector_env"):
-        from tg_gpudrive.envs import vector
-
-        return getattr(vector, name)
-    if name == "TGSingleAgentEnv":
-        from tg_gpudrive.envs.single import TGSingleAgentEnv
-
-        return TGSingleAgentEnv
-    if name == "TGParallelEnv":
-        from tg_gpudrive.envs.parallel import TGParallelEnv
-
-        return TGParallelEnv
-    raise AttributeError(f"module 'tg_gpudrive.envs' has no attribute {name!r}")

@@ -85,7 +85,7 @@ from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scene
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import ActionSpace, Dynamics
+from tg_gpudrive.types import ActionSpace
 
 ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
 OverridesLike = Sequence[str] | Mapping[str, Any] | None
@@ -188,10 +188,7 @@ def single_action_space(cfg: EngineConfig) -> gymnasium.spaces.Space:
     """Discrete(num_actions), Box(2) for the continuous bicycle, Box(3) for delta-local."""
     if cfg.discrete:
         return gymnasium.spaces.Discrete(cfg.num_actions)
-    if cfg.dynamics == Dynamics.BICYCLE:
-        hi = np.array([cfg.max_accel, cfg.max_curvature], np.float32)
-    else:
-        hi = np.array(cfg.delta_max, np.float32)
+    hi = np.array(cfg.act_high, np.float32)
     return gymnasium.spaces.Box(-hi, hi, dtype=np.float32)
 
 

@@ -22,7 +22,7 @@ import math
 import torch
 
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.policy import BehaviourPrior
+from tg_gpudrive.policy import BehaviourPrior, action_grid
 from tg_gpudrive.types import Dynamics
 
 
@@ -51,10 +51,7 @@ class ExpertPrior(BehaviourPrior):
         self.act_dim = cfg.act_dim
         dev = sim.reward.device
         if self.discrete:
-            a = torch.linspace(-cfg.max_accel, cfg.max_accel, cfg.accel_bins, device=dev)
-            k = torch.linspace(-cfg.max_curvature, cfg.max_curvature, cfg.curvature_bins, device=dev)
-            # grid index i = ia * n_kappa + ik, as in the engine
-            self.grid = torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
+            self.grid = action_grid(cfg, dev)
         sig = [sigma_accel, sigma_curvature] if self.bicycle else [0.5, 0.2, 0.1]
         self.sigma = torch.tensor(sig, device=dev)
 

@@ -20,13 +20,14 @@ from tg_gpudrive.config import ConfigError, EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+from tg_gpudrive.types import CollisionMode, GoalBehaviour
 from tg_gpudrive.worldmodel.model import HistoryBuffer, require_bicycle
 
 
 def full_horizon_env(env: EngineConfig) -> EngineConfig:
     """`env` for closed-loop roll-outs and their metrics: agents keep driving after their goal and
     through contacts, so every track lasts the whole horizon."""
-    return dataclasses.replace(env, goal_behaviour="continue", collision_mode="ignore")
+    return dataclasses.replace(env, goal_behaviour=GoalBehaviour.CONTINUE, collision_mode=CollisionMode.IGNORE)
 
 
 def truncate_obs(obs: torch.Tensor, k: int, kr: int, kp: int, krr: int) -> torch.Tensor:

@@ -22,6 +22,7 @@ import warp as wp
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.policy import action_grid
 from tg_gpudrive.worldmodel.data import full_horizon_env
 from tg_gpudrive.worldmodel.model import WorldModel
 from tg_gpudrive.worldmodel.prior import WorldModelDriver
@@ -49,12 +50,6 @@ def dataset_nll(model: WorldModel, data: dict, batch: int = 4096) -> dict:
         return {"nll": nll / max(n, 1), "accuracy": hit / max(n, 1)}
     mae = (err / max(n, 1)).tolist()
     return {"nll": nll / max(n, 1), "mae_accel": mae[0], "mae_curvature": mae[1]}
-
-
-def action_grid(env: EngineConfig) -> torch.Tensor:
-    a = torch.linspace(-env.max_accel, env.max_accel, env.accel_bins)
-    k = torch.linspace(-env.max_curvature, env.max_curvature, env.curvature_bins)
-    return torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
 
 
 def baseline_nlls(data: dict, env: EngineConfig, train: dict | None = None) -> dict:
