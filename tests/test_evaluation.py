@@ -22,7 +22,9 @@ from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
-from tg_gpudrive.evaluation.rollouts import logged_episodes, record_episodes, record_rollouts
+from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.evaluation.rollouts import (logged_episodes, path_kinematics, record_episodes, record_rollouts,
+                                             replay_episodes)
 from tg_gpudrive.rollout import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
@@ -79,6 +81,47 @@ def test_realism_likelihood():
 
 
 # ---------------------------------------------------------- rollouts & risk
+def test_path_kinematics_by_hand():
+    """Finite differences of positions: constant acceleration on a line gives it exactly, a circle at
+    constant speed gives 1/R (chord headings: theta / (2 R sin(theta / 2))), standing still gives 0."""
+    dt, a, R, v = 0.1, 1.5, 20.0, 8.0
+    t = dt * np.arange(12)
+    line = np.stack([0.5 * a * t**2 + 3.0 * t, np.zeros_like(t)], -1)
+    th = v * t / R
+    circle = np.stack([R * np.sin(th), R * (1 - np.cos(th))], -1)
+    still = np.zeros_like(line)
+    pos = np.stack([line, circle, still])[None]  # (1, 3, K, 2)
+    valid = np.ones(pos.shape[:3], bool)
+    valid[0, 1, 6] = False  # a gap: no accel / curvature at steps 6, 7 and 8
+    accel, curv, ok = path_kinematics(pos, valid, dt)
+    assert not ok[0, :, :2].any()
+    np.testing.assert_allclose(accel[0, 0, 2:], a, atol=1e-4)
+    np.testing.assert_allclose(curv[0, 0, 2:], 0.0, atol=1e-6)
+    step = v * dt / R
+    want = step / (2 * R * np.sin(step / 2))
+    got = curv[0, 1][ok[0, 1]]
+    assert ok[0, 1].sum() == 12 - 2 - 3 and np.allclose(got, want, rtol=1e-4) and want == pytest.approx(1 / R, rel=1e-3)
+    np.testing.assert_allclose(accel[0, 1][ok[0, 1]], 0.0, atol=1e-3)
+    assert ok[0, 2, 2:].all() and not accel[0, 2].any() and not curv[0, 2].any()
+
+
+def test_log_replay_scores_near_zero_and_the_grid_shows():
+    """On real WOMD scenes the engine replaying the logs is within Hellinger 0.05 of the logs on every
+    feature (acceleration and curvature come from positions on both sides); the discrete expert,
+    which can only pick 2 m/s^2 steps, is far from them in acceleration."""
+    scenes = [load_gpudrive_json(f) for f in WOMD_FILES]
+    cfg = EngineConfig(max_agents=128)
+    masks = control_masks(scenes, cfg, "vehicles", 0, None)
+    sim = Simulator(scenes, cfg, "cpu", controlled=masks)
+    logged = logged_episodes(sim)
+    replay = fid.compare(logged, replay_episodes(scenes, masks, cfg, "cpu"))["per_feature"]
+    for name, v in replay.items():
+        assert v["n_generated"] > 0.9 * v["n_logged"] > 500, name
+        assert v["hellinger"] < 0.05, (name, v["hellinger"])
+    expert = fid.compare(logged, record_episodes(sim, expert_policy))["per_feature"]
+    assert expert["accel"]["hellinger"] > 0.3
+
+
 @pytest.fixture(scope="module")
 def merge_sim():
     scenes = [generate_scene("merge", s) for s in range(2)]
@@ -226,16 +269,19 @@ def test_report_on_tiny_runs(tmp_path):
         runs.append(str(tmp_path / name))
     out = tmp_path / "report"
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--seeds", "0", "1", "--br-iters", "1",
-                 "--br-seeds", "0", "--top", "1"]) == 0
+                 "--br-seeds", "0", "--top", "1", "--grid-scene", "1", "--grid-gifs"]) == 0
     for f in FILES:
         assert (out / f).stat().st_size > 0, f
+    assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
     md = (out / "report.md").read_text()
-    for label in ("log replay (expert)", "behaviour prior", "| cce | CCE-MAPPO", "| mappo | MAPPO", "realism (ours)"):
+    for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "| cce | CCE-MAPPO", "| mappo | MAPPO", "realism (ours)"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
-    assert {r["label"] for r in summary["results"]} == {"log replay (expert)", "behaviour prior", "cce", "mappo"}
+    assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",
+                                                         "cce", "mappo"}
     assert list((out / "scenarios" / "cce").glob("*.json"))
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
+    assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
 
 
 def test_flexibility_table_averages_the_last_updates(tmp_path):

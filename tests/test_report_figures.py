@@ -19,7 +19,7 @@ def _fake_runs(n: int, agents: int = 12):
     betas, alphas = (2.0, 4.0, 6.0, 8.0, 10.0), (0.25, 0.5, 0.75, 0.9)
     keys = [(betas[i % 5] + 10 * (i // 20), alphas[i // 5 % 4]) for i in range(n)]
     cells = {k: rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for k in keys}
-    labels = ["log replay (expert)", "behaviour prior"] + [f"beta{b:g}_alpha{a:g}_a_long_run_name" for b, a in keys]
+    labels = ["expert (inverse dynamics)", "behaviour prior"] + [f"beta{b:g}_alpha{a:g}_a_long_run_name" for b, a in keys]
     gaps = {lab: {"agents": [f"s{j // 2}/a{j % 2}" for j in range(agents)],
                   "gap_per_agent": rng.random(agents).tolist(), "mean_gap": 0.5, "ci95": 0.1} for lab in labels}
     curves = {lab: [{"update": u, "lambda": rng.random(), "cvar": rng.random(), "cost": rng.random()}

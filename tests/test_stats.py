@@ -46,3 +46,25 @@ def test_interval_of_noise_contains_zero_and_is_seeded():
 def test_a_cell_without_episodes_is_an_error_naming_it():
     with pytest.raises(ValueError, match="beta=3"):
         spearman_ci([2, 3], [np.ones(5), np.array([np.nan])], labels=["beta=2", "beta=3"])
+
+
+def test_flexibility_table_marks_each_claim():
+    """Six made cells (beta 2-4 x alpha 0.1, 0.9): gaps grow with beta far beyond the episodes' spread,
+    speed grows with alpha (against the paper), the rest is noise."""
+    from tg_gpudrive.evaluation.report import flexibility_directions
+
+    rng = np.random.default_rng(5)
+    cells = []
+    for beta in (2.0, 3.0, 4.0):
+        for alpha in (0.1, 0.9):
+            n = 300
+            cells.append({"label": f"b{beta}a{alpha}", "beta": beta, "alpha": alpha, "figures": {
+                "min_gap": rng.normal(2.0 * beta, 0.3, n), "speed": rng.normal(5.0 + 4.0 * alpha, 0.3, n),
+                "ttc_critical": (rng.random(n) < 0.2).astype(float), "collision": (rng.random(n) < 0.1).astype(float),
+                "hard_brakes": rng.poisson(0.3, n).astype(float)}})
+    rows = {(r[0], r[1]): r for r in flexibility_directions(cells, n_boot=400)}
+    assert rows[("min gap [m]", "beta")][5] == "holds"
+    assert rows[("mean speed [m/s]", "alpha")][5] == "reversed"
+    assert rows[("collision rate", "beta")][5] == "not shown"
+    assert rows[("hard brakes / agent", "alpha")][2] == "none" and rows[("hard brakes / agent", "alpha")][5] == "-"
+    assert all(r[6] == 300 for r in rows.values())

@@ -6,9 +6,14 @@ into the edge bins, so no sample is lost):
 
     feature    range            bin width   unit    samples
     speed      [0, 30]          0.5         m/s     steps the agent is present
-    accel      [-8, 8]          0.25        m/s^2   steps the agent was driven (change of speed / dt)
+    accel      [-8, 8]          0.25        m/s^2   steps present with the two before (path speed change / dt)
     nearest    [0, 50]          0.5         m       steps present; centre distance to the nearest agent
-    curvature  [-0.3, 0.3]      0.005       1/m     steps driven (yaw change / arc length)
+    curvature  [-0.3, 0.3]      0.005       1/m     as accel (path heading change / arc length)
+
+Acceleration and curvature come from the positions by finite differences, for
+logs and rollouts alike (evaluation/rollouts.py, `path_kinematics`): they
+measure the path driven, not the action that produced it, so log replay scores
+near 0 and a discrete action grid shows only through the paths it drives.
 
 Divergences between the logged histogram P and the generated one Q (both
 normalised to probabilities):
@@ -120,13 +125,13 @@ def feature_samples(tr: Trajectories, agents: np.ndarray | None = None) -> dict[
     """1-D samples per feature over the policy's agents (or the (E, A) mask `agents`)."""
     who = tr.policy if agents is None else agents
     present = tr.valid & who[..., None]
-    acted = tr.acted & who[..., None]
+    kin = tr.kin_valid & who[..., None]
     near = tr.nearest[present]
     return {
         "speed": tr.speed[present],
-        "accel": tr.accel[acted],
+        "accel": tr.accel[kin],
         "nearest": near[np.isfinite(near)],
-        "curvature": tr.curvature[acted],
+        "curvature": tr.curvature[kin],
     }
 
 

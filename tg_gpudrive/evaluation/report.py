@@ -9,9 +9,11 @@ rollout seed, with a slot for every agent of those scenes
 (checkpoint.policy_engine_config); the logs of those worlds are the reference.
 A run may also be a checkpoint file, or `shipped` (the packaged policy,
 tg_gpudrive/policies/shipped.pt): config from the checkpoint, no training
-curves. Baselines on the first run's scenes: log replay (the closed-loop
-inverse-dynamics expert of the engine) and the behaviour prior alone (actions
-sampled from the expert prior, learn/prior.py, discrete action spaces). A
+curves. Baselines on the first run's scenes: log replay (the engine replaying
+every agent's log, recorded like a policy: the floor of the divergences; no
+CCE-gap, nobody drives), the closed-loop inverse-dynamics expert in the run's
+action space, and the behaviour prior alone (actions sampled from the expert
+prior, learn/prior.py, discrete action spaces). A
 run counts as plain MAPPO when its config switches the magnet, the proximal
 term and the constraint off
 (eta1 = 0, eta2 = inf, constraint = false; see
@@ -21,7 +23,9 @@ Writes into `out`:
 
     report.md           tables: comparison against baselines, fidelity per feature, CCE-gap per
                         agent, diversity per scenario type, most critical scenarios
-    grid.png            the beta x alpha grid of top-down scenes (last frame of world 0)
+    grid.png            the paper's beta x alpha figure: one scene (--grid-scene) per CCE-MAPPO cell,
+                        beta down the rows, alpha across, whole trajectories drawn
+    frames/<run>.gif    with --grid-gifs: that scene's episode per cell
     multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
     fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
     cce_gap.png         CCE-gap per agent, per run
@@ -57,7 +61,8 @@ from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
-from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts
+from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts, replay_episodes
+from tg_gpudrive.evaluation.stats import spearman_ci
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import load_policy
 from tg_gpudrive.rollout import expert_policy
@@ -76,6 +81,8 @@ class ReportOptions:
     top: int = 3  # critical scenarios exported per run
     device: str | None = "auto"  # auto (cuda when one is visible, else cpu) | cpu | cuda:N; None: the run's config
     frame_size: int = 320
+    grid_scene: int = 0  # which evaluation scene (0 .. scenes-1) the beta x alpha figure shows
+    grid_gifs: bool = False  # also write frames/<run>.gif, the whole episode of that scene, per cell
     progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
 
 
@@ -122,9 +129,10 @@ def prior_policy(sim):
     return policy
 
 
-def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.ndarray:
-    """Last frame of world 0's episode under the run's policy (engine without auto-reset, so the
-    final state is still there to draw; only that frame is drawn), also saved to `path`."""
+def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool = False) -> np.ndarray:
+    """Last frame of the scene's episode under the run's policy, with every agent's whole trajectory
+    (engine without auto-reset, so the final state is still there to draw), saved to `path`; with
+    `gif` also the whole episode beside it (`path` with .gif)."""
     # drawing needs the render extra (matplotlib, Pillow): imported when a report draws, so that the
     # report's parser and its numbers do not need it
     from PIL import Image
@@ -135,6 +143,10 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path) -> np.nda
     torch.manual_seed(0)
     path.parent.mkdir(parents=True, exist_ok=True)
     render_episode(sim, load_policy(ckpt, sim), world=0, out=path, size=(size, size), legend=False)
+    if gif:
+        torch.manual_seed(0)  # the same episode as the picture
+        render_episode(sim, load_policy(ckpt, sim), world=0, out=path.with_suffix(".gif"), size=(size, size),
+                       legend=False)
     return np.asarray(Image.open(path).convert("RGB"))
 
 
@@ -145,13 +157,58 @@ def _gap_game_sim(cfg, scenes, masks, device):
                      controlled=[m for m in masks for _ in range(k)])
 
 
+def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
+    """One value per policy agent-episode of each figure the flexibility claims are about."""
+    m = risk["agents"]  # present at some step, so the mean speed below has a step to average
+    speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
+    return {"min_gap": risk["min_gap"][m], "speed": speed[m],
+            "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
+            "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float)}
+
+
+def _measure(label, gen, logged, opts) -> dict:
+    """Fidelity, diversity and risk of recorded episodes `gen` (no CCE-gap); `figures` holds the
+    per-agent-episode values behind the flexibility intervals (left out of summary.json)."""
+    risk = rk.episode_risk(gen)
+    return {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
+            "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=opts.top), "cce_gap": None,
+            "figures": episode_figures(gen, risk)}
+
+
+# The paper's direction for each figure as the knob grows: beta (the distance constraint: larger is
+# tighter) gives larger gaps and safer, less competitive traffic; alpha (the CVaR level: larger is
+# more risk-averse) gives lower speeds and larger spacing. 0: the paper states no direction.
+FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
+    "min_gap": ("min gap [m]", +1, +1),
+    "speed": ("mean speed [m/s]", -1, -1),
+    "ttc_critical": (f"TTC < {rk.TTC_CRITICAL:g} s rate", -1, -1),
+    "collision": ("collision rate", -1, -1),
+    "hard_brakes": ("hard brakes / agent", 0, 0),
+}
+
+
+def flexibility_directions(cells: list[dict], n_boot: int = 2000) -> list[list]:
+    """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, agent-episodes per cell) of the
+    Spearman correlation of each figure with beta and with alpha over the CCE-MAPPO cells."""
+    rows = []
+    for key, (name, *signs) in FLEX_CLAIMS.items():
+        samples = [c["figures"][key] for c in cells]
+        for knob, sign in zip(("beta", "alpha"), signs):
+            values = [c[knob] for c in cells]
+            if len(set(values)) < 2:
+                continue
+            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells])
+            verdict = r.verdict(sign) if sign else "-"
+            rows.append([name, knob, {1: "+", -1: "-", 0: "none"}[sign], r.rho, f"[{_fmt(r.lo)}, {_fmt(r.hi)}]",
+                         verdict, min(len(x) for x in samples)])
+    return rows
+
+
 def _evaluate(label, sim, policy, logged, opts, gap_game, bar) -> tuple[dict, object]:
     """Rollouts, fidelity, diversity and risk of one policy, then its CCE-gap; advances `bar` by one."""
     bar.set_postfix_str(f"{label}: rollouts")
     gen = record_rollouts(sim, policy, opts.seeds, label=label)
-    risk = rk.episode_risk(gen)
-    res = {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
-           "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=opts.top)}
+    res = _measure(label, gen, logged, opts)
     bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} x {opts.br_iters} best-response updates)")
     res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
                                 eval_rounds=opts.br_rounds)
@@ -198,34 +255,37 @@ def _short(label: str, n: int = 26) -> str:
     return label if len(label) <= n else label[: n - 10] + "…" + label[-9:]
 
 
-def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_cols: int = 8):
-    """The beta x alpha grid. More than `max_cols` betas wrap into further blocks of rows (each block
+def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows: int = 8, scene: str = ""):
+    """The paper's beta x alpha figure: one picture per CCE-MAPPO cell, beta down the rows, alpha
+    across the columns. More than `max_rows` betas wrap into further blocks side by side (each block
     all the alphas); cells shrink (from 2.4 in) and labels with them, so the picture stays within
     MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
     betas = sorted({b for b, _ in cells}) or [0.0]
     alphas = sorted({a for _, a in cells}) or [0.0]
-    blocks = [betas[i:i + max_cols] for i in range(0, len(betas), max_cols)]
-    ncols, nrows = len(blocks[0]), len(blocks) * len(alphas)
-    cell = min(2.4, (MAX_FIG_W - 0.8) / ncols, (MAX_FIG_H - 1.2 - 0.3 * len(blocks)) / nrows)
-    fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits over a cell
-    width = max(4.0, cell * ncols + 0.8)
-    title = _wrapped("CCE-MAPPO scenes: beta (distance budget, columns) x alpha (CVaR level, rows)", width - 0.2, 9)
+    blocks = [betas[i:i + max_rows] for i in range(0, len(betas), max_rows)]
+    nrows, ncols = len(blocks[0]), len(blocks) * len(alphas)
+    cell = min(2.4, (MAX_FIG_W - 0.8 - 0.3 * len(blocks)) / ncols, (MAX_FIG_H - 1.2) / nrows)
+    fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits beside a cell
+    width = max(4.0, ncols * cell + 0.3 * len(blocks) + 0.8)
+    where = f" on scene {scene}" if scene else ""
+    title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); whole "
+                     "trajectories, controlled vehicles blue", width - 0.2, 9)
     head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title
-    height = nrows * cell + 0.3 * len(blocks) + 0.4 + head
+    height = nrows * cell + 0.4 + head
     fig = _fig()
     fig.set_size_inches(width, height)
     for k, block in enumerate(blocks):
-        for r, a in enumerate(alphas):
-            for c, b in enumerate(block):
-                ax = fig.add_subplot(nrows, ncols, (k * len(alphas) + r) * ncols + c + 1)
+        for r, b in enumerate(block):
+            for c, a in enumerate(alphas):
+                ax = fig.add_subplot(nrows, ncols, r * ncols + k * len(alphas) + c + 1)
                 ax.set_xticks([])
                 ax.set_yticks([])
                 if (b, a) in cells:
                     ax.imshow(cells[(b, a)])
                 if r == 0:
-                    ax.set_title(f"beta = {b:g} m", fontsize=fs)
+                    ax.set_title(f"alpha = {a:g}", fontsize=fs)
                 if c == 0:
-                    ax.set_ylabel(f"alpha = {a:g}", fontsize=fs)
+                    ax.set_ylabel(f"beta = {b:g} m", fontsize=fs)
     if not cells:
         fig.axes[0].text(0.5, 0.5, "no CCE-MAPPO run", ha="center", va="center", fontsize=9)
     fig.suptitle(title, fontsize=9, y=1 - 0.1 / height, va="top")
@@ -360,6 +420,13 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
         L.append(_table(["beta [m]", "alpha", "lambda (train)", "min distance (train) [m]", "speed (train) [m/s]",
                          "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"],
                         rows))
+        if len(cce) >= 3 and all("figures" in r for r in cce):
+            L.append("\nDirection of each figure with each knob over the cells: Spearman's rho of the knob with "
+                     "the cells' means, 95 % bootstrap interval from resampling every cell's agent-episodes "
+                     "(evaluation noise only, not training seeds). **holds**: the interval lies on the paper's "
+                     "side of 0; **reversed**: on the other side; **not shown**: it contains 0.\n\n")
+            L.append(_table(["figure", "knob", "paper's sign", "rho", "95 % interval", "verdict",
+                             "agent-episodes per cell (min)"], flexibility_directions(cce)))
     L.append("\n## Fidelity per feature (logged vs generated)\n\n![fidelity](fidelity.png)\n\n")
     rows = []
     for r in results:
@@ -401,13 +468,17 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     out.mkdir(parents=True, exist_ok=True)
     threads = torch.get_num_threads()
     discrete = _run_files(runs[0])[0].env.discrete  # the behaviour-prior baseline needs it
-    bar = tqdm(total=len(runs) + 1 + discrete, desc="report", unit="policy", disable=not opts.progress)
+    bar = tqdm(total=len(runs) + 2 + discrete, desc="report", unit="policy", disable=not opts.progress)
+    if not 0 <= opts.grid_scene < opts.scenes:
+        raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
+    grid_scene = ""
 
     def keep(res: dict, gen) -> None:
         results.append(res)
         generated_all[res["label"]] = gen
-        gaps[res["label"]] = res["cce_gap"]
+        if res["cce_gap"]:
+            gaps[res["label"]] = res["cce_gap"]
 
     try:
         for i, run in enumerate(runs):
@@ -423,7 +494,11 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             label = run.name
             if i == 0:  # baselines on the first run's scenes and engine
                 logged_all = logged
-                keep(*_evaluate("log replay (expert)", sim, expert_policy, logged, opts,
+                bar.set_postfix_str("log replay")
+                replayed = replay_episodes(scenes, masks, cfg.env, device)
+                keep(_measure("log replay", replayed, logged, opts), replayed)
+                bar.update(1)
+                keep(*_evaluate("expert (inverse dynamics)", sim, expert_policy, logged, opts,
                                 lambda s: ex.SimGame(gsim, expert_policy), bar))
                 if discrete:
                     keep(*_evaluate("behaviour prior", sim, prior_policy(sim), logged, opts,
@@ -438,8 +513,11 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             curves[label] = _read_metrics(run)
             res["train_tail"] = _tail_means(curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
             if res["kind"] == "CCE-MAPPO":
-                cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[0], masks[0], ckpt, device,
-                                                               opts.frame_size, out / "frames" / f"{label}.png")
+                g = opts.grid_scene
+                cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[g], masks[g], ckpt, device,
+                                                               opts.frame_size, out / "frames" / f"{label}.png",
+                                                               gif=opts.grid_gifs)
+                grid_scene = scenes[g].scene_id
             # the most critical scenarios, as GPUDrive JSON with their risk figures
             crit = res["critical"]
             files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
@@ -448,14 +526,14 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     finally:
         torch.set_num_threads(threads)
         bar.close()
-    plot_grid(cells, out / "grid.png")
+    plot_grid(cells, out / "grid.png", scene=grid_scene)
     plot_multipliers(curves, out / "multipliers.png")
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
     plot_gaps(gaps, out / "cce_gap.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
             "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds)}
     write_markdown(out, results, meta)
-    summary = {"meta": meta, "results": results}
+    summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in results]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))
     return summary
 
@@ -485,6 +563,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
     p.add_argument("--device", default="auto",
                    help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
+    p.add_argument("--grid-scene", type=int, default=d.grid_scene,
+                   help="evaluation scene (0 .. --scenes - 1) that grid.png shows in every beta x alpha cell")
+    p.add_argument("--grid-gifs", action="store_true",
+                   help="also write frames/<run>.gif, the whole episode of that scene, per cell (default: off)")
     return p
 
 
@@ -492,7 +574,8 @@ def main(argv: list[str] | None = None) -> int:
     """`tg-gpudrive report --runs DIR [DIR ...] --out DIR`; returns the exit status."""
     args = build_parser().parse_args(argv)
     opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
-                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, top=args.top, device=args.device)
+                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, top=args.top, device=args.device,
+                         grid_scene=args.grid_scene, grid_gifs=args.grid_gifs)
     try:
         report_main(args.runs, args.out, opts)
     except (ValueError, FileNotFoundError) as e:

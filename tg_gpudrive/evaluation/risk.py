@@ -81,7 +81,7 @@ def min_gap(tr: Trajectories) -> np.ndarray:
 
 def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
     """(E, A) number of hard-braking events (runs of consecutive steps with accel < threshold)."""
-    hb = tr.acted & (tr.accel < threshold)
+    hb = tr.kin_valid & (tr.accel < threshold)  # path-derived, as for the logs
     onset = hb.copy()
     onset[..., 1:] &= ~hb[..., :-1]
     return onset.sum(-1)

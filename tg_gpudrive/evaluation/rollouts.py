@@ -2,9 +2,15 @@
 
 `record_episodes(sim, policy)` runs the first episode of every world under a
 `policy(sim)` and keeps each slot's state per step; `logged_episodes(sim)`
-builds the same object from the logs the worlds replay (no stepping). Metrics
-(fidelity, diversity, risk, export) work on these host arrays only, so they do
-not care which device made them.
+builds the same object from the logs the worlds replay (no stepping), and
+`replay_episodes` records the engine replaying those logs for the policy's
+agents (the "log replay" baseline). Metrics (fidelity, diversity, risk, export)
+work on these host arrays only, so they do not care which device made them.
+
+Acceleration and curvature are derived from the positions alone, the same way
+for logs and rollouts (`path_kinematics`), so they measure the driving and not
+the action representation: a discrete grid's 2 m/s^2 steps or a delta-local
+action show only through the path they produce.
 
 `Trajectories` fields (E episodes, A agent slots, K = episode_length + 1 steps;
 k = 0 is the state at the scene's init_step, k is log step init_step + k):
@@ -14,14 +20,15 @@ k = 0 is the state at the scene's init_step, k is log step init_step + k):
     yaw         (E, A, K)    float32  rad
     vel         (E, A, K, 2) float32  m/s
     speed       (E, A, K)    float32  m/s
-    accel       (E, A, K)    float32  m/s^2, action that led to step k (engine's applied action; logs:
-                                      finite difference of speed); 0 at k = 0
-    curvature   (E, A, K)    float32  1/m, same convention (logs: yaw change / arc length)
+    accel       (E, A, K)    float32  m/s^2, change of path speed |p_k - p_k-1| / dt from k-1 to k, over dt
+    curvature   (E, A, K)    float32  1/m, change of path heading (direction of p_k - p_k-1) over the arc
+                                      p_k-1 -> p_k; 0 where either arc is under 5 cm (standing still)
     nearest     (E, A, K)    float32  m, centre distance to the nearest other present agent, capped at
                                       NEAREST_CAP (recomputed from positions, for logs and rollouts alike:
                                       the engine's own value is capped at its broad-phase cell, ~5 m)
     valid       (E, A, K)    bool     agent present in the scene at step k (of the recorded episode)
-    acted       (E, A, K)    bool     agent was driven this step (accel / curvature defined)
+    acted       (E, A, K)    bool     agent was driven this step (by the engine, not replayed)
+    kin_valid   (E, A, K)    bool     accel and curvature are defined: present at k-2, k-1 and k
     collided    (E, A, K)    bool
     offroad     (E, A, K)    bool
     policy      (E, A)       bool     the policy's agents (what metrics count)
@@ -48,12 +55,12 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from tg_gpudrive.types import Dynamics
+from tg_gpudrive.engine.simulator import Simulator
 
 NEAREST_CAP = 50.0  # m
 
-_PER_STEP = ("pos", "yaw", "vel", "speed", "accel", "curvature", "nearest", "valid", "acted", "collided",
-             "offroad")
+_PER_STEP = ("pos", "yaw", "vel", "speed", "accel", "curvature", "nearest", "valid", "acted", "kin_valid",
+             "collided", "offroad")
 _PER_AGENT = ("policy", "length", "width", "slot_agent")
 
 
@@ -68,6 +75,7 @@ class Trajectories:
     nearest: np.ndarray
     valid: np.ndarray
     acted: np.ndarray
+    kin_valid: np.ndarray
     collided: np.ndarray
     offroad: np.ndarray
     policy: np.ndarray
@@ -131,7 +139,6 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
     out = {
         "pos": np.zeros((W, A, K, 2), np.float32), "yaw": np.zeros((W, A, K), np.float32),
         "vel": np.zeros((W, A, K, 2), np.float32), "speed": np.zeros((W, A, K), np.float32),
-        "accel": np.zeros((W, A, K), np.float32), "curvature": np.zeros((W, A, K), np.float32),
         "nearest": np.zeros((W, A, K), np.float32), "valid": np.zeros((W, A, K), bool),
         "acted": np.zeros((W, A, K), bool), "collided": np.zeros((W, A, K), bool),
         "offroad": np.zeros((W, A, K), bool),
@@ -149,9 +156,6 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
         out["collided"][:, :, k] = keep & (_np(sim.collided) != 0)
         out["offroad"][:, :, k] = keep & (_np(sim.offroad) != 0)
         if acted:
-            act = _np(sim.applied_action)
-            out["accel"][:, :, k] = act[..., 0]
-            out["curvature"][:, :, k] = act[..., 1]
             out["acted"][:, :, k] = keep & (_np(sim.alive) != 0)
 
     grab(0, acted=False)
@@ -166,9 +170,7 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
         if not live.any():
             break
     out["nearest"] = nearest_distance(out["pos"], out["valid"], NEAREST_CAP)
-    if sim.cfg.dynamics != Dynamics.BICYCLE:  # delta-local actions are displacements: derive from the path instead
-        d = derive_controls(out["speed"], out["yaw"], out["pos"], out["valid"], sim.model.dt)
-        out["accel"], out["curvature"] = d
+    out["accel"], out["curvature"], out["kin_valid"] = path_kinematics(out["pos"], out["valid"], sim.model.dt)
     return Trajectories(
         **out,
         policy=_np(sim.policy_agents).astype(bool),
@@ -183,19 +185,26 @@ def record_rollouts(sim, policy: Callable, seeds: Sequence[int], label: str = ""
     return Trajectories.concat([record_episodes(sim, policy, seed=s, label=label) for s in seeds], label)
 
 
-def derive_controls(speed, yaw, pos, valid, dt) -> tuple[np.ndarray, np.ndarray]:
-    """Acceleration and curvature that explain a path: (dv/dt, dyaw / arc length) at step k from k-1.
+def path_kinematics(pos: np.ndarray, valid: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Acceleration and curvature of a path from its positions alone: accel, curvature and kin_valid,
+    (..., K) each, as the Trajectories table defines them (finite differences over three steps).
 
-    Curvature is 0 where the arc is shorter than 5 cm (standing still: heading noise is no steering)."""
-    both = valid[..., 1:] & valid[..., :-1]
-    accel = np.zeros_like(speed)
-    curv = np.zeros_like(speed)
-    accel[..., 1:] = np.where(both, (speed[..., 1:] - speed[..., :-1]) / dt, 0.0)
-    dyaw = np.angle(np.exp(1j * (yaw[..., 1:] - yaw[..., :-1])))
-    arc = np.linalg.norm(pos[..., 1:, :] - pos[..., :-1, :], axis=-1)
+    Curvature is 0 where either arc is shorter than 5 cm (standing still: no steering to see)."""
+    d = pos[..., 1:, :] - pos[..., :-1, :]
+    arc = np.sqrt((d * d).sum(-1))  # (..., K-1), arc k-1 -> k
+    step_ok = valid[..., 1:] & valid[..., :-1]
+    v = np.where(step_ok, arc / dt, 0.0)
+    heading = np.arctan2(d[..., 1], d[..., 0])
+    ok = np.zeros(valid.shape, bool)
+    ok[..., 2:] = step_ok[..., 1:] & step_ok[..., :-1]
+    accel = np.zeros(valid.shape, np.float64)
+    curv = np.zeros(valid.shape, np.float64)
+    accel[..., 2:] = np.where(ok[..., 2:], (v[..., 1:] - v[..., :-1]) / dt, 0.0)
+    turn = np.angle(np.exp(1j * (heading[..., 1:] - heading[..., :-1])))
+    moving = (arc[..., 1:] > 0.05) & (arc[..., :-1] > 0.05)
     with np.errstate(divide="ignore", invalid="ignore"):
-        curv[..., 1:] = np.where(both & (arc > 0.05), dyaw / np.maximum(arc, 1e-9), 0.0)
-    return accel.astype(np.float32), curv.astype(np.float32)
+        curv[..., 2:] = np.where(ok[..., 2:] & moving, turn / np.maximum(arc[..., 1:], 1e-9), 0.0)
+    return accel.astype(np.float32), curv.astype(np.float32), ok
 
 
 def nearest_distance(pos: np.ndarray, valid: np.ndarray, cap: float = NEAREST_CAP) -> np.ndarray:
@@ -218,15 +227,28 @@ def logged_episodes(sim, label: str = "log") -> Trajectories:
     vel = h["log_vel"][:, :, T0:].astype(np.float32)
     valid = (h["log_valid"][:, :, T0:] != 0) & (h["slot_valid"][:, :, None] != 0)
     speed = np.linalg.norm(vel, axis=-1).astype(np.float32)
-    accel, curv = derive_controls(speed, yaw, pos, valid, m.dt)
+    accel, curv, kin_valid = path_kinematics(pos, valid, m.dt)
     acted = np.zeros_like(valid)
     acted[..., 1:] = valid[..., 1:] & valid[..., :-1]
     near = nearest_distance(pos, valid, NEAREST_CAP)
     W, A = valid.shape[:2]
     return Trajectories(
         pos=pos, yaw=yaw, vel=vel, speed=speed, accel=accel, curvature=curv, nearest=near, valid=valid,
-        acted=acted, collided=np.zeros_like(valid), offroad=np.zeros_like(valid),
+        acted=acted, kin_valid=kin_valid, collided=np.zeros_like(valid), offroad=np.zeros_like(valid),
         policy=_np(sim.policy_agents).astype(bool), length=h["length"].astype(np.float32),
         width=h["width"].astype(np.float32), slot_agent=np.asarray(m.slot_agent, np.int64).copy(),
         scene_index=np.arange(W, dtype=np.int64), seed=np.zeros(W, np.int64), scenes=list(m.scenes),
         init_step=int(T0), dt=float(m.dt), label=label)
+
+
+def replay_episodes(scenes: Sequence, masks: Sequence[np.ndarray], cfg, device: str,
+                    label: str = "log replay") -> Trajectories:
+    """The engine replaying the logs of every agent of `scenes` (nobody driven), recorded as
+    `record_episodes` records a policy, with `policy` marking the agents `masks` (per scene, over
+    its agents) would give a policy: the log-replay baseline, measured by the same pipeline."""
+    sim = Simulator(list(scenes), cfg, device, controlled=[np.zeros(len(m), bool) for m in masks])
+    tr = record_episodes(sim, lambda s: None, label=label)
+    slot = tr.slot_agent
+    policy = np.stack([(slot[w] >= 0) & np.asarray(masks[w], bool)[np.maximum(slot[w], 0)]
+                       for w in range(len(masks))])
+    return dataclasses.replace(tr, policy=policy)
