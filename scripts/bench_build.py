@@ -23,13 +23,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
 
 import warp as wp
 
+from tg_gpudrive.benchmark import print_row
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.store import is_store, write_store
@@ -91,11 +91,7 @@ def main() -> int:
     for w in args.worlds:
         row = min((build_once(spec, args.num_scenes, w, cfg, device) for _ in range(args.repeat)),
                   key=lambda r: r["build_s"])
-        if args.json:
-            print(json.dumps(row), flush=True)
-        else:
-            print("  ".join(f"{k}={v:.3f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
-                  flush=True)
+        print_row(row, args.json)
     return 0
 
 

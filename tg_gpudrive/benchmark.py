@@ -80,9 +80,13 @@ def main(args) -> int:
                              else [1, 64, 256])
     for row in run_benchmark(scenes, worlds, cfg, device, args.steps):
         row["scenes"] = args.scenes
-        if args.json:
-            print(json.dumps(row), flush=True)
-        else:
-            print("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
-                  flush=True)
+        print_row(row, args.json)
     return 0
+
+
+def print_row(row: dict, as_json: bool) -> None:
+    """One benchmark row on stdout: a JSON object, or key=value pairs (floats to 4 digits)."""
+    if as_json:
+        print(json.dumps(row), flush=True)
+    else:
+        print("  ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
