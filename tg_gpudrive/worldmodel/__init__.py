@@ -17,8 +17,9 @@ It depends on the engine and tg_gpudrive.policy (the BehaviourPrior interface), 
 learner (tg_gpudrive.learn), which imports it for the magnet.
 """
 
+from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
-from tg_gpudrive.worldmodel.model import HistoryBuffer, WorldModel
+from tg_gpudrive.worldmodel.model import WorldModel
 from tg_gpudrive.worldmodel.prior import (WorldModelDriver, WorldModelPrior, load_shipped, load_world_model,
                                           save_world_model)
 

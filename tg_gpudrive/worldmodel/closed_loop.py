@@ -43,6 +43,7 @@ import torch
 import warp as wp
 
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import wrap_angle
 from tg_gpudrive.worldmodel.data import full_horizon_env, truncate_obs
 from tg_gpudrive.worldmodel.prior import WorldModelDriver
 
@@ -51,10 +52,6 @@ _TIME_WEIGHT = 0.05  # m of projection cost per step between a segment and the c
 W_LONG = 0.5  # rad/s: along-track error dynamics (critically damped): K_S = W_LONG^2, K_V = 2 W_LONG
 W_LAT = 1.5  # rad/s: lateral error dynamics; the gains use the speed, at least MIN_SPEED
 MIN_SPEED = 2.0  # m/s
-
-
-def _wrap(a: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(a), torch.cos(a))
 
 
 def nearest_index(accel: torch.Tensor, kappa: torch.Tensor, cfg) -> torch.Tensor:
@@ -115,7 +112,7 @@ def corrective_from_log(pos, yaw, vel, step, log_pos, log_yaw, log_vel, log_vali
         s0, s1 = _take(S, j - 1), _take(S, j)
         f = ((arc - s0) / (s1 - s0).clamp(min=1e-9)).clamp(0.0, 1.0)
         y0 = _take(log_yaw, j - 1)
-        return torch.where(arc > _take(S, last), _take(log_yaw, last), y0 + f * _wrap(_take(log_yaw, j) - y0))
+        return torch.where(arc > _take(S, last), _take(log_yaw, last), y0 + f * wrap_angle(_take(log_yaw, j) - y0))
 
     t1 = (t + 1).clamp(max=T - 1)
     ok = _take(log_valid, t) & _take(log_valid, t1) & (t + 1 < T) & has_path
@@ -127,11 +124,11 @@ def corrective_from_log(pos, yaw, vel, step, log_pos, log_yaw, log_vel, log_vali
     tangent = _take(ab, best) / _take(seg_len, best).clamp(min=1e-9)[..., None]
     off = pos - (_take(a, best) + _take(u, best)[..., None] * _take(ab, best))
     e_y = tangent[..., 0] * off[..., 1] - tangent[..., 1] * off[..., 0]
-    e_psi = _wrap(yaw - heading_at(sigma))
+    e_psi = wrap_angle(yaw - heading_at(sigma))
     arc = speed * dt + 0.5 * accel * dt * dt
     moving = arc.abs() > _MIN_ARC
     safe_arc = torch.where(moving, arc, torch.ones_like(arc))
-    kappa_ff = _wrap(heading_at(sigma + arc.clamp(min=0.0)) - heading_at(sigma)) / safe_arc
+    kappa_ff = wrap_angle(heading_at(sigma + arc.clamp(min=0.0)) - heading_at(sigma)) / safe_arc
     v = speed.clamp(min=MIN_SPEED)
     kappa = kappa_ff - (W_LAT / v) ** 2 * e_y - 2.0 * W_LAT / v * e_psi
     kappa = torch.where(moving, kappa.clamp(-cfg.max_curvature, cfg.max_curvature), torch.zeros_like(kappa))

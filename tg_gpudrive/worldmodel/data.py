@@ -19,9 +19,10 @@ import torch
 from tg_gpudrive.config import ConfigError, EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.types import CollisionMode, GoalBehaviour
-from tg_gpudrive.worldmodel.model import HistoryBuffer, require_bicycle
+from tg_gpudrive.worldmodel.model import require_bicycle
 
 
 def full_horizon_env(env: EngineConfig) -> EngineConfig:

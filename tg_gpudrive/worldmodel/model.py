@@ -16,23 +16,15 @@ curvature) grid, or for `"continuous"` a `LaplaceMixture` (mixture.py) of
 action in engine units. The discrete head's weights are laid out as before
 the continuous head existed, so older checkpoints load unchanged. The
 observation already holds map and neighbours in the agent's frame, so the only
-extra input is the history window, kept by `HistoryBuffer` (W, A, H, F) and
-updated lazily from the simulator (`sync`). Bicycle dynamics only: a
+extra input is the history window, kept by `tg_gpudrive.history.HistoryBuffer`
+(W, A, H, F) and updated lazily from the simulator (`sync`). Bicycle dynamics only: a
 delta-local config is refused with a clear error.
 
 Observation rows are nearest-first, so the model reads at most `max_partners`
 partner rows and `max_roads` road rows: one set of weights works with any
 `partner_k` / `road_k` of the engine config.
 
-History features (per agent and step, `HIST_FEATURES`):
-
-    field    unit     meaning
-    dx, dy   m        past position in the agent's current frame (x forward, y left)
-    dyaw     rad      past heading minus current heading (wrapped)
-    speed    m/s      past speed
-    accel    m/s^2    action that brought the agent to that state
-    kappa    1/m
-    valid    0/1      the agent was present at that step
+History features: tg_gpudrive/history.py (HIST_FEATURES).
 """
 
 from __future__ import annotations
@@ -40,25 +32,20 @@ from __future__ import annotations
 import math
 
 import torch
-import warp as wp
 from torch import nn
 from torch.nn.attention import SDPBackend, sdpa_kernel
 
+from tg_gpudrive.history import HIST_DIM, HIST_SCALE
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.types import ActionSpace, Dynamics
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 
-HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
-HIST_DIM = len(HIST_FEATURES)
-# raw ring entries: world-frame x, y, yaw, speed, accel, kappa, valid
-_RAW_DIM = 7
 
 _SDPA_BACKENDS = [SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH]
 
 _EGO_SCALE = [20.0, 5.0, 2.0, 50.0, 50.0, 1.0, 1.0, 5.0, 5.0, 8.0]
 _PARTNER_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 20.0, 20.0, 5.0, 2.0, 4.0]
 _ROAD_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 5.0, 7.0]
-_HIST_SCALE = [20.0, 5.0, 1.0, 20.0, 6.0, 0.3, 1.0]
 
 
 # continuous head: log Laplace scale, in units of the action box half-width, squashed into this range.
@@ -135,7 +122,7 @@ class WorldModel(nn.Module):
         self.register_buffer("ego_scale", torch.tensor(_EGO_SCALE))
         self.register_buffer("partner_scale", torch.tensor(_PARTNER_SCALE))
         self.register_buffer("road_scale", torch.tensor(_ROAD_SCALE))
-        self.register_buffer("hist_scale", torch.tensor(_HIST_SCALE))
+        self.register_buffer("hist_scale", torch.tensor(HIST_SCALE))
         self.ego = _mlp(EGO_DIM, d)
         self.temporal_in = _mlp(HIST_DIM + 1, d)  # + cos/sin dyaw replace dyaw, see _hist_tokens
         self.time_emb = nn.Parameter(torch.randn(history, d) * 0.02)
@@ -203,94 +190,3 @@ class WorldModel(nn.Module):
         if self.discrete:
             return nn.functional.cross_entropy(out, target, reduction="none", label_smoothing=label_smoothing)
         return -out.log_prob(target)
-
-
-# ----------------------------------------------------------------- history
-def _wrap(a: torch.Tensor) -> torch.Tensor:
-    return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
-
-
-class HistoryBuffer:
-    """Rolling (W, A, H, 7) window of every slot's states, kept in step with a Simulator.
-
-    `sync(sim)` brings it up to the simulator's current step: one step later it
-    pushes the current state; at a reset (or any other jump of `world_step`, or
-    the first call) it refills the world's window from the log, whose warm-up
-    steps precede `init_step`. Call it once per step before reading (the
-    consumers here do), at least once every step the simulator takes."""
-
-    def __init__(self, history: int = 10):
-        self.H = history
-        self.raw: torch.Tensor | None = None
-        self._model = None
-        self._last: torch.Tensor | None = None
-
-    def _bind(self, sim) -> None:
-        m = sim.model
-        W, A, T = m.num_worlds, m.max_agents, m.num_steps
-        self._model = m
-        self.raw = torch.zeros((W, A, self.H, _RAW_DIM), device=sim.pos.device)
-        self._log_pos = wp.to_torch(m.log_pos).view(W, A, T, 2)
-        self._log_yaw = wp.to_torch(m.log_yaw).view(W, A, T)
-        self._log_vel = wp.to_torch(m.log_vel).view(W, A, T, 2)
-        self._log_valid = wp.to_torch(m.log_valid).view(W, A, T)
-        self._last = torch.full((W,), -10, dtype=torch.int64, device=sim.pos.device)
-
-    def _fill_from_log(self, sim, worlds: torch.Tensor) -> None:
-        if not bool(worlds.any()):
-            return
-        T = self._model.num_steps
-        steps = sim.world_step.long()[:, None] + torch.arange(-self.H + 1, 1, device=worlds.device)  # (W, H)
-        ok = steps >= 0
-        s = steps.clamp(0, T - 1)
-        W, A = sim.pos.shape[:2]
-        si = s[:, None, :].expand(W, A, self.H)
-        pos = torch.gather(self._log_pos, 2, si[..., None].expand(W, A, self.H, 2))
-        yaw = torch.gather(self._log_yaw, 2, si)
-        speed = torch.gather(self._log_vel, 2, si[..., None].expand(W, A, self.H, 2)).norm(dim=-1)
-        valid = torch.gather(self._log_valid, 2, si).float() * ok[:, None, :].float()
-        prev = (s - 1).clamp(min=0)[:, None, :].expand(W, A, self.H)
-        act = torch.gather(sim.expert_action, 2, prev[..., None].expand(W, A, self.H, 3))[..., :2]
-        act = act * (s > 0)[:, None, :, None].float()
-        new = torch.cat([pos, yaw[..., None], speed[..., None], act, valid[..., None]], dim=-1)
-        self.raw[worlds] = new[worlds]
-
-    def sync(self, sim) -> None:
-        if self._model is not sim.model:
-            self._bind(sim)
-        step = sim.world_step.long()
-        same = step == self._last
-        push = (step == self._last + 1) & ~same
-        refill = ~same & ~push
-        if bool(push.any()):
-            present = (sim.present != 0).float()
-            cur = torch.cat([sim.pos, sim.yaw[..., None], sim.speed[..., None], sim.applied_action[..., :2],
-                             present[..., None]], dim=-1)
-            rolled = torch.cat([self.raw[:, :, 1:], cur[:, :, None]], dim=2)
-            self.raw[push] = rolled[push]
-        self._fill_from_log(sim, refill)
-        self._last = step.clone()
-
-    def state_dict(self) -> dict:
-        """The window and the step it was synced at (for an exact resume mid-episode)."""
-        return {} if self.raw is None else {"raw": self.raw.clone(), "last": self._last.clone()}
-
-    def load_state_dict(self, sim, state: dict) -> None:
-        self._bind(sim)
-        if state:
-            self.raw.copy_(state["raw"])
-            self._last.copy_(state["last"])
-
-    def features(self, sim, rows: slice | None = None) -> torch.Tensor:
-        """(W, A', H, HIST_DIM) window in each agent's current frame (`rows`: slot slice, default all)."""
-        rows = rows or slice(None)
-        raw = self.raw[:, rows]
-        p, yaw = sim.pos[:, rows], sim.yaw[:, rows]
-        c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]
-        d = raw[..., :2] - p[:, :, None]
-        dx = c * d[..., 0] + s * d[..., 1]
-        dy = -s * d[..., 0] + c * d[..., 1]
-        dyaw = _wrap(raw[..., 2] - yaw[..., None])
-        valid = raw[..., 6]
-        out = torch.stack([dx, dy, dyaw, raw[..., 3], raw[..., 4], raw[..., 5], valid], dim=-1)
-        return out * valid[..., None]

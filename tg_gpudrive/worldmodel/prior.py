@@ -31,9 +31,10 @@ from pathlib import Path
 import torch
 
 from tg_gpudrive.checkpoint import save_atomic
+from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.policy import BehaviourPrior
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
-from tg_gpudrive.worldmodel.model import HIST_DIM, HistoryBuffer, WorldModel, check_action_space
+from tg_gpudrive.worldmodel.model import WorldModel, check_action_space
 
 SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
 
