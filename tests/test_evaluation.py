@@ -178,17 +178,54 @@ def test_risk_of_a_rear_end_scene():
 
 
 # ----------------------------------------------------------------- CCE-gap
+def test_plateau_rule_stops_on_flat_and_continues_on_rising():
+    rule = ex.PlateauRule(window=3, patience=5, tol=0.01, max_iters=50, min_iters=0)
+    flat = [2.0] * 50
+    # flat: the first w + p iterations are always played, then no new best -> stop
+    assert [rule.stop(flat[:n]) for n in range(1, 10)] == [False] * 7 + [True] * 2
+    assert rule.plateaued(flat[:8])
+    # rising by 0.1 per iteration (> tol * max(1, |best|)): never plateaus, only the cap stops it
+    rising = [0.1 * k for k in range(60)]
+    assert not any(rule.stop(rising[:n]) for n in range(1, 50))
+    assert rule.stop(rising[:50]) and not rule.plateaued(rising[:50])
+    # a rise that ends: stops p iterations after the last new best
+    ramp = [min(k, 10) * 1.0 for k in range(40)]
+    first = next(n for n in range(1, 41) if rule.stop(ramp[:n]))
+    # the best moving mean is reached at n = 11 + w - 1 (the first window of three 10s), then p more
+    assert first == 11 + rule.window - 1 + rule.patience
+    # the tolerance is relative to max(1, |best|): a rise of 0.1 % per iteration on returns ~ 100 (0.6 % over
+    # the p iterations and the window's lag) is a plateau at tol = 1 %, not at 0.1 %
+    slow = [100.0 * 1.001 ** k for k in range(40)]
+    assert rule.stop(slow[:8])
+    assert not ex.PlateauRule(window=3, patience=5, tol=0.001, max_iters=50, min_iters=0).stop(slow[:30])
+    # min_iters holds it back; noise around a flat mean stops it too (no ever-new best)
+    assert not ex.PlateauRule(window=1, patience=1, tol=0.01, min_iters=5).stop(flat[:4])
+    noisy = list(np.random.default_rng(0).normal(1.0, 0.3, 200))
+    assert any(rule.stop(noisy[:n]) for n in range(1, 50))
+
+
 def test_cce_gap_matrix_game():
+    """PPO best responses recover the closed-form gaps of normal-form games: pure profiles of the
+    prisoner's dilemma (Nash: 0, cooperation: 2), a mixed profile of it and a random 3 x 3 game."""
     A = np.array([[3.0, 0.0], [5.0, 1.0]])  # prisoner's dilemma, row player; column player gets A.T
-    nash = [np.array([0.0, 1.0]), np.array([0.0, 1.0])]
-    coop = [np.array([1.0, 0.0]), np.array([1.0, 0.0])]
-    for prof, want in ((nash, 0.0), (coop, 2.0)):
-        g = ex.MatrixGame([A, A.T], prof)
-        assert g.exact_gaps() == pytest.approx([want, want])
-        res = ex.cce_gap(lambda s: ex.MatrixGame([A, A.T], prof, batch=128, seed=s), seeds=(0, 1), iters=60,
-                         lr=0.1, eval_rounds=2)
-        assert res["gap_per_agent"] == pytest.approx([want, want], abs=0.1)
-        assert res["mean_gap"] == pytest.approx(want, abs=0.1)
+    rng = np.random.default_rng(0)
+    P3 = [rng.normal(size=(3, 3)), rng.normal(size=(3, 3))]
+    cases = [([A, A.T], [np.array([0.0, 1.0]), np.array([0.0, 1.0])], [0.0, 0.0]),
+             ([A, A.T], [np.array([1.0, 0.0]), np.array([1.0, 0.0])], [2.0, 2.0]),
+             ([A, A.T], [np.array([0.6, 0.4]), np.array([0.3, 0.7])], None),
+             (P3, [np.array([0.2, 0.5, 0.3]), np.array([0.6, 0.1, 0.3])], None)]
+    for pay, prof, want in cases:
+        exact = ex.MatrixGame(pay, prof).exact_gaps()
+        if want is not None:
+            assert exact == pytest.approx(want)
+        assert (exact > 0.2).all() or want is not None  # the mixed profiles are exploitable
+        res = ex.cce_gap(lambda s: ex.MatrixGame(pay, prof, batch=1024, seed=s), seeds=(0, 1), lr=0.1, critic_lr=0.1,
+                         eval_rounds=4, max_iters=60)
+        assert res["gap_per_agent"] == pytest.approx(exact.tolist(), abs=0.12), (exact, res["gap_per_agent"])
+        assert res["mean_gap"] == pytest.approx(exact.mean(), abs=0.1)
+        # every best response stopped at a plateau, well before the cap
+        assert np.all(res["plateaued"]) and np.max(res["iters"]) < 60, res["iters"]
+        assert set(res["per_type"]) == {"matrix"} and res["per_type"]["matrix"]["agents"] == 2
 
 
 def _straight_scene():
@@ -199,20 +236,49 @@ def _straight_scene():
 
 def test_cce_gap_single_agent_engine_game():
     """One vehicle on a lane: the expert already reaches the goal (best response, gap ~ 0); a policy
-    that always brakes is beaten by a best response by about the goal reward plus the progress."""
+    that always brakes is beaten by a best response by about the goal reward plus the progress
+    (discounted)."""
     cfg = EngineConfig(max_agents=4, partner_k=2, road_k=8)
     sim = Simulator([_straight_scene()] * 4, cfg, "cpu")
 
     def brake(s):
         s.actions_index.fill_(0 * cfg.curvature_bins + cfg.curvature_bins // 2)
 
-    kw = dict(seeds=(0, 1), iters=4, lr=3e-3, eval_rounds=1)
+    kw = dict(seeds=(0, 1), max_iters=4, window=1, patience=1, min_iters=0, eval_rounds=1)
     good = ex.cce_gap(lambda s: ex.SimGame(sim, expert_policy), **kw)
     bad = ex.cce_gap(lambda s: ex.SimGame(sim, brake), **kw)
     assert len(good["agents"]) == 1
     assert good["mean_gap"] < 0.3, good
-    assert bad["mean_gap"] > 2.0, bad
+    assert bad["mean_gap"] > 1.5, bad
     assert bad["j_br_per_agent"][0] > good["j_pi_per_agent"][0] - 0.5
+
+
+def test_cce_gap_engine_expert_below_constant_and_random():
+    """Procedural merge and T-junction scenes, two policy agents each, every other agent frozen at
+    the profile: the expert profile is hardly exploitable, the constant (keep speed and heading)
+    and the uniformly random profiles are; reported per agent and per scenario type, with the PPO
+    iterations each best response took."""
+    from tg_gpudrive.rollout import constant_policy
+
+    scenes = [generate_scene("merge", 0), generate_scene("t_junction", 0)]
+    cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8)
+    masks = control_masks(scenes, cfg, "nearest_conflict", 2, None)
+    copies = 2
+    k = [int(m.sum()) * copies for m in masks]
+    sim = Simulator([s for s, n in zip(scenes, k) for _ in range(n)], cfg, "cpu",
+                    controlled=[m for m, n in zip(masks, k) for _ in range(n)])
+    kw = dict(seeds=(0,), max_iters=5, window=2, patience=2, min_iters=0, tol=0.02, eval_rounds=2)
+    res = {name: ex.cce_gap(lambda s: ex.SimGame(sim, pol), **kw)
+           for name, pol in (("expert", expert_policy), ("constant", constant_policy),
+                             ("random", make_random_policy(0, "cpu")))}
+    for name, r in res.items():
+        assert len(r["agents"]) == 4 and set(r["per_type"]) == {"merge", "t_junction"}, name
+        assert all(v["agents"] == 2 for v in r["per_type"].values())
+        assert all(4 <= i <= 5 for i in r["iters"][0]), r["iters"]  # w + p = 4 at least, the cap 5
+        assert np.isfinite(r["ci95"]) and len(r["gain_ci95_per_agent"]) == 4
+    assert res["expert"]["mean_gap"] < res["constant"]["mean_gap"], {n: r["mean_gap"] for n, r in res.items()}
+    assert res["expert"]["mean_gap"] < res["random"]["mean_gap"]
+    assert res["random"]["mean_gap"] > 1.0
 
 
 # ------------------------------------------------------------------ export
@@ -269,7 +335,9 @@ def test_report_on_tiny_runs(tmp_path):
         runs.append(str(tmp_path / name))
     out = tmp_path / "report"
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--seeds", "0", "1", "--br-iters", "1",
-                 "--br-seeds", "0", "--top", "1", "--grid-scene", "1", "--grid-gifs"]) == 0
+                 "--br-window", "1", "--br-patience", "1", "--br-tol", "0.05", "--br-copies", "2", "--br-rounds", "1",
+                 "--br-seeds", "0",
+                 "--top", "1", "--grid-scene", "1", "--grid-gifs"]) == 0
     for f in FILES:
         assert (out / f).stat().st_size > 0, f
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()

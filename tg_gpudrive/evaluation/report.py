@@ -22,7 +22,9 @@ configs/experiments/grid.yaml), else as CCE-MAPPO.
 Writes into `out`:
 
     report.md           tables: comparison against baselines, fidelity per feature, CCE-gap per
-                        agent, diversity per scenario type, most critical scenarios
+                        agent and per scenario type (PPO best responses trained to a plateau,
+                        exploitability.py; --br-* flags), diversity per scenario type, most
+                        critical scenarios
     grid.png            the paper's beta x alpha figure: one scene (--grid-scene) per CCE-MAPPO cell,
                         beta down the rows, alpha across, whole trajectories drawn
     frames/<run>.gif    with --grid-gifs: that scene's episode per cell
@@ -74,10 +76,17 @@ FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.pn
 class ReportOptions:
     scenes: int = 4  # evaluation scenes per run (worlds)
     seeds: tuple[int, ...] = (0, 1)  # rollout seeds (diversity needs >= 2)
-    br_iters: int = 5  # best-response updates per seed
+    # CCE-gap (exploitability.py): a PPO best response per agent, trained until its return plateaus
+    br_iters: int = 100  # cap on the PPO iterations of one best response
     br_seeds: tuple[int, ...] = (0, 1)
-    br_lr: float = 3e-4
-    br_rounds: int = 1  # evaluation batches of J_pi and J_br
+    br_lr: float = 3e-3
+    br_rounds: int = 2  # fresh evaluation batches of J_pi and of J_br
+    br_tol: float = 0.01  # plateau: no new best moving mean by tol * max(1, |best|) ...
+    br_window: int = 5  # ... of this many iterations ...
+    br_patience: int = 10  # ... for this many iterations ...
+    br_min_iters: int = 20  # ... and never before this many
+    br_copies: int | None = None  # episodes per agent and PPO iteration; None: 16 on a GPU, 4 on the CPU
+    br_gamma: float | None = None  # discount of the returns; None: the run's gamma (baselines: the first run's)
     top: int = 3  # critical scenarios exported per run
     device: str | None = "auto"  # auto (cuda when one is visible, else cpu) | cpu | cuda:N; None: the run's config
     frame_size: int = 320
@@ -150,11 +159,27 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     return np.asarray(Image.open(path).convert("RGB"))
 
 
-def _gap_game_sim(cfg, scenes, masks, device):
-    """Worlds = each scene once per policy agent, so every agent deviates in one world."""
-    k = max(1, max(int(m.sum()) for m in masks))
-    return Simulator([s for s in scenes for _ in range(k)], cfg.env, device,
-                     controlled=[m for m in masks for _ in range(k)])
+def _gap_game_sim(cfg, scenes, masks, device, copies: int = 1):
+    """Worlds = each scene `copies` times per policy agent, so every agent deviates in `copies`
+    worlds (ex.SimGame cycles a scene's copies over its agents)."""
+    k = [max(1, int(m.sum())) * max(1, copies) for m in masks]
+    return Simulator([s for s, n in zip(scenes, k) for _ in range(n)], cfg.env, device,
+                     controlled=[m for m, n in zip(masks, k) for _ in range(n)])
+
+
+def _br_copies(opts: ReportOptions, device: str) -> int:
+    """Episodes per agent and PPO iteration: --br-copies, else 16 on a GPU and 4 on the CPU (where a
+    report is a try of the pipeline: 4 x the agents' worlds already cost seconds per iteration)."""
+    if opts.br_copies is not None:
+        return opts.br_copies
+    return 4 if device == "cpu" else 16
+
+
+def br_config(opts: ReportOptions, gamma: float) -> ex.BRConfig:
+    """The best-response settings of the report (`gamma`: the run's unless --br-gamma)."""
+    return ex.BRConfig(gamma=opts.br_gamma if opts.br_gamma is not None else gamma, lr=opts.br_lr,
+                       max_iters=opts.br_iters, tol=opts.br_tol, window=opts.br_window, patience=opts.br_patience,
+                       min_iters=opts.br_min_iters, eval_rounds=opts.br_rounds)
 
 
 def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
@@ -204,14 +229,15 @@ def flexibility_directions(cells: list[dict], n_boot: int = 2000) -> list[list]:
     return rows
 
 
-def _evaluate(label, sim, policy, logged, opts, gap_game, bar) -> tuple[dict, object]:
-    """Rollouts, fidelity, diversity and risk of one policy, then its CCE-gap; advances `bar` by one."""
+def _evaluate(label, sim, policy, logged, opts, gap_game, bar, gamma: float) -> tuple[dict, object]:
+    """Rollouts, fidelity, diversity and risk of one policy, then its CCE-gap (PPO best responses,
+    discount `gamma` unless --br-gamma); advances `bar` by one."""
     bar.set_postfix_str(f"{label}: rollouts")
     gen = record_rollouts(sim, policy, opts.seeds, label=label)
     res = _measure(label, gen, logged, opts)
-    bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} x {opts.br_iters} best-response updates)")
-    res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, iters=opts.br_iters, lr=opts.br_lr,
-                                eval_rounds=opts.br_rounds)
+    bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} seeds, PPO best responses to a plateau, "
+                        f"<= {opts.br_iters} iterations)")
+    res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, config=br_config(opts, gamma))
     bar.update(1)
     return res, gen
 
@@ -324,7 +350,8 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path):
 
 
 def plot_gaps(gaps: dict[str, dict], path: Path):
-    """CCE-gap per policy: each agent's gap a dot, the mean over agents with its 95% CI a black bar.
+    """CCE-gap per policy: each agent's gap (PPO best response, exploitability.py) a dot, the mean
+    over agents with its 95% CI over agents a black bar.
     One column per policy, wrapped into rows of at most `per_row` columns (at most 6 rows; more
     policies make the columns narrower), so the picture stays within MAX_FIG_W x MAX_FIG_H."""
     labels = list(gaps)
@@ -349,7 +376,7 @@ def plot_gaps(gaps: dict[str, dict], path: Path):
             ax.scatter(i + rng.uniform(-0.18, 0.18, len(y)), y, s=9, alpha=0.6, color=f"C{(r * per_row + i) % 10}",
                        label="gap of one agent" if r == 0 and i == 0 else None)
             ax.errorbar(i, g["mean_gap"], yerr=g.get("ci95") or 0, fmt="_", ms=14, color="k", capsize=3, lw=1,
-                        label="mean over agents, 95% CI over seeds" if r == 0 and i == 0 else None)
+                        label="mean over agents, 95% CI over agents" if r == 0 and i == 0 else None)
         ax.set_xlim(-0.6, cols - 0.4)
         ax.set_ylim(-0.05 * hi, 1.1 * hi)
         ax.set_xticks(range(len(part)))
@@ -360,7 +387,7 @@ def plot_gaps(gaps: dict[str, dict], path: Path):
             ax.legend(fontsize=7, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, frameon=False)
     if not labels:
         fig.axes[0].text(0.5, 0.5, "no CCE-gap measured", ha="center", va="center", transform=fig.axes[0].transAxes)
-    title = _wrapped("CCE-gap (return gain of each agent's best response) per policy", width - 0.2, 9)
+    title = _wrapped("CCE-gap (discounted-return gain of each agent's PPO best response) per policy", width - 0.2, 9)
     head = 0.05 + 0.18 * (title.count("\n") + 1)
     fig.suptitle(title, fontsize=9, y=1 - 0.05 / height, va="top")
     fig.tight_layout(rect=(0, 0, 1, 1 - head / height))
@@ -384,10 +411,65 @@ def _table(header: list[str], rows: list[list]) -> str:
     return "\n".join(out) + "\n"
 
 
+def _pm(mean, half) -> str:
+    return f"{_fmt(mean)} ± {_fmt(half)}"
+
+
+def _br_text(meta: dict) -> str:
+    b = meta.get("best_response")
+    if not b:
+        return f"{meta['br_iters']} best-response iterations x seeds {meta['br_seeds']}"
+    return (f"a PPO best response per agent (others frozen), {b['copies']} episodes per agent and iteration, "
+            f"until its discounted return (gamma: {b['gamma']}) plateaus (no new best {b['window']}-iteration "
+            f"moving mean by {b['tol']:g} x max(1, |best|) for {b['patience']} iterations, at least "
+            f"{b.get('min_iters', 0)}; cap {b['max_iters']}), "
+            f"seeds {meta['br_seeds']}")
+
+
+def _gap_sections(results: list[dict]) -> list[str]:
+    """The CCE-gap sections of report.md: per agent, per scenario type, PPO iterations."""
+    gapped = [(r["label"], r["cce_gap"]) for r in results if r.get("cce_gap")]
+    L = ["\n## CCE-gap per agent\n\n![cce_gap](cce_gap.png)\n\n",
+         "gain = J(BR) - J(pi), each agent's discounted return on fresh rollouts with its PPO best response "
+         "against everyone else frozen at the policy, and with the policy itself; gap = max(0, gain) (the agent "
+         "could keep pi). Means over the best-response seeds; the gain's 95 % interval is the evaluation's "
+         "(1.96 standard errors of the fresh episodes); iterations: PPO iterations to the plateau per seed "
+         "(* = stopped at the cap).\n\n"]
+    rows = []
+    for label, g in gapped:
+        n = len(g["agents"])
+        types = g.get("types") or ["-"] * n
+        ci = g.get("gain_ci95_per_agent") or [None] * n
+        iters = np.asarray(g.get("iters") or [[None] * n]).T.tolist()
+        plat = np.asarray(g.get("plateaued") or [[True] * n]).T.tolist()
+        for a in range(n):
+            its = ", ".join("-" if i is None else f"{i}{'' if p else '*'}" for i, p in zip(iters[a], plat[a]))
+            rows.append([label, g["agents"][a], types[a], g["gap_per_agent"][a],
+                         _pm(g["gain_per_agent"][a], ci[a]), g["j_pi_per_agent"][a], g["j_br_per_agent"][a], its])
+    L.append(_table(["policy", "agent", "scenario type", "gap", "raw gain ± 95% CI", "J(pi)", "J(BR)",
+                     "PPO iterations"], rows))
+    L.append("\n## CCE-gap per scenario type\n\nMean gap over the agents of that scenario type with its "
+             "Student-t 95 % interval over those agents (each agent's gap averaged over the seeds); "
+             "all: every agent, and the interval over seeds of the mean over agents beside it.\n\n")
+    rows = []
+    for label, g in gapped:
+        n = len(g["agents"])
+        rows.append([label, "all", n, _pm(g["mean_gap"], g["ci95"]), g.get("mean_gain"),
+                     _fmt(g.get("ci95_seeds")), g.get("mean_iters")])
+        for t, v in (g.get("per_type") or {}).items():
+            rows.append([label, t, v["agents"], _pm(v["mean_gap"], v["ci95"]), v["mean_gain"], "-", "-"])
+    L.append(_table(["policy", "scenario type", "agents", "CCE-gap ± 95% CI (agents)", "mean raw gain",
+                     "95% CI (seeds)", "mean PPO iterations"], rows))
+    L.append("\nNo CCE-gap curve over training checkpoints: a training run keeps only its last checkpoint "
+             "(checkpoint.pt, and checkpoint.prev.pt as the crash fallback), so there are no earlier policies to "
+             "measure.\n")
+    return L
+
+
 def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
     L = ["# Scenario-quality report\n",
          f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run, rollout seeds "
-         f"{meta['seeds']}; CCE-gap: {meta['br_iters']} best-response updates x seeds {meta['br_seeds']}. "
+         f"{meta['seeds']}; CCE-gap: {_br_text(meta)}. "
          "Definitions and binning: `tg_gpudrive/evaluation/` module docstrings (fidelity bins: speed 0.5 m/s on "
          "[0, 30], accel 0.25 m/s^2 on [-8, 8], nearest 0.5 m on [0, 50], curvature 0.005 1/m on [-0.3, 0.3]; "
          f"KL smoothing eps {fid.KL_EPS:g}; TTC: {rk.TTC_DISCS} discs of radius width/2 per agent, constant "
@@ -401,11 +483,11 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
         g = r.get("cce_gap")
         rows.append([r["label"], r.get("kind", "baseline"), r["fidelity"]["realism_ours"],
                      np.nanmean([v["hellinger"] for v in f.values()]), np.nanmean([v["kl"] for v in f.values()]),
-                     f"{_fmt(g['mean_gap'])} ± {_fmt(g['ci95'])}" if g else "-", r["diversity"]["mean"],
+                     _pm(g["mean_gap"], g["ci95"]) if g else "-", r["diversity"]["mean"],
                      r["risk"].get("collision_rate"), r["risk"].get("near_miss_rate"),
                      r["risk"].get("mean_min_ttc_s"), r["risk"].get("mean_min_gap_m"),
                      r["risk"].get("hard_brakes_per_agent")])
-    L.append(_table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI",
+    L.append(_table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI (agents)",
                      "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
                      "mean min gap [m]", "hard brakes / agent"], rows))
     cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
@@ -436,16 +518,7 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
     L.append(_table(["policy", "feature", "Hellinger", "KL(log || gen)", "W1", "likelihood", "mean logged",
                      "mean generated"], rows))
     L.append("\n## Multipliers during training\n\n![multipliers](multipliers.png)\n")
-    L.append("\n## CCE-gap per agent\n\n![cce_gap](cce_gap.png)\n\n")
-    rows = []
-    for r in results:
-        g = r.get("cce_gap")
-        if not g:
-            continue
-        for name, gap, gain, jp, jb in zip(g["agents"], g["gap_per_agent"], g["gain_per_agent"], g["j_pi_per_agent"],
-                                           g["j_br_per_agent"]):
-            rows.append([r["label"], name, gap, gain, jp, jb])
-    L.append(_table(["policy", "agent", "gap", "raw gain", "J(pi)", "J(BR)"], rows))
+    L.extend(_gap_sections(results))
     L.append("\n## Diversity per scenario type [m]\n\n")
     rows = [[r["label"], t, v] for r in results for t, v in r["diversity"]["per_type"].items()]
     L.append(_table(["policy", "scenario type", "mean pairwise displacement"], rows))
@@ -490,7 +563,8 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             cfg = dataclasses.replace(cfg, env=policy_engine_config(cfg, scenes))  # a slot for every agent
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
-            gsim = _gap_game_sim(cfg, scenes, masks, device)
+            copies = _br_copies(opts, device)
+            gsim = _gap_game_sim(cfg, scenes, masks, device, copies)
             label = run.name
             if i == 0:  # baselines on the first run's scenes and engine
                 logged_all = logged
@@ -498,15 +572,17 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                 replayed = replay_episodes(scenes, masks, cfg.env, device)
                 keep(_measure("log replay", replayed, logged, opts), replayed)
                 bar.update(1)
+                # the baselines' best responses discount with the first run's gamma
                 keep(*_evaluate("expert (inverse dynamics)", sim, expert_policy, logged, opts,
-                                lambda s: ex.SimGame(gsim, expert_policy), bar))
+                                lambda s: ex.SimGame(gsim, expert_policy), bar, cfg.gamma))
                 if discrete:
                     keep(*_evaluate("behaviour prior", sim, prior_policy(sim), logged, opts,
-                                    lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar))
+                                    lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar, cfg.gamma))
             policy = load_policy(ckpt, sim)
             gpolicy = load_policy(ckpt, gsim)
             actor = ex.load_actor(ckpt, gsim)
-            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar)
+            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor),
+                                 bar, cfg.gamma)
             keep(res, gen)
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
@@ -531,7 +607,11 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
     plot_gaps(gaps, out / "cce_gap.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds)}
+            "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds),
+            "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
+                              "patience": opts.br_patience, "min_iters": opts.br_min_iters,
+                              "copies": copies, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
+                              "gamma": "the run's" if opts.br_gamma is None else opts.br_gamma}}
     write_markdown(out, results, meta)
     summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in results]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))
@@ -556,10 +636,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), metavar="SEED",
                    help=f"rollout seeds; diversity needs at least two (default: {' '.join(map(str, d.seeds))})")
     p.add_argument("--br-iters", type=int, default=d.br_iters,
-                   help="best-response updates per seed when measuring the CCE-gap")
+                   help="CCE-gap: cap on the PPO iterations of each best response (it stops earlier at a plateau)")
     p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds), metavar="SEED",
                    help=f"seeds of the best-response training (default: {' '.join(map(str, d.br_seeds))})")
-    p.add_argument("--br-lr", type=float, default=d.br_lr, help="learning rate of the best response")
+    p.add_argument("--br-lr", type=float, default=d.br_lr, help="learning rate of the best response (actor)")
+    p.add_argument("--br-tol", type=float, default=d.br_tol,
+                   help="plateau tolerance: a best response stops when its moving-mean discounted return has not "
+                        "beaten its best by tol * max(1, |best|) for --br-patience iterations")
+    p.add_argument("--br-window", type=int, default=d.br_window, help="iterations per moving mean of the plateau rule")
+    p.add_argument("--br-patience", type=int, default=d.br_patience,
+                   help="iterations without a new best moving mean before a best response stops")
+    p.add_argument("--br-min-iters", type=int, default=d.br_min_iters,
+                   help="PPO iterations a best response always runs before the plateau rule may stop it")
+    p.add_argument("--br-copies", type=int, default=d.br_copies,
+                   help="episodes per agent and PPO iteration (each agent deviates in this many worlds; "
+                        "default: 16 on a GPU, 4 on the CPU)")
+    p.add_argument("--br-rounds", type=int, default=d.br_rounds,
+                   help="fresh evaluation batches of J(pi) and of J(BR) each")
+    p.add_argument("--br-gamma", type=float, default=None,
+                   help="discount of the best response's returns (default: the run's gamma)")
     p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
     p.add_argument("--device", default="auto",
                    help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
@@ -574,7 +669,10 @@ def main(argv: list[str] | None = None) -> int:
     """`tg-gpudrive report --runs DIR [DIR ...] --out DIR`; returns the exit status."""
     args = build_parser().parse_args(argv)
     opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
-                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, top=args.top, device=args.device,
+                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, br_tol=args.br_tol, br_window=args.br_window,
+                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
+                         br_rounds=args.br_rounds,
+                         br_gamma=args.br_gamma, top=args.top, device=args.device,
                          grid_scene=args.grid_scene, grid_gifs=args.grid_gifs)
     try:
         report_main(args.runs, args.out, opts)
