@@ -38,15 +38,17 @@ def rows(path):
     return list(csv.DictReader((path / "metrics.csv").open()))
 
 
-def test_resume_continues_exactly(tmp_path):
-    """4 updates in one go == 2 updates, a kill, and a resume for 2 more (bit for bit on cpu)."""
+@pytest.mark.parametrize("history", [0, 3], ids=["obs", "obs+history"])
+def test_resume_continues_exactly(tmp_path, history):
+    """4 updates in one go == 2 updates, a kill, and a resume for 2 more (bit for bit on cpu), with
+    and without the actor's motion history (its window is part of the checkpoint)."""
     a, b = tmp_path / "a", tmp_path / "b"
-    Trainer(tiny(a), a, progress=False).train()
-    Trainer(tiny(b, updates=2), b, progress=False).train()
+    Trainer(tiny(a, actor_history=history), a, progress=False).train()
+    Trainer(tiny(b, updates=2, actor_history=history), b, progress=False).train()
     # the "kill": a later row that was logged after the last checkpoint must be dropped on resume
     with (b / "metrics.csv").open("a") as f:
         f.write(",".join(["999"] * len(rows(b)[0])) + "\n")
-    Trainer(tiny(b), b, resume=b, progress=False).train()
+    Trainer(tiny(b, actor_history=history), b, resume=b, progress=False).train()
     ra, rb = rows(a), rows(b)
     assert len(ra) == len(rb) == 4
     for x, y in zip(ra, rb):

@@ -160,6 +160,7 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     hidden: int = 128
     heads: int = 1  # >1: per-slot actor heads
+    actor_history: int = 0  # steps of its own motion the actor sees besides its observation (pi(a | o, h)); 0: none
     amp: bool = True  # bf16 autocast of the networks on GPU
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint

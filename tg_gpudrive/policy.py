@@ -21,6 +21,7 @@ import torch
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.networks import Actor, CentralCritic
 
@@ -82,17 +83,17 @@ def action_grid(env, device=None) -> torch.Tensor:
     return torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
 
 
-def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1) -> Actor:
+def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1, history: int = 0) -> Actor:
     """An actor for the engine config `env`'s action space (its grid of `num_actions`, or the
-    bicycle / delta-local action box), on the CPU."""
+    bicycle / delta-local action box), seeing `history` steps of its own motion, on the CPU."""
     return Actor(env.partner_k, env.road_k, discrete=env.discrete, num_actions=num_actions,
-                 act_dim=env.act_dim, act_scale=list(env.act_high), hidden=hidden, heads=heads)
+                 act_dim=env.act_dim, act_scale=list(env.act_high), hidden=hidden, heads=heads, history=history)
 
 
 def build_models(cfg: TrainConfig, sim: Simulator, device: str):
     """(actor, critic) of a CCE-MAPPO run with config `cfg`, laid out for `sim`, on `device`."""
     e = cfg.env
-    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads).to(device)
+    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads, history=cfg.actor_history).to(device)
     critic = CentralCritic(e.partner_k, e.road_k, quantiles=cfg.quantiles, hidden=cfg.hidden).to(device)
     return actor, critic
 
@@ -113,10 +114,16 @@ def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
     actor.eval()
     head = PolicyHead(e.discrete)
     slots = torch.arange(sim.max_agents, device=sim.device)
+    # an actor with a motion history keeps its window in step with the simulator it drives
+    window = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
 
     @torch.no_grad()
     def policy(sim_: Simulator) -> None:
-        out = actor(sim_.obs, slots)
+        hist = None
+        if window is not None:
+            window.sync(sim_)
+            hist = window.features(sim_)
+        out = actor(sim_.obs, slots, hist)
         if head.discrete:
             a = out.argmax(-1) if deterministic else head.dist(out).sample()
             sim_.actions_index.copy_(a.to(torch.int32))

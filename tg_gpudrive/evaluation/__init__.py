@@ -2,7 +2,9 @@
 
     rollouts.py        record_episodes / logged_episodes -> Trajectories (host arrays every metric reads)
     fidelity.py        histograms, Hellinger / KL / W1, realism score (ours, Sim-Agents style)
-    exploitability.py  best responses against a frozen profile, CCE-gap with a CI over seeds
+    exploitability.py  PPO best responses to a frozen profile until their return plateaus; CCE-gap per
+                       agent and scenario type, with intervals
+    stats.py           Spearman's rho of a knob with a figure and its bootstrap interval
     diversity.py       mean pairwise displacement of a scene's episodes
     risk.py            collisions, min TTC, min gap, hard braking, ranking of critical scenarios
     export.py          scenes and generated episodes to GPUDrive processed JSON

@@ -9,7 +9,9 @@ max-pools them over their masks (permutation invariant, cheap), then fuses
 with the ego features. Inputs are scaled by fixed constants (metres / 50,
 speeds / 20), so no running statistics have to be synchronised.
 
-The actor sees only its own row. The critics see every controlled agent of
+The actor sees its own row and, with `history` > 0, its own last `history` states
+(tg_gpudrive.history: positions, headings, speeds and actions in its current frame), the
+paper's pi(a | o, h). The critics see every controlled agent of
 the world: each agent's embedding attends over the embeddings of the others
 (masked multi-head attention), which is the centralised part.
 """
@@ -19,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from tg_gpudrive.history import HIST_DIM, HIST_SCALE
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 
 # per-feature scales of the observation blocks (see kernels/observation.py)
@@ -72,13 +75,19 @@ class Actor(nn.Module):
 
     discrete: `forward` returns logits (..., num_actions);
     continuous: returns (mean, log_std), each (..., act_dim), actions in the engine's units.
-    `heads > 1` gives per-slot heads (slot index modulo heads), for few-agent studies."""
+    `heads > 1` gives per-slot heads (slot index modulo heads), for few-agent studies.
+    `history > 0`: `forward` also takes `hist` (..., history, HIST_DIM), the agent's motion window
+    (tg_gpudrive.history.HistoryBuffer.features), embedded and added to the observation's encoding."""
 
     def __init__(self, partner_k: int, road_k: int, *, discrete: bool, num_actions: int = 91,
-                 act_dim: int = 2, act_scale: list[float] | None = None, hidden: int = 128, heads: int = 1):
+                 act_dim: int = 2, act_scale: list[float] | None = None, hidden: int = 128, heads: int = 1,
+                 history: int = 0):
         super().__init__()
-        self.discrete, self.heads = discrete, heads
+        self.discrete, self.heads, self.history = discrete, heads, history
         self.encoder = ObsEncoder(partner_k, road_k, hidden, embed=max(hidden // 2, 16))
+        if history:
+            self.register_buffer("hist_scale", torch.tensor(HIST_SCALE))
+            self.hist_encoder = mlp([history * HIST_DIM, hidden, hidden])
         out = num_actions if discrete else act_dim
         self.head_w = nn.Parameter(torch.randn(heads, hidden, out) * (0.01 / hidden**0.5))
         self.head_b = nn.Parameter(torch.zeros(heads, out))
@@ -86,8 +95,14 @@ class Actor(nn.Module):
             self.log_std = nn.Parameter(torch.full((act_dim,), -0.5))
             self.register_buffer("act_scale", torch.tensor(act_scale or [1.0] * act_dim))
 
-    def forward(self, obs: torch.Tensor, slot: torch.Tensor | None = None):
+    def forward(self, obs: torch.Tensor, slot: torch.Tensor | None = None, hist: torch.Tensor | None = None):
         h = self.encoder(obs)
+        if self.history:
+            if hist is None or hist.shape[-2:] != (self.history, HIST_DIM):
+                raise ValueError(f"this actor sees a motion history: pass hist of shape (..., {self.history}, "
+                                 f"{HIST_DIM}) (tg_gpudrive.history.HistoryBuffer), got "
+                                 f"{None if hist is None else tuple(hist.shape)}")
+            h = h + self.hist_encoder((hist / self.hist_scale).flatten(-2).to(h.dtype))
         if self.heads == 1:
             out = h @ self.head_w[0] + self.head_b[0]
         else:

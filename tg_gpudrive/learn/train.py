@@ -45,6 +45,7 @@ from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, plot_curves, windowed_rates
@@ -149,6 +150,8 @@ class Trainer:
         e = cfg.env
         self._noop = e.noop_index
         self.prior = make_prior(cfg, self.sim)
+        # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
+        self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
         self.prior_logits = self.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
         self.params = [*self.actor.parameters(), *self.critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
@@ -189,9 +192,9 @@ class Trainer:
         """bf16 autocast for the networks on GPU (losses stay in float32)."""
         return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.sim.is_cuda and self.cfg.amp)
 
-    def _policy_out(self, obs, slots):
+    def _policy_out(self, obs, slots, hist=None):
         with self._amp():
-            out = self.actor(obs, slots)
+            out = self.actor(obs, slots, hist)
         return out.float() if self.head.discrete else (out[0].float(), out[1].float())
 
     @torch.no_grad()
@@ -211,7 +214,12 @@ class Trainer:
             # the actor runs on the live rows only (often under half of W x C); the other
             # slots get the no-op action, which the engine ignores for agents that do not act
             w_idx, c_idx = mask.nonzero(as_tuple=True)
-            out = self._policy_out(obs[w_idx, c_idx], c_idx)
+            hist = None
+            if self.actor_hist is not None:  # the actor's motion window, synced once per step
+                self.actor_hist.sync(sim)
+                buf["hist"][t] = self.actor_hist.features(sim, slice(0, C))
+                hist = buf["hist"][t][w_idx, c_idx]
+            out = self._policy_out(obs[w_idx, c_idx], c_idx, hist)
             if self.head.discrete:
                 bad |= ~torch.isfinite(out).all()
                 out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
@@ -294,6 +302,8 @@ class Trainer:
             "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
             "prior": torch.zeros((T, W, C, self._prior_dim()), device=dev),
         }
+        if self.actor_hist is not None:
+            buf["hist"] = torch.zeros((T, W, C, cfg.actor_history, HIST_DIM), device=dev)
         buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
                       else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)))
         self._buf, self._buf_key = buf, key
@@ -376,7 +386,7 @@ class Trainer:
         """(T, W, C, ...) rollout tensors -> (T*W, C, ...) groups: one group = one world at one step."""
         T, W = buf["reward"].shape[:2]
         flat = lambda x: x.reshape(T * W, *x.shape[2:])  # noqa: E731
-        b = {k: flat(buf[k]) for k in ("obs", "act", "logp", "mask", "prior")}
+        b = {k: flat(buf[k]) for k in ("obs", "act", "logp", "mask", "prior", "hist") if k in buf}
         b.update(adv_r=flat(adv_r), adv_c=flat(adv_c), ret_r=flat(ret_r), q_target=flat(q_target))
         b["old"] = flat(buf["old"]) if self.head.discrete else (flat(buf["old"][0]), flat(buf["old"][1]))
         return b
@@ -394,7 +404,7 @@ class Trainer:
         rows = idx[g]
         obs = b["obs"]
         with self._amp():
-            out = self.actor_fwd(obs[rows, c], c)
+            out = self.actor_fwd(obs[rows, c], c, b["hist"][rows, c] if "hist" in b else None)
             v, q = self.critic_fwd(obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
         out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
         v, q = v.float(), q.float()
@@ -567,6 +577,7 @@ class Trainer:
             "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
             "world_size": self.world,
             "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
+            "actor_history": {} if self.actor_hist is None else self.actor_hist.state_dict(),
         }
 
     def save(self) -> Path:
@@ -593,6 +604,8 @@ class Trainer:
             torch.cuda.set_rng_state_all(rng["cuda"])
         self.sim.restore(ck["engine"])
         self.prior.load_state_dict(self.sim, ck.get("prior", {}))
+        if self.actor_hist is not None:
+            self.actor_hist.load_state_dict(self.sim, ck.get("actor_history", {}))
         self._trim_csv()
 
     def _trim_csv(self) -> None:
