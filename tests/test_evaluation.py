@@ -327,7 +327,7 @@ def test_report_on_tiny_runs(tmp_path):
 
     base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
     runs = []
-    for name, kw in (("cce", {}), ("mappo", dict(eta1=0.0, eta2=math.inf, constraint=False))):
+    for name, kw in (("cce", dict(keep_policy_every=1)), ("mappo", dict(eta1=0.0, eta2=math.inf, constraint=False))):
         cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1,
                                   hidden=16, quantiles=4, updates=2, checkpoint_every=2, control="nearest_conflict",
                                   control_k=2, out_dir=str(tmp_path / name), **kw)
@@ -348,6 +348,11 @@ def test_report_on_tiny_runs(tmp_path):
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",
                                                          "cce", "mappo"}
     assert list((out / "scenarios" / "cce").glob("*.json"))
+    # the CCE-gap over training: the cce run kept its policy after updates 1 and 2, mappo kept none
+    curve = {r["label"]: r.get("gap_curve") for r in summary["results"]}
+    assert [p["update"] for p in curve["cce"]] == [1, 2] and curve["mappo"] is None
+    assert all(math.isfinite(p["mean_gap"]) for p in curve["cce"])
+    assert (out / "cce_gap_curve.png").stat().st_size > 0 and "## CCE-gap over training" in md
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
 

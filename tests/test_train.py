@@ -13,12 +13,14 @@ import pytest
 import torch
 
 from tg_gpudrive import cli
+from tg_gpudrive.checkpoint import kept_policies
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
 from tg_gpudrive.engine.control import control_mask
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.learn.train import Trainer, TrainingError
+from tg_gpudrive.policy import load_policy
 from tg_gpudrive.engine.simulator import Simulator
 
 from scenes import crossing_scene
@@ -330,3 +332,16 @@ def test_training_writes_tensorboard_events_when_installed(tmp_path):
     tags = set(acc.Tags()["scalars"])
     assert {"kl/prior", "lambda", "reward/goal_progress", "entropy"} <= tags
     assert [e.step for e in acc.Scalars("lambda")] == [1, 2]
+
+
+def test_kept_policies_are_listed_in_order_and_load(tmp_path):
+    """keep_policy_every = 1 keeps policies/update_000001.pt and update_000002.pt, which load as policies;
+    files that are not ours are passed over."""
+    Trainer(tiny(tmp_path, updates=2, keep_policy_every=1), tmp_path, progress=False).train()
+    (tmp_path / "policies" / "update_notes.pt").write_text("x")
+    kept = kept_policies(tmp_path)
+    assert [u for u, _ in kept] == [1, 2] and kept_policies(tmp_path / "nowhere") == []
+    sim = Simulator([generate_scene("merge", 5)], tiny(tmp_path).env, "cpu")
+    sim.reset()
+    load_policy(kept[0][1], sim)(sim)
+    assert kept[0][1].stat().st_size < (tmp_path / "checkpoint.pt").stat().st_size

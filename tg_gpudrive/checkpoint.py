@@ -105,6 +105,21 @@ def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cp
         return _read(prev, option, map_location)
 
 
+POLICY_DIR = "policies"  # a run's kept policies (TrainConfig.keep_policy_every), update_NNNNNN.pt
+
+
+def kept_policies(run: str | Path) -> list[tuple[int, Path]]:
+    """(update, file) of the policies a training run kept, oldest first (none: an empty list)."""
+    d = Path(run) / POLICY_DIR
+    out = []
+    for f in sorted(d.glob("update_*.pt")) if d.is_dir() else []:
+        try:
+            out.append((int(f.stem.split("_", 1)[1]), f))
+        except ValueError:  # not one of ours
+            continue
+    return out
+
+
 def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
     """The engine config of a policy trained with `cfg` (a TrainConfig), sized for `scenes`.
 

@@ -186,6 +186,7 @@ class TrainConfig:
     time_limit_s: float = 0.0  # stop (and save) once this much training wall-clock has passed (0: off)
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)
     checkpoint_every: int = 10
+    keep_policy_every: int = 0  # also keep the policy every N updates (policies/update_NNNNNN.pt): the report's CCE-gap curve; 0: off
     out_dir: str = "runs/train"
 
     def __post_init__(self):

@@ -31,6 +31,8 @@ Writes into `out`:
     multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
     fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
     cce_gap.png         CCE-gap per agent, per run
+    cce_gap_curve.png   the CCE-gap of each run's kept policies over its training (runs trained with
+                        keep_policy_every > 0; the same best-response procedure at every point)
     summary.json        every number of the tables
     scenarios/<run>/    the most critical generated scenarios as GPUDrive JSON (risk in metadata)
     frames/<run>.png    the top-down pictures of the grid
@@ -52,7 +54,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+from tg_gpudrive.checkpoint import checkpoint_path, kept_policies, load_checkpoint, policy_engine_config
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
@@ -349,6 +351,45 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path):
     return fig
 
 
+def gap_curve(run: Path, gsim, opts: ReportOptions, gamma: float, last: dict | None) -> list[dict]:
+    """The CCE-gap of every policy the run kept during training (checkpoint.kept_policies), with the
+    final checkpoint's gap `last` as the end point: [{update, mean_gap, ci95}], oldest first."""
+    points = []
+    for update, f in kept_policies(run):
+        g = ex.cce_gap(lambda s, f=f: ex.SimGame(gsim, load_policy(f, gsim), actor=ex.load_actor(f, gsim)),
+                       seeds=opts.br_seeds, config=br_config(opts, gamma))
+        points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
+    if points and last:
+        final = int(load_checkpoint(run, "--runs")["update"])
+        if final > points[-1]["update"]:
+            points.append({"update": final, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
+    return points
+
+
+def plot_gap_curves(curves: dict[str, list[dict]], path: Path):
+    """CCE-gap against the training update, one line per run, with its 95 % interval as a band."""
+    fig = _fig()
+    fig.set_size_inches(6.0, 3.6)
+    ax = fig.add_subplot(1, 1, 1)
+    for i, (label, pts) in enumerate(curves.items()):
+        u = np.array([p["update"] for p in pts], float)
+        m = np.array([p["mean_gap"] for p in pts], float)
+        ci = np.nan_to_num(np.array([p["ci95"] if p["ci95"] is not None else np.nan for p in pts], float))
+        ax.plot(u, m, marker="o", ms=3, lw=1, color=f"C{i % 10}", label=_short(label))
+        ax.fill_between(u, m - ci, m + ci, color=f"C{i % 10}", alpha=0.15, lw=0)
+    ax.set_xlabel("training update", fontsize=8)
+    ax.set_ylabel("CCE-gap (mean over agents)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    if curves:
+        ax.legend(fontsize=6, loc="upper right")
+    else:
+        ax.text(0.5, 0.5, "no run kept policies (keep_policy_every)", ha="center", va="center", transform=ax.transAxes)
+    fig.suptitle("CCE-gap over training (95 % interval over agents)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path)
+    return fig
+
+
 def plot_gaps(gaps: dict[str, dict], path: Path):
     """CCE-gap per policy: each agent's gap (PPO best response, exploitability.py) a dot, the mean
     over agents with its 95% CI over agents a black bar.
@@ -460,9 +501,16 @@ def _gap_sections(results: list[dict]) -> list[str]:
             rows.append([label, t, v["agents"], _pm(v["mean_gap"], v["ci95"]), v["mean_gain"], "-", "-"])
     L.append(_table(["policy", "scenario type", "agents", "CCE-gap ± 95% CI (agents)", "mean raw gain",
                      "95% CI (seeds)", "mean PPO iterations"], rows))
-    L.append("\nNo CCE-gap curve over training checkpoints: a training run keeps only its last checkpoint "
-             "(checkpoint.pt, and checkpoint.prev.pt as the crash fallback), so there are no earlier policies to "
-             "measure.\n")
+    curves = [(r["label"], r["gap_curve"]) for r in results if r.get("gap_curve")]
+    if curves:
+        L.append("\n## CCE-gap over training\n\n![cce_gap_curve](cce_gap_curve.png)\n\nThe same best-response "
+                 "procedure on each policy the run kept (`keep_policy_every`), the last point its final "
+                 "checkpoint.\n\n")
+        L.append(_table(["run", "update", "CCE-gap ± 95% CI (agents)"],
+                        [[label, p["update"], _pm(p["mean_gap"], p["ci95"])] for label, pts in curves for p in pts]))
+    else:
+        L.append("\nNo CCE-gap curve over training: no run kept its policies during training (train with "
+                 "`--set keep_policy_every=N` to keep one every N updates).\n")
     return L
 
 
@@ -546,6 +594,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
         raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
     grid_scene = ""
+    gap_curves: dict[str, list[dict]] = {}
 
     def keep(res: dict, gen) -> None:
         results.append(res)
@@ -584,6 +633,10 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor),
                                  bar, cfg.gamma)
             keep(res, gen)
+            if run.is_dir() and kept_policies(run):
+                bar.set_postfix_str(f"{label}: CCE-gap over {len(kept_policies(run))} kept policies")
+                res["gap_curve"] = gap_curve(run, gsim, opts, cfg.gamma, res["cce_gap"])
+                gap_curves[label] = res["gap_curve"]
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
             curves[label] = _read_metrics(run)
@@ -606,6 +659,8 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     plot_multipliers(curves, out / "multipliers.png")
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
     plot_gaps(gaps, out / "cce_gap.png")
+    if gap_curves:
+        plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
             "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,

@@ -39,7 +39,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
+from tg_gpudrive.checkpoint import POLICY_DIR, load_checkpoint, save_atomic
 from tg_gpudrive.config import TrainConfig, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes
@@ -498,6 +498,8 @@ class Trainer:
             if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
                               or out_of_time):
                 self.save()
+            if self.lead and cfg.keep_policy_every and self.update % cfg.keep_policy_every == 0:
+                self.save_policy()
             if out_of_time and not reached:
                 if bar is not None:
                     bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}")
@@ -584,6 +586,14 @@ class Trainer:
         path = save_atomic(self.state_dict(), self.out / "checkpoint.pt", keep_previous=True)
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
+
+    def save_policy(self) -> Path:
+        """The policy alone (config and actor weights, about a megabyte) as policies/update_NNNNNN.pt:
+        what load_policy and the report read, so the CCE-gap can be followed over training."""
+        snap = {"config": to_dict(self.cfg), "actor": self.actor.state_dict(), "update": self.update,
+                "agent_steps": self.agent_steps, "wall": self.wall}
+        (self.out / POLICY_DIR).mkdir(exist_ok=True)
+        return save_atomic(snap, self.out / POLICY_DIR / f"update_{self.update:06d}.pt")
 
     def _load(self, ck: dict, exact: bool) -> None:
         self.opt.load_state_dict(ck["opt"])
