@@ -415,7 +415,7 @@ class Dims(enum.Enum):
     COUNTER = "(1,)"
     CELLS = "(W*collision_cells,)"  # broad-phase scratch, not viewed
     PARTNERS = "(W*A*partner_k,)"  # observation scratch, not viewed
-    ROADS = "(road_k*W*A,)"  # observation scratch, not viewed: element k of slot i at k * W*A + i
+    ROADS = "(road_k*W*A,)"  # observation scratch, not viewed; layout: Model.road_heaps_strided
 
     def alloc_shape(self, m: Model) -> tuple[int, ...]:
         n, W = m.num_slots, m.num_worlds
