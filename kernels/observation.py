@@ -321,6 +321,7 @@ def road_rows_kernel(
     integrated: wp.array(dtype=wp.int32),
     seg_a: wp.array(dtype=wp.vec2),
     seg_b: wp.array(dtype=wp.vec2),
+    seg_mid: wp.array(dtype=wp.vec2),
     seg_type: wp.array(dtype=wp.int32),
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
@@ -366,7 +367,7 @@ def road_rows_kernel(
         dir = dir / seg_len
     else:
         dir = wp.vec2(1.0, 0.0)
-    m = to_local(0.5 * (seg_a[sg] + seg_b[sg]) - pos[i], c, s)
+    m = to_local(seg_mid[sg] - pos[i], c, s)
     obs_out[i, col + 0] = 1.0
     obs_out[i, col + 1] = m[0]
     obs_out[i, col + 2] = m[1]
@@ -386,9 +387,9 @@ def launch_observations(model, state, control) -> None:
                       state.lane_dist, state.edge_dist, state.part_d, state.part_j],
               outputs=[state.obs, state.active])
     if model.road_k > 0:
-        ranked = int(model.rank_road_rows)
-        # GPU: heaps strided across slots (coalesced); CPU: each heap contiguous
-        layout = [1, n] if model.road_heaps_strided else [model.road_k, 1]
+        # GPU: heaps strided across slots (coalesced) and ranked in parallel; CPU: contiguous, heap-sorted
+        ranked = int(model.parallel_road_rows)
+        layout = [1, n] if ranked else [model.road_k, 1]
         wp.launch(road_select_kernel, dim=n, device=dev,
                   inputs=[model.max_agents, model.road_k, model.road_radius, 1 - ranked, *layout, model.integrated, model.seg_mid,
                           model.grid_origin, model.grid_nx, model.grid_ny, model.grid_cell_offset,
@@ -396,6 +397,6 @@ def launch_observations(model, state, control) -> None:
                   outputs=[state.heap_d, state.heap_j, state.road_n])
         wp.launch(road_rows_kernel, dim=n * model.road_k, device=dev,
                   inputs=[model.road_k, EGO_DIM + model.partner_k * PARTNER_DIM, ranked, *layout, model.integrated, model.seg_a,
-                          model.seg_b, model.seg_type, state.pos, state.yaw, state.heap_d, state.heap_j,
+                          model.seg_b, model.seg_mid, model.seg_type, state.pos, state.yaw, state.heap_d, state.heap_j,
                           state.road_n],
                   outputs=[state.obs])

@@ -18,7 +18,7 @@ from tg_gpudrive.evaluation.rollouts import record_episodes
 from tg_gpudrive.history import HIST_DIM
 from tg_gpudrive.learn.networks import Actor
 from tg_gpudrive.learn.train import Trainer
-from tg_gpudrive.policy import load_policy
+from tg_gpudrive.policy import load_actor, load_policy
 
 SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
 
@@ -67,7 +67,7 @@ def test_a_history_checkpoint_evaluates_and_warm_starts_the_best_response(tmp_pa
     sim = Simulator([src.get(i) for i in range(2)], cfg.env, "cpu")
     tr = record_episodes(sim, load_policy(tmp_path, sim), label="history")
     assert tr.valid[tr.policy].any()
-    actor = ex.load_actor(tmp_path, sim)
+    actor = load_actor(tmp_path, sim)[0]
     assert actor.history == 3
     res = ex.cce_gap(lambda s: ex.SimGame(sim, load_policy(tmp_path, sim), actor=actor), seeds=(0,), max_iters=1,
                      min_iters=1, window=1, patience=1, eval_rounds=1)

@@ -429,6 +429,6 @@ def test_road_rows_match_brute_force(device, kind, ranked):
         scenes = [scene]
         c = cfg(control="all_agents", road_k=24, road_radius=60.0, road_cell_size=7.0)
     sim = Simulator(scenes, c, device)
-    sim.model.rank_road_rows = sim.model.road_heaps_strided = ranked
+    sim.model.parallel_road_rows = ranked
     sim.reset()
     _assert_road_rows_match(sim, _brute_force_road_rows(sim, scenes, c.road_k, c.road_radius, c.max_segment_length))

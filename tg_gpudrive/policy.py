@@ -98,19 +98,28 @@ def build_models(cfg: TrainConfig, sim: Simulator, device: str):
     return actor, critic
 
 
-def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
-    """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
-
-    `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
-    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
+def load_actor(path: str | Path, sim: Simulator) -> tuple[Actor, TrainConfig]:
+    """The actor of a training checkpoint (file, run directory or "shipped"; checkpoint.checkpoint_path)
+    on `sim`'s device, and the run's config; a ValueError when `sim`'s action space or observation
+    layout is not the one it was trained with."""
     ck = load_checkpoint(path, "checkpoint", map_location=sim.device)
     cfg = from_dict(TrainConfig, ck["config"], str(path))
     e, s = cfg.env, sim.cfg
     if (e.action_space, e.dynamics, e.partner_k, e.road_k) != (s.action_space, s.dynamics, s.partner_k, s.road_k):
         raise ValueError(f"{path}: checkpoint expects action_space={e.action_space}, dynamics={e.dynamics}, "
                          f"partner_k={e.partner_k}, road_k={e.road_k}; the simulator differs")
-    actor, _ = build_models(cfg, sim, sim.device)
+    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads, history=cfg.actor_history)
     actor.load_state_dict(ck["actor"])
+    return actor.to(sim.device), cfg
+
+
+def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
+    """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
+
+    `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
+    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
+    actor, cfg = load_actor(path, sim)
+    e = cfg.env
     actor.eval()
     head = PolicyHead(e.discrete)
     slots = torch.arange(sim.max_agents, device=sim.device)

@@ -32,7 +32,6 @@ here from the EngineConfig once, so launchers read the Model, never the config):
                                                 in the order of its grid cells, so a cell's are contiguous
     seg_mid             (S,)            vec2    m, their midpoints (the road observation's distance)
     seg_type            (S,)            int32   RoadType
-    world_segments      (W, 2)          int64   (host) first and end segment of world w (shared, see above)
     grid_origin         (W,)            vec2    m, road grid corner
     grid_nx, grid_ny    (W,)            int32   road grid size in cells
     grid_cell_offset    (W,)            int32   first cell of world w
@@ -50,8 +49,8 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_radius, beta, speed_limit, lane_cap                            reward and cost parameters
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     road_query_radius, road_cell_size, seg_pad, collision_cells         road queries and broad phases
-    rank_road_rows      road rows sorted by parallel ranks (True on CUDA) or a per-agent heap sort
-    road_heaps_strided  road heaps strided across slots (True on CUDA) or contiguous per slot
+    parallel_road_rows  road heaps strided across slots and rows ordered by parallel ranks (True on
+                        CUDA), or contiguous heaps heap-sorted by each agent's thread (kernels/observation.py)
 
 State: see `State` (its shape table is built from the field declarations, which also
 make the Simulator's torch views). Control: action (W*A,) vec3 (continuous),
@@ -240,9 +239,7 @@ class Model:
         self.dt = float(scenes[0].dt)
         self.scenes = scenes
         self._copy_scalars(cfg)
-        # road rows ranked by one thread per row from heaps strided across slots (GPU), or heap-sorted
-        # by the agent's thread in a contiguous heap (CPU): kernels/observation.py; the same rows
-        self.rank_road_rows = self.road_heaps_strided = wp.get_device(device).is_cuda
+        self.parallel_road_rows = wp.get_device(device).is_cuda  # the same rows either way
 
         plans: dict[tuple, int] = {}  # (scene id, mask bytes) -> distinct slot plan
         roads: dict[int, int] = {}  # scene id -> distinct road grid (`scenes` keeps every id alive)
@@ -310,7 +307,6 @@ class Model:
         seg_first = np.cumsum(seg_count) - seg_count
         n_seg = int(seg_count.sum())
         cell_count = np.array([r.nx * r.ny for r in road_list], np.int64)
-        self.world_segments = np.stack([seg_first, seg_first + seg_count], 1)[world_road]
         all_a = np.concatenate([r.seg_a for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
         all_b = np.concatenate([r.seg_b for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
         all_t = np.concatenate([r.seg_type for r in road_list]) if n_seg else np.zeros(1, np.int32)
@@ -415,7 +411,7 @@ class Dims(enum.Enum):
     COUNTER = "(1,)"
     CELLS = "(W*collision_cells,)"  # broad-phase scratch, not viewed
     PARTNERS = "(W*A*partner_k,)"  # observation scratch, not viewed
-    ROADS = "(road_k*W*A,)"  # observation scratch, not viewed; layout: Model.road_heaps_strided
+    ROADS = "(road_k*W*A,)"  # observation scratch, not viewed; layout: Model.parallel_road_rows
 
     def alloc_shape(self, m: Model) -> tuple[int, ...]:
         n, W = m.num_slots, m.num_worlds

@@ -68,7 +68,7 @@ from tg_gpudrive.evaluation.export import export_episodes
 from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts, replay_episodes
 from tg_gpudrive.evaluation.stats import spearman_ci
 from tg_gpudrive.learn.prior import ExpertPrior
-from tg_gpudrive.policy import load_policy
+from tg_gpudrive.policy import load_actor, load_policy
 from tg_gpudrive.rollout import expert_policy
 
 FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "summary.json")
@@ -351,18 +351,18 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path):
     return fig
 
 
-def gap_curve(run: Path, gsim, opts: ReportOptions, gamma: float, last: dict | None) -> list[dict]:
-    """The CCE-gap of every policy the run kept during training (checkpoint.kept_policies), with the
-    final checkpoint's gap `last` as the end point: [{update, mean_gap, ci95}], oldest first."""
+def gap_curve(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: float, last: dict | None,
+              last_update: int | None) -> list[dict]:
+    """The CCE-gap of every policy a run kept during training (checkpoint.kept_policies), with its
+    final checkpoint's gap `last` (at update `last_update`) as the end point: [{update, mean_gap,
+    ci95}], oldest first."""
     points = []
-    for update, f in kept_policies(run):
-        g = ex.cce_gap(lambda s, f=f: ex.SimGame(gsim, load_policy(f, gsim), actor=ex.load_actor(f, gsim)),
+    for update, f in kept:
+        g = ex.cce_gap(lambda s, f=f: ex.SimGame(gsim, load_policy(f, gsim), actor=load_actor(f, gsim)[0]),
                        seeds=opts.br_seeds, config=br_config(opts, gamma))
         points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
-    if points and last:
-        final = int(load_checkpoint(run, "--runs")["update"])
-        if final > points[-1]["update"]:
-            points.append({"update": final, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
+    if points and last and last_update is not None and last_update > points[-1]["update"]:
+        points.append({"update": last_update, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
     return points
 
 
@@ -629,17 +629,19 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                                     lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar, cfg.gamma))
             policy = load_policy(ckpt, sim)
             gpolicy = load_policy(ckpt, gsim)
-            actor = ex.load_actor(ckpt, gsim)
+            actor = load_actor(ckpt, gsim)[0]
             res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor),
                                  bar, cfg.gamma)
             keep(res, gen)
-            if run.is_dir() and kept_policies(run):
-                bar.set_postfix_str(f"{label}: CCE-gap over {len(kept_policies(run))} kept policies")
-                res["gap_curve"] = gap_curve(run, gsim, opts, cfg.gamma, res["cce_gap"])
+            curves[label] = _read_metrics(run)
+            kept = kept_policies(run) if run.is_dir() else []
+            if kept:
+                bar.set_postfix_str(f"{label}: CCE-gap over {len(kept)} kept policies")
+                last_update = int(curves[label][-1]["update"]) if curves[label] else None
+                res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update)
                 gap_curves[label] = res["gap_curve"]
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
-            curves[label] = _read_metrics(run)
             res["train_tail"] = _tail_means(curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
             if res["kind"] == "CCE-MAPPO":
                 g = opts.grid_scene

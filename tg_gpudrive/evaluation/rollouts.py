@@ -27,7 +27,6 @@ k = 0 is the state at the scene's init_step, k is log step init_step + k):
                                       NEAREST_CAP (recomputed from positions, for logs and rollouts alike:
                                       the engine's own value is capped at its broad-phase cell, ~5 m)
     valid       (E, A, K)    bool     agent present in the scene at step k (of the recorded episode)
-    acted       (E, A, K)    bool     agent was driven this step (by the engine, not replayed)
     kin_valid   (E, A, K)    bool     accel and curvature are defined: present at k-2, k-1 and k
     collided    (E, A, K)    bool
     offroad     (E, A, K)    bool
@@ -59,7 +58,7 @@ from tg_gpudrive.engine.simulator import Simulator
 
 NEAREST_CAP = 50.0  # m
 
-_PER_STEP = ("pos", "yaw", "vel", "speed", "accel", "curvature", "nearest", "valid", "acted", "kin_valid",
+_PER_STEP = ("pos", "yaw", "vel", "speed", "accel", "curvature", "nearest", "valid", "kin_valid",
              "collided", "offroad")
 _PER_AGENT = ("policy", "length", "width", "slot_agent")
 
@@ -74,7 +73,6 @@ class Trajectories:
     curvature: np.ndarray
     nearest: np.ndarray
     valid: np.ndarray
-    acted: np.ndarray
     kin_valid: np.ndarray
     collided: np.ndarray
     offroad: np.ndarray
@@ -140,13 +138,12 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
         "pos": np.zeros((W, A, K, 2), np.float32), "yaw": np.zeros((W, A, K), np.float32),
         "vel": np.zeros((W, A, K, 2), np.float32), "speed": np.zeros((W, A, K), np.float32),
         "nearest": np.zeros((W, A, K), np.float32), "valid": np.zeros((W, A, K), bool),
-        "acted": np.zeros((W, A, K), bool), "collided": np.zeros((W, A, K), bool),
-        "offroad": np.zeros((W, A, K), bool),
+        "collided": np.zeros((W, A, K), bool), "offroad": np.zeros((W, A, K), bool),
     }
     sim.reset()
     live = np.ones(W, bool)  # world still in its first episode
 
-    def grab(k: int, acted: bool) -> None:
+    def grab(k: int) -> None:
         keep = live[:, None]
         out["pos"][:, :, k] = _np(sim.pos)
         out["yaw"][:, :, k] = _np(sim.yaw)
@@ -155,17 +152,15 @@ def record_episodes(sim, policy: Callable, *, seed: int = 0, label: str = "") ->
         out["valid"][:, :, k] = keep & (_np(sim.present) != 0) & (_np(sim.slot_valid) != 0) & (_np(sim.removed) == 0)
         out["collided"][:, :, k] = keep & (_np(sim.collided) != 0)
         out["offroad"][:, :, k] = keep & (_np(sim.offroad) != 0)
-        if acted:
-            out["acted"][:, :, k] = keep & (_np(sim.alive) != 0)
 
-    grab(0, acted=False)
+    grab(0)
     out["collided"][:, :, 0] = False  # the reset state carries no events
     out["offroad"][:, :, 0] = False
     for k in range(1, K):
         policy(sim)
         sim.step()
         live &= _np(sim.world_reset) == 0
-        grab(k, acted=True)
+        grab(k)
         live &= _np(sim.world_ended) == 0
         if not live.any():
             break
@@ -228,13 +223,11 @@ def logged_episodes(sim, label: str = "log") -> Trajectories:
     valid = (h["log_valid"][:, :, T0:] != 0) & (h["slot_valid"][:, :, None] != 0)
     speed = np.linalg.norm(vel, axis=-1).astype(np.float32)
     accel, curv, kin_valid = path_kinematics(pos, valid, m.dt)
-    acted = np.zeros_like(valid)
-    acted[..., 1:] = valid[..., 1:] & valid[..., :-1]
     near = nearest_distance(pos, valid, NEAREST_CAP)
     W, A = valid.shape[:2]
     return Trajectories(
         pos=pos, yaw=yaw, vel=vel, speed=speed, accel=accel, curvature=curv, nearest=near, valid=valid,
-        acted=acted, kin_valid=kin_valid, collided=np.zeros_like(valid), offroad=np.zeros_like(valid),
+        kin_valid=kin_valid, collided=np.zeros_like(valid), offroad=np.zeros_like(valid),
         policy=_np(sim.policy_agents).astype(bool), length=h["length"].astype(np.float32),
         width=h["width"].astype(np.float32), slot_agent=np.asarray(m.slot_agent, np.int64).copy(),
         scene_index=np.arange(W, dtype=np.int64), seed=np.zeros(W, np.int64), scenes=list(m.scenes),

@@ -135,6 +135,11 @@ def gae(
 # --------------------------------------------------------------------------- PPO
 
 
+def clipped_surrogate(ratio: torch.Tensor, advantages: torch.Tensor, clip_eps: float) -> torch.Tensor:
+    """PPO's clipped objective per sample: min(r A, clip(r, 1 - eps, 1 + eps) A) (to maximise)."""
+    return torch.minimum(ratio * advantages, ratio.clamp(1.0 - clip_eps, 1.0 + clip_eps) * advantages)
+
+
 def ppo_clip_loss(
     logp_new: torch.Tensor,
     logp_old: torch.Tensor,
@@ -163,8 +168,7 @@ def ppo_clip_loss(
     log_ratio = logp_new - logp_old.detach()
     ratio = log_ratio.exp()
     adv = advantages.detach()
-    surrogate = torch.minimum(ratio * adv, ratio.clamp(1.0 - clip_eps, 1.0 + clip_eps) * adv)
-    loss = -masked_mean(surrogate, mask)
+    loss = -masked_mean(clipped_surrogate(ratio, adv, clip_eps), mask)
     with torch.no_grad():
         stats = {
             "clip_frac": masked_mean(((ratio - 1.0).abs() > clip_eps).to(ratio.dtype), mask),
