@@ -116,7 +116,7 @@ def tracking_target(pos: wp.vec2, yaw: float, vel: wp.vec2, pos1: wp.vec2, yaw1:
 def track_log(i: int, t: int, pos: wp.vec2, yaw: float, vel: wp.vec2, log_pos: wp.array2d(dtype=wp.vec2),
               log_yaw: wp.array2d(dtype=float), log_vel: wp.array2d(dtype=wp.vec2),
               log_valid: wp.array2d(dtype=wp.int32), dt: float, gain_long: float, gain_lat: float):
-    """`tracking_target` of agent i towards its log at t + 1, aiming at t + 2 where that is valid."""
+    """`tracking_target` of log row i towards its log at t + 1, aiming at t + 2 where that is valid."""
     has2 = int(0)
     pos2 = log_pos[i, t + 1]
     if t + 2 < log_pos.shape[1]:
@@ -230,7 +230,8 @@ def step_agents_kernel(
     agents_per_world: int,
     slot_valid: wp.array(dtype=wp.int32),  # (world * agent,)
     integrated: wp.array(dtype=wp.int32),  # moved by its action (policy or background), else log replay
-    log_pos: wp.array2d(dtype=wp.vec2),  # (world * agent, step)
+    log_row: wp.array(dtype=wp.int32),  # (world * agent,) the slot's row of the log arrays
+    log_pos: wp.array2d(dtype=wp.vec2),  # (plan * agent, step)
     log_yaw: wp.array2d(dtype=float),
     log_vel: wp.array2d(dtype=wp.vec2),
     log_valid: wp.array2d(dtype=wp.int32),
@@ -276,11 +277,12 @@ def step_agents_kernel(
         present_out[i] = 0
         return
     if integrated[i] == 0:
-        if log_valid[i, tn] != 0:
-            pos[i] = log_pos[i, tn]
-            yaw[i] = log_yaw[i, tn]
-            vel[i] = log_vel[i, tn]
-            speed[i] = wp.length(log_vel[i, tn])
+        r = log_row[i]
+        if log_valid[r, tn] != 0:
+            pos[i] = log_pos[r, tn]
+            yaw[i] = log_yaw[r, tn]
+            vel[i] = log_vel[r, tn]
+            speed[i] = wp.length(log_vel[r, tn])
             present_out[i] = 1
         else:
             present_out[i] = 0
@@ -349,7 +351,7 @@ def launch_step_agents(model, state, control) -> None:
     wp.launch(
         step_agents_kernel,
         dim=model.num_slots,
-        inputs=[model.max_agents, model.slot_valid, model.integrated, model.log_pos, model.log_yaw,
+        inputs=[model.max_agents, model.slot_valid, model.integrated, model.log_row, model.log_pos, model.log_yaw,
                 model.log_vel, model.log_valid, model.dt, model.dynamics, model.discrete, model.max_accel,
                 model.max_curvature, model.accel_bins, model.curvature_bins, model.delta_max,
                 control.action, control.action_index, state.world_step, state.world_done, state.agent_done,
@@ -366,7 +368,8 @@ def corrective_expert_kernel(
     pos: wp.array(dtype=wp.vec2),
     yaw: wp.array(dtype=float),
     vel: wp.array(dtype=wp.vec2),
-    log_pos: wp.array2d(dtype=wp.vec2),
+    log_row: wp.array(dtype=wp.int32),  # (world * agent,) the slot's row of the log arrays
+    log_pos: wp.array2d(dtype=wp.vec2),  # (plan * agent, step)
     log_yaw: wp.array2d(dtype=float),
     log_vel: wp.array2d(dtype=wp.vec2),
     log_valid: wp.array2d(dtype=wp.int32),
@@ -387,20 +390,21 @@ def corrective_expert_kernel(
     (-1: the log has no next state)."""
     i = wp.tid()
     t = world_step[i / agents_per_world]
+    r = log_row[i]
     T = log_pos.shape[1]
-    if t + 1 >= T or log_valid[i, t + 1] == 0:
+    if t + 1 >= T or log_valid[r, t + 1] == 0:
         action_out[i] = wp.vec3(0.0, 0.0, 0.0)
         index_out[i] = -1
         return
     if dynamics == DYNAMICS_BICYCLE:
-        yaw_t, vel_t = track_log(i, t, pos[i], yaw[i], vel[i], log_pos, log_yaw, log_vel, log_valid, dt, gain_long,
+        yaw_t, vel_t = track_log(r, t, pos[i], yaw[i], vel[i], log_pos, log_yaw, log_vel, log_valid, dt, gain_long,
                                  gain_lat)
         a, k = bicycle_inverse(yaw[i], vel[i], yaw_t, vel_t, dt, max_accel, max_kappa)
         action_out[i] = wp.vec3(a, k, 0.0)
         index_out[i] = nearest_bin(a, -max_accel, max_accel, n_accel) * n_kappa + nearest_bin(
             k, -max_kappa, max_kappa, n_kappa)
     else:
-        action_out[i] = delta_local_inverse(pos[i], yaw[i], log_pos[i, t + 1], log_yaw[i, t + 1])
+        action_out[i] = delta_local_inverse(pos[i], yaw[i], log_pos[r, t + 1], log_yaw[r, t + 1])
         index_out[i] = 0
 
 
@@ -408,7 +412,7 @@ def launch_corrective_expert(model, state, control, action_out, index_out) -> No
     """The tracking expert's action from every slot's current state into `action_out` (W*A,) vec3 and
     its grid index into `index_out` (W*A,) int32; the control buffers are not touched."""
     wp.launch(corrective_expert_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, state.world_step, state.pos, state.yaw, state.vel, model.log_pos,
+              inputs=[model.max_agents, state.world_step, state.pos, state.yaw, state.vel, model.log_row, model.log_pos,
                       model.log_yaw, model.log_vel, model.log_valid, model.dt, model.dynamics, model.max_accel,
                       model.max_curvature, model.accel_bins, model.curvature_bins, TRACK_GAIN_LONG,
                       TRACK_GAIN_LAT],
@@ -419,7 +423,8 @@ def launch_corrective_expert(model, state, control, action_out, index_out) -> No
 def expert_to_control_kernel(
     agents_per_world: int,
     world_step: wp.array(dtype=wp.int32),
-    expert_action: wp.array2d(dtype=wp.vec3),
+    log_row: wp.array(dtype=wp.int32),  # (world * agent,) the slot's row of the expert arrays
+    expert_action: wp.array2d(dtype=wp.vec3),  # (plan * agent, step)
     expert_index: wp.array2d(dtype=wp.int32),
     action_out: wp.array(dtype=wp.vec3),
     index_out: wp.array(dtype=wp.int32),
@@ -427,11 +432,12 @@ def expert_to_control_kernel(
     """Write the expert action of the current step into the control buffers."""
     i = wp.tid()
     t = world_step[i / agents_per_world]
-    action_out[i] = expert_action[i, t]
-    index_out[i] = wp.max(expert_index[i, t], 0)
+    r = log_row[i]
+    action_out[i] = expert_action[r, t]
+    index_out[i] = wp.max(expert_index[r, t], 0)
 
 
 def launch_expert_to_control(model, state, control) -> None:
     wp.launch(expert_to_control_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, state.world_step, model.expert_action, model.expert_index],
+              inputs=[model.max_agents, state.world_step, model.log_row, model.expert_action, model.expert_index],
               outputs=[control.action, control.action_index])

@@ -146,7 +146,8 @@ def reset_agents_kernel(
     init_step: int,
     force: int,
     slot_valid: wp.array(dtype=wp.int32),
-    log_pos: wp.array2d(dtype=wp.vec2),
+    log_row: wp.array(dtype=wp.int32),  # (world * agent,) the slot's row of the log arrays
+    log_pos: wp.array2d(dtype=wp.vec2),  # (plan * agent, step)
     log_yaw: wp.array2d(dtype=float),
     log_vel: wp.array2d(dtype=wp.vec2),
     log_valid: wp.array2d(dtype=wp.int32),
@@ -208,11 +209,12 @@ def reset_agents_kernel(
     ep_cost[i] = 0.0
     ep_min_dist[i] = BIG_DISTANCE
     ep_steps[i] = 0
-    if slot_valid[i] != 0 and log_valid[i, init_step] != 0:
-        pos[i] = log_pos[i, init_step]
-        yaw[i] = log_yaw[i, init_step]
-        vel[i] = log_vel[i, init_step]
-        speed[i] = wp.length(log_vel[i, init_step])
+    r = log_row[i]
+    if slot_valid[i] != 0 and log_valid[r, init_step] != 0:
+        pos[i] = log_pos[r, init_step]
+        yaw[i] = log_yaw[r, init_step]
+        vel[i] = log_vel[r, init_step]
+        speed[i] = wp.length(log_vel[r, init_step])
         present[i] = 1
     else:
         pos[i] = wp.vec2(0.0, 0.0)
@@ -225,7 +227,8 @@ def reset_agents_kernel(
 
 def _reset_agents(model, state, force: int) -> None:
     wp.launch(reset_agents_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.goal,
+              inputs=[model.max_agents, model.init_step, force, model.slot_valid, model.log_row, model.log_pos,
+                      model.log_yaw, model.log_vel, model.log_valid, model.goal,
                       state.world_ended, state.world_reset, state.world_truncated, state.alive, state.terminated,
                       state.pos, state.yaw, state.vel, state.speed, state.present, state.agent_done,
                       state.removed, state.goal_dist, state.ep_collided, state.ep_offroad, state.ep_goal,

@@ -7,8 +7,8 @@ Phases (one row per world count):
     host_s     Model, host side: slot selection, masks, road segments and grids (once per distinct
                scene of the batch) and the per-world tables
     upload_s   Model: the distinct scenes' arrays copied to the device
-    expert_s   Model: expert actions of the distinct scenes (launch_expert_actions)
-    gather_s   Model: the distinct scenes' arrays copied into every world's slots, on the device
+    expert_s   Model: expert actions of the distinct scenes (launch_expert_actions); worlds reach
+               their scene's logs and expert actions through Model.log_row, nothing is copied per world
     build_s    the whole Simulator construction (Model, State, Control, torch views): what
                `tg-gpudrive benchmark` reports as build_s
 
@@ -17,6 +17,8 @@ when DIR already holds one; not timed), then builds from the store, as training 
 
     python3 scripts/bench_build.py --scenes procedural:dense --num-scenes 64 --set max_agents=128 \\
         --pack /tmp/dense64 --worlds 4096 16384 --device cuda --json
+    python3 scripts/bench_build.py --scenes procedural:dense --num-scenes 4096 --set max_agents=128 \
+        --pack /tmp/dense4096 --worlds 4096 --device cuda --json     # every world a distinct scene
 """
 
 from __future__ import annotations
@@ -43,7 +45,10 @@ def pack(spec: str, num_scenes: int, out: Path) -> float:
         return 0.0
     t0 = time.perf_counter()
     src = resolve_scenes(spec, n=num_scenes)
-    write_store((src.get(i) for i in range(min(num_scenes, len(src)))), out, overwrite=True)
+    n = min(num_scenes, len(src))
+    # generated sources make many scenes in worker processes at once (get_many); others read one by one
+    scenes = src.get_many(range(n)) if hasattr(src, "get_many") else (src.get(i) for i in range(n))
+    write_store(scenes, out, overwrite=True)
     return time.perf_counter() - t0
 
 
@@ -63,6 +68,7 @@ def build_once(spec: str, num_scenes: int, worlds: int, cfg: EngineConfig, devic
            "load_s": load_s, **{f"{k}_s": v for k, v in m.build_seconds.items()}, "build_s": build_s}
     if sim.is_cuda:
         row["gpu_mem_mb"] = wp.get_mempool_used_mem_current(sim.device) / 2**20
+    row["engine_mb_per_world"] = sum(sim.memory_bytes().values()) / worlds / 2**20
     return row
 
 

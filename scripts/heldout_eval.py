@@ -82,7 +82,7 @@ def main(argv=None) -> int:
             if args.out:
                 with open(args.out, "a") as f:
                     f.write(json.dumps(row) + "\n")
-    print(f"\n| run | mode | agent-episodes | goal | collision | off-road |\n|---|---|---:|---:|---:|---:|")
+    print("\n| run | mode | agent-episodes | goal | collision | off-road |\n|---|---|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {Path(r['run']).name} | {r['mode']} | {r['episodes']} | {r['goal_rate']:.3f} | "
               f"{r['collision_rate']:.3f} | {r['offroad_rate']:.3f} |")

@@ -21,7 +21,7 @@ from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig, from_dict
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
 from tg_gpudrive.engine.model import State, StepState, view_shape
-from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.engine.simulator import LOG_FIELDS, Simulator
 from tg_gpudrive.types import AgentType, CollisionMode, GoalBehaviour, RoadType
 
 T = 40
@@ -46,7 +46,7 @@ def test_expert_tracks_real_womd_logs(womd_scenes, device):
         sim = Simulator([sc], EngineConfig(max_agents=128, action_space="continuous"), device)
         idx = sim.model.slot_agent[0]
         n = int((idx >= 0).sum())
-        track = sim.expert_track[0, :n].cpu().numpy()
+        track = sim.slot_log("expert_track")[0, :n].cpu().numpy()
         ctrl = np.nonzero(sim.policy_agents[0, :n].cpu().numpy())[0]
         assert len(ctrl) > 0
         for a in ctrl:
@@ -322,19 +322,25 @@ def test_simulator_views_are_the_state_fields_declared_once():
 
 
 def test_worlds_sharing_a_scene_match_worlds_with_their_own_copy(womd_scenes, device):
-    """The builder does a scene's work once and lets its worlds share road segments, grids and logs;
-    that must be invisible: the same batch built from distinct copies of each scene gives the same
-    per-world arrays, expert actions and steps."""
+    """The builder does a scene's work once and lets its worlds share road segments, grids, logs and
+    expert actions; that must be invisible: the same batch built from distinct copies of each scene
+    gives the same per-world arrays, expert actions and steps (log replay, the expert and the policy)."""
     a, b = womd_scenes
-    cfg = EngineConfig(max_agents=64, control="all_agents")
+    cfg = EngineConfig(max_agents=64)  # vehicles controlled, the other agents replay their logs
     shared = Simulator([a, b, a, a], cfg, device)
     copies = Simulator([copy.deepcopy(s) for s in (a, b, a, a)], cfg, device)
     assert shared.model.seg_a.shape[0] * 2 < copies.model.seg_a.shape[0]  # segments stored once per scene
+    assert (shared.model.num_plans, copies.model.num_plans) == (2, 4)
+    assert shared.model.log_pos.shape[0] * 2 == copies.model.log_pos.shape[0]  # logs stored once per plan
     for name, arr in copies.model.host.items():
         np.testing.assert_array_equal(shared.model.host[name], arr, err_msg=name)
-    for name in ("expert_action", "expert_index", "log_pos"):
-        np.testing.assert_array_equal(getattr(shared.model, name).numpy(), getattr(copies.model, name).numpy(),
-                                      err_msg=name)
+    steps = torch.tensor([[10, 11, 40], [0, 90, 5], [33, 33, 1], [12, 70, 2]], device=shared.obs.device)
+    for name in LOG_FIELDS:
+        full = shared.slot_log(name)
+        np.testing.assert_array_equal(full.cpu().numpy(), copies.slot_log(name).cpu().numpy(), err_msg=name)
+        got = shared.log_at(name, steps, 5)  # (W, 5, 3, ...)
+        want = torch.stack([full[w, :5, steps[w]] for w in range(4)])
+        np.testing.assert_array_equal(got.cpu().numpy(), want.cpu().numpy(), err_msg=name)
     g = torch.Generator().manual_seed(3)
     acts = [torch.randint(0, shared.num_actions, shared.actions_index.shape, generator=g, dtype=torch.int32)
             for _ in range(12)]
@@ -342,6 +348,11 @@ def test_worlds_sharing_a_scene_match_worlds_with_their_own_copy(womd_scenes, de
         sim.reset()
         for x in acts:
             sim.step(x.to(sim.actions_index.device))
+        for _ in range(3):
+            sim.use_expert_actions()
+            sim.step()
     for name in ("obs", "reward", "cost", "collided", "offroad", "pos"):
         np.testing.assert_allclose(getattr(shared, name).cpu().numpy(), getattr(copies, name).cpu().numpy(),
                                    rtol=0, atol=1e-6, err_msg=name)
+    for x, y in zip(shared.corrective_expert(), copies.corrective_expert()):
+        np.testing.assert_allclose(x.cpu().numpy(), y.cpu().numpy(), rtol=0, atol=1e-6)

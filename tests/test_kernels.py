@@ -125,12 +125,12 @@ def test_inverse_matches_numpy_and_recovers_forward_trajectories(device, rng):
     log to float32 round-off (< 5 mm over 8 s): nothing was clipped, so nothing may drift."""
     scene = forward_generated_scene(rng, 12)
     sim = Simulator([scene], EngineConfig(max_agents=16, action_space="continuous"), device)
-    exp = sim.expert_action[0, :12].cpu().numpy()
+    exp = sim.slot_log("expert_action")[0, :12].cpu().numpy()
     a, k = ref.bicycle_inverse(scene.log_yaw[:, :-1], scene.log_vel[:, :-1], scene.log_yaw[:, 1:],
                                scene.log_vel[:, 1:], 0.1)
     np.testing.assert_allclose(exp[:, :-1, 0], a, atol=2e-3)
     np.testing.assert_allclose(exp[:, :-1, 1], k, atol=2e-4)
-    track = sim.expert_track[0, :12].cpu().numpy()
+    track = sim.slot_log("expert_track")[0, :12].cpu().numpy()
     err = np.linalg.norm(track - scene.log_pos, axis=-1)
     assert err.max() < 5e-3, err.max()
     # and driving the engine with them lands on the logged positions

@@ -82,7 +82,7 @@ def test_expert_prior_peaks_on_the_expert_action(closed_loop):
     C = sim.max_controlled
     logits = prior.distribution(prior.context(sim, C))
     t = int(sim.world_step[0])
-    want = sim.expert_index[0, :C, t]
+    want = sim.slot_log("expert_index")[0, :C, t]
     # at reset every agent sits on its log: the closed-loop teacher agrees with the logged one
     assert (logits[0].argmax(-1) == want).all()
     # the magnet is a real distribution: KL of the expert-greedy policy to it is small, of uniform large.

@@ -506,7 +506,6 @@ def test_corrective_target_steers_back_to_the_log():
 def test_corrective_target_recovers_a_displaced_vehicle(heldout, wm_cfg):
     """In the engine: on the log the labels are the inverse of the logged motion itself, and a
     vehicle pushed 1.5 m sideways is steered back by them."""
-    import warp as wp
 
     from tg_gpudrive.engine.simulator import Simulator
     from tg_gpudrive.worldmodel.data import full_horizon_env
@@ -514,10 +513,8 @@ def test_corrective_target_recovers_a_displaced_vehicle(heldout, wm_cfg):
     cfg = _cont_cfg(wm_cfg)
     sim = Simulator(heldout[:1], full_horizon_env(cfg.env), "cpu")
     sim.reset()
-    W, A, T = 1, sim.max_agents, sim.model.num_steps
-    log_pos = wp.to_torch(sim.model.log_pos).view(W, A, T, 2)
-    log_yaw = wp.to_torch(sim.model.log_yaw).view(W, A, T)
-    log_speed = wp.to_torch(sim.model.log_vel).view(W, A, T, 2).norm(dim=-1)
+    log_pos, log_yaw = sim.slot_log("log_pos"), sim.slot_log("log_yaw")
+    log_speed = sim.slot_log("log_vel").norm(dim=-1)
     t = int(sim.world_step[0])
     tgt = corrective_target(sim)
     v = tgt.valid & (sim.integrated != 0) & (sim.speed > 1.0)

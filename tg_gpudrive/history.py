@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 
 import torch
-import warp as wp
 
 HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
 HIST_DIM = len(HIST_FEATURES)
@@ -51,13 +50,9 @@ class HistoryBuffer:
 
     def _bind(self, sim) -> None:
         m = sim.model
-        W, A, T = m.num_worlds, m.max_agents, m.num_steps
+        W, A = m.num_worlds, m.max_agents
         self._model = m
         self.raw = torch.zeros((W, A, self.H, _RAW_DIM), device=sim.pos.device)
-        self._log_pos = wp.to_torch(m.log_pos).view(W, A, T, 2)
-        self._log_yaw = wp.to_torch(m.log_yaw).view(W, A, T)
-        self._log_vel = wp.to_torch(m.log_vel).view(W, A, T, 2)
-        self._log_valid = wp.to_torch(m.log_valid).view(W, A, T)
         self._last = torch.full((W,), -10, dtype=torch.int64, device=sim.pos.device)
 
     def _fill_from_log(self, sim, worlds: torch.Tensor) -> None:
@@ -67,14 +62,11 @@ class HistoryBuffer:
         steps = sim.world_step.long()[:, None] + torch.arange(-self.H + 1, 1, device=worlds.device)  # (W, H)
         ok = steps >= 0
         s = steps.clamp(0, T - 1)
-        W, A = sim.pos.shape[:2]
-        si = s[:, None, :].expand(W, A, self.H)
-        pos = torch.gather(self._log_pos, 2, si[..., None].expand(W, A, self.H, 2))
-        yaw = torch.gather(self._log_yaw, 2, si)
-        speed = torch.gather(self._log_vel, 2, si[..., None].expand(W, A, self.H, 2)).norm(dim=-1)
-        valid = torch.gather(self._log_valid, 2, si).float() * ok[:, None, :].float()
-        prev = (s - 1).clamp(min=0)[:, None, :].expand(W, A, self.H)
-        act = torch.gather(sim.expert_action, 2, prev[..., None].expand(W, A, self.H, 3))[..., :2]
+        pos = sim.log_at("log_pos", s)  # (W, A, H, 2)
+        yaw = sim.log_at("log_yaw", s)
+        speed = sim.log_at("log_vel", s).norm(dim=-1)
+        valid = sim.log_at("log_valid", s).float() * ok[:, None, :].float()
+        act = sim.log_at("expert_action", (s - 1).clamp(min=0))[..., :2]
         act = act * (s > 0)[:, None, :, None].float()
         new = torch.cat([pos, yaw[..., None], speed[..., None], act, valid[..., None]], dim=-1)
         self.raw[worlds] = new[worlds]

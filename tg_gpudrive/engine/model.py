@@ -16,13 +16,16 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     agent_type          (W*A,)          int32   AgentType
     length, width       (W*A,)          f32     m
     goal                (W*A,)          vec2    m
-    log_pos             (W*A, T)        vec2    m
-    log_yaw             (W*A, T)        f32     rad
-    log_vel             (W*A, T)        vec2    m/s
-    log_valid           (W*A, T)        int32
-    expert_action       (W*A, T)        vec3    action taking step t to t+1 (a, kappa, 0) or (dx, dy, dyaw)
-    expert_index        (W*A, T)        int32   nearest grid index of it, -1 when there is no expert action
-    expert_track        (W*A, T)        vec2    m, positions the expert actions produce from init_step
+    log_row             (W*A,)          int32   row of the slot in the log and expert arrays below, which hold
+                                                one row per agent slot of a distinct slot plan (P plans: worlds
+                                                that share a scene and masks share rows; P = W when all differ)
+    log_pos             (P*A, T)        vec2    m
+    log_yaw             (P*A, T)        f32     rad
+    log_vel             (P*A, T)        vec2    m/s
+    log_valid           (P*A, T)        int32
+    expert_action       (P*A, T)        vec3    action taking step t to t+1 (a, kappa, 0) or (dx, dy, dyaw)
+    expert_index        (P*A, T)        int32   nearest grid index of it, -1 when there is no expert action
+    expert_track        (P*A, T)        vec2    m, positions the expert actions produce from init_step
     last_step           (W,)            int32   last logged step of the world's scene
     collision_cell_size (W,)            f32     m, agent broad-phase cell, >= the largest box diagonal and >= beta
     nearest_cap         (W,)            f32     m, cap of State.nearest (and so of ep_min_dist, mean_min_distance):
@@ -204,23 +207,16 @@ class SlotPlan:
         return cls(scene, idx, policy, bg, skipped, dropped, cell)
 
 
-def gather_rows(src: wp.array, rows: wp.array) -> wp.array:
-    """A new array on `src`'s device holding the rows `rows` of the 2-d array `src`."""
-    out = wp.empty((rows.shape[0], src.shape[1]), dtype=src.dtype, device=src.device)
-    wp.copy(out, wp.indexedarray(src, [rows, None]))
-    return out
-
-
 # --------------------------------------------------------------------- model
 class Model:
     """Fixed arrays and scalars of a batch of scenes (see the module docstring for fields).
 
     Work that depends only on a scene is done once per distinct scene of the batch (the same
     Scene object in many worlds, as when a few scenes are cycled over thousands of worlds): slot
-    selection and logs once per distinct (scene, masks) pair, road grids once per scene, which
-    the worlds then share. `build_seconds` holds the build's phases: host (slot plans, road
-    grids, tables), upload, expert (expert actions of the distinct plans), gather (their logs
-    and expert actions copied into every world's slots, on the device)."""
+    selection, logs and expert actions once per distinct (scene, masks) pair, road grids once per
+    scene, which the worlds then share (their slots reach the logs through `log_row`).
+    `build_seconds` holds the build's phases: host (slot plans, road grids, tables), upload,
+    expert (expert actions of the distinct plans)."""
 
     def __init__(self, scenes: list[Scene], cfg: EngineConfig, device: str,
                  controlled: list[np.ndarray] | None = None, background: list[np.ndarray] | None = None):
@@ -332,6 +328,9 @@ class Model:
         self.length = flat("length", float)
         self.width = flat("width", float)
         self.goal = flat("goal", wp.vec2)
+        self.num_plans = G
+        log_row = self.world_plan[:, None] * A + np.arange(A)
+        self.log_row = wp.array(log_row.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
         logs = (wp.array(g["log_pos"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
                 wp.array(g["log_yaw"].reshape(G * A, T), dtype=float, device=dev),
                 wp.array(g["log_vel"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
@@ -361,15 +360,8 @@ class Model:
         wp.synchronize_device(dev)
         seconds["expert"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        if G < W:  # else every world has its own plan, in world order: the plans' arrays are the worlds'
-            rows = (self.world_plan[:, None] * A + np.arange(A)).reshape(-1).astype(np.int32)
-            rows = wp.array(rows, dtype=wp.int32, device=dev)
-            logs, expert = (tuple(gather_rows(x, rows) for x in xs) for xs in (logs, expert))
         self.log_pos, self.log_yaw, self.log_vel, self.log_valid = logs
         self.expert_action, self.expert_index, self.expert_track = expert
-        wp.synchronize_device(dev)
-        seconds["gather"] = time.perf_counter() - t0
         self.build_seconds = seconds
 
     @functools.cached_property

@@ -94,6 +94,15 @@ def resolve_device(device: str | torch.device | None = "auto", flag: str | None 
 DEBUG = os.environ.get("TG_GPUDRIVE_DEBUG", "") == "1"  # raise at the first unusable action (syncs each step)
 
 
+LOG_FIELDS = {  # Model fields read through Simulator.log_at / slot_log, with their trailing shape
+    "log_pos": (2,), "log_yaw": (), "log_vel": (2,), "log_valid": (),
+    "expert_action": (3,), "expert_index": (), "expert_track": (2,),
+}
+
+
+SCRATCH_DIMS = ("CELLS", "PARTNERS", "ROADS")  # State shape kinds that are work arrays, not state
+
+
 class Simulator(StepState[torch.Tensor]):
     """The engine behind a torch API: a Model, its State and Control, and torch views of them."""
 
@@ -149,9 +158,11 @@ class Simulator(StepState[torch.Tensor]):
         self.length = t(m.length).view(W, A)
         self.width = t(m.width).view(W, A)
         self.agent_type = t(m.agent_type).view(W, A)
-        self.expert_action = t(m.expert_action).view(W, A, T, 3)
-        self.expert_index = t(m.expert_index).view(W, A, T)
-        self.expert_track = t(m.expert_track).view(W, A, T, 2)
+        # the logs and expert actions, one row per slot of a distinct slot plan: read through log_at / slot_log
+        P = m.num_plans
+        self._logs = {name: t(getattr(m, name)).view(P, A, T, *shape) for name, shape in LOG_FIELDS.items()}
+        self._world_plan = torch.as_tensor(m.world_plan, device=self.obs.device)
+        self._slots = torch.arange(A, device=self.obs.device)
         self.actions = t(c.action).view(W, A, 3)
         self.actions_index = t(c.action_index).view(W, A)
         # named slices of the observation row (views too)
@@ -318,6 +329,25 @@ class Simulator(StepState[torch.Tensor]):
             self._torch_stream.wait_stream(self._warp_stream, event=self._ev_out)
 
     # --------------------------------------------------------------- read-outs
+    def log_at(self, name: str, steps: torch.Tensor, agents: int | None = None) -> torch.Tensor:
+        """Log or expert field `name` (LOG_FIELDS) of every world's first `agents` slots (all by
+        default) at log steps `steps`: (W,) gives (W, agents, ...), (W, k) gives (W, agents, k, ...).
+        Worlds sharing a scene share these rows in the Model; this reads them without a per-world copy."""
+        x = self._logs[name]
+        a = self._slots[:agents]
+        st = steps.long()
+        if st.dim() == 1:
+            return x[self._world_plan[:, None], a[None, :], st[:, None]]
+        return x[self._world_plan[:, None, None], a[None, :, None], st[:, None, :]]
+
+    def slot_log(self, name: str) -> torch.Tensor:
+        """The whole field `name` (LOG_FIELDS) per slot, (W, A, T, ...): a view when every world has
+        its own slot plan, else a copy gathered from the shared rows (prefer `log_at` in loops)."""
+        x = self._logs[name]
+        if self.model.num_plans == self.num_worlds:
+            return x  # the plans are the worlds, in world order
+        return x[self._world_plan]
+
     def finished_episodes(self) -> dict[str, torch.Tensor]:
         """Outcomes of the controlled agents whose episode ended at the last step (1-D tensors)."""
         rows = (self.world_ended[:, None] != 0) & self.policy_agents
@@ -327,6 +357,26 @@ class Simulator(StepState[torch.Tensor]):
             "cost": self.final_cost[rows], "min_dist": self.final_min_dist[rows],
             "steps": self.final_steps[rows],
         }
+
+    def memory_bytes(self) -> dict[str, int]:
+        """Bytes of the engine's arrays (Model, State, Control) by group: obs, logs (log_*), expert
+        (expert_*), roads (segments and grid tables, once per distinct scene), scratch (the broad-phase
+        and observation work arrays), other (per-slot and per-world arrays). Arrays shared by
+        several fields count once; torch and allocator overhead are not included."""
+        groups = {"obs": 0, "logs": 0, "expert": 0, "roads": 0, "scratch": 0, "other": 0}
+        seen: set[int] = set()
+        scratch = {f.name for f in dataclasses.fields(self.state) if f.metadata["dims"].name in SCRATCH_DIMS}
+        for obj in (self.model, self.state, self.control):
+            for name, arr in vars(obj).items():
+                if not isinstance(arr, wp.array) or arr.ptr in seen or arr.ptr is None:
+                    continue
+                seen.add(arr.ptr)
+                group = ("obs" if name == "obs" else "logs" if name.startswith("log_") and name != "log_row"
+                         else "expert" if name.startswith("expert_")
+                         else "roads" if name.startswith(("seg_", "grid_", "cell_")) else
+                         "scratch" if name in scratch else "other")
+                groups[group] += arr.capacity
+        return groups
 
     def snapshot(self) -> dict[str, np.ndarray]:
         """A host copy of the whole State, keyed by field name (tests, debugging, determinism checks)."""

@@ -57,14 +57,12 @@ class ExpertPrior(BehaviourPrior):
 
     def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
         """(W, C, 4): expert action (3 values) and a validity flag, at each world's current step."""
-        W, C = sim.num_worlds, num_controlled
+        C = num_controlled
         if self.closed_loop:
             act, idx = sim.corrective_expert()
             return torch.cat([act[:, :C], (idx[:, :C] >= 0).float()[..., None]], dim=-1)
-        t = sim.world_step.long().view(W, 1, 1, 1).expand(W, C, 1, 3)
-        act = torch.gather(sim.expert_action[:, :C], 2, t)[:, :, 0]
-        ti = sim.world_step.long().view(W, 1, 1).expand(W, C, 1)
-        valid = (torch.gather(sim.expert_index[:, :C], 2, ti)[:, :, 0] >= 0).float()
+        act = sim.log_at("expert_action", sim.world_step, C)
+        valid = (sim.log_at("expert_index", sim.world_step, C) >= 0).float()
         return torch.cat([act, valid[..., None]], dim=-1)
 
     def distribution(self, context: torch.Tensor, obs: torch.Tensor | None = None):

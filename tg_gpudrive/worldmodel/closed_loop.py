@@ -40,7 +40,6 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-import warp as wp
 
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import wrap_angle
@@ -137,11 +136,9 @@ def corrective_from_log(pos, yaw, vel, step, log_pos, log_yaw, log_vel, log_vali
 
 def corrective_target(sim) -> CorrectiveTarget:
     """Corrective labels from `sim`'s current state (sim.pos / yaw / vel) and its Model's log."""
-    m = sim.model
-    W, A, T = m.num_worlds, m.max_agents, m.num_steps
-    tgt = corrective_from_log(sim.pos, sim.yaw, sim.vel, sim.world_step, wp.to_torch(m.log_pos).view(W, A, T, 2),
-                              wp.to_torch(m.log_yaw).view(W, A, T), wp.to_torch(m.log_vel).view(W, A, T, 2),
-                              wp.to_torch(m.log_valid).view(W, A, T) != 0, dt=m.dt, cfg=sim.cfg)
+    tgt = corrective_from_log(sim.pos, sim.yaw, sim.vel, sim.world_step, sim.slot_log("log_pos"),
+                              sim.slot_log("log_yaw"), sim.slot_log("log_vel"), sim.slot_log("log_valid") != 0,
+                              dt=sim.model.dt, cfg=sim.cfg)
     tgt.valid &= sim.present != 0
     return tgt
 
@@ -169,9 +166,6 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
         sim = Simulator(scenes[b:b + num_worlds], env, device)
         sim.reset()
         driver = WorldModelDriver(model, rows="controlled", temperature=temperature, seed=seed + b)
-        W, A, T = sim.num_worlds, sim.max_agents, sim.model.num_steps
-        log_pos = wp.to_torch(sim.model.log_pos).view(W, A, T, 2)
-        log_valid = wp.to_torch(sim.model.log_valid).view(W, A, T) != 0
         rows_all = sim.integrated != 0
         coll = torch.zeros_like(rows_all)
         off = torch.zeros_like(rows_all)
@@ -183,9 +177,8 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
             out["obs"].append(truncate_obs(sim.obs[w, a], env.partner_k, env.road_k, kp, krr).cpu())
             out["hist"].append(driver.history.features(sim)[w, a].cpu())
             out["target"].append((tgt.action[w, a] if continuous else tgt.index[w, a]).cpu())
-            s = sim.world_step.long().view(W, 1, 1).expand(W, A, 1)
-            lp = torch.gather(log_pos, 2, s[..., None].expand(W, A, 1, 2))[:, :, 0]
-            on_log = rows & torch.gather(log_valid, 2, s)[..., 0]
+            lp = sim.log_at("log_pos", sim.world_step)
+            on_log = rows & (sim.log_at("log_valid", sim.world_step) != 0)
             dev_sum += float(((sim.pos - lp).norm(dim=-1) * on_log).sum())
             dev_n += float(on_log.sum())
             driver(sim)

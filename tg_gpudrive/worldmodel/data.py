@@ -2,7 +2,7 @@
 
 Every scene is driven by its closed-loop inverse-dynamics expert
 (`sim.use_expert_actions`) and, at each step, every active controlled vehicle
-with an expert action (`sim.expert_index >= 0`) gives one sample: its
+with an expert action (`sim.log_at("expert_index", step) >= 0`) gives one sample: its
 observation row (cut to the model's nearest `max_partners` / `max_roads` rows),
 its history window and the expert's grid index, or for
 `env.action_space: continuous` the expert's (accel, curvature). The engine is
@@ -53,16 +53,14 @@ def collect(scenes, env: EngineConfig, *, history: int, max_partners: int, max_r
         sim = Simulator(scenes[b:b + num_worlds], env, device)
         sim.reset()
         hb = HistoryBuffer(history)
-        A = sim.max_agents
         for _ in range(sim.episode_length):
             hb.sync(sim)
-            t = sim.world_step.long().view(-1, 1, 1).expand(-1, A, 1)
-            target = torch.gather(sim.expert_index, 2, t)[..., 0]
+            target = sim.log_at("expert_index", sim.world_step)
             rows = (sim.active != 0) & (sim.background == 0) & (target >= 0)
             w, a = rows.nonzero(as_tuple=True)
             out["obs"].append(truncate_obs(sim.obs[w, a], env.partner_k, env.road_k, kp, krr).cpu())
             out["hist"].append(hb.features(sim)[w, a].cpu())
-            act = torch.gather(sim.expert_action, 2, t[..., None].expand(-1, A, 1, 3))[:, :, 0]  # (W, A, 3)
+            act = sim.log_at("expert_action", sim.world_step)  # (W, A, 3)
             out["target"].append(act[w, a, :2].cpu() if continuous else target[w, a].long().cpu())
             out["expert"].append(torch.cat([act, (target >= 0).float()[..., None]], -1)[w, a].cpu())
             sim.use_expert_actions()

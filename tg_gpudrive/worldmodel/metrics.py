@@ -17,7 +17,6 @@ import math
 
 import numpy as np
 import torch
-import warp as wp
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import control_masks
@@ -118,8 +117,6 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
     sim = Simulator([sc for sc in scenes for _ in range(S)], env, device)  # world = scene * S + sample
     sim.reset()
     W, A, T = sim.num_worlds, sim.max_agents, sim.model.num_steps
-    log_pos = wp.to_torch(sim.model.log_pos).view(W, A, T, 2)
-    log_valid = wp.to_torch(sim.model.log_valid).view(W, A, T) != 0
     ctrl = sim.policy_agents.clone()
     err_sum = torch.zeros(W, A, device=sim.pos.device)
     err_n = torch.zeros(W, A, device=sim.pos.device)
@@ -129,9 +126,8 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
     for _ in range(horizon):
         policy(sim)
         sim.step()
-        t = sim.world_step.long().view(W, 1, 1).expand(W, A, 1)
-        lp = torch.gather(log_pos, 2, t[..., None].expand(W, A, 1, 2))[:, :, 0]
-        v = torch.gather(log_valid, 2, t)[..., 0] & ctrl
+        lp = sim.log_at("log_pos", sim.world_step)
+        v = (sim.log_at("log_valid", sim.world_step) != 0) & ctrl
         e = (sim.pos - lp).norm(dim=-1)
         err_sum += e * v
         err_n += v
