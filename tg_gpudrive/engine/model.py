@@ -66,7 +66,9 @@ import dataclasses
 import enum
 import functools
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from typing import Generic, TypeVar
 
 import numpy as np
@@ -81,6 +83,7 @@ from tg_gpudrive.scene import Scene, SceneError
 from tg_gpudrive.types import ActionSpace
 
 log = logging.getLogger("tg_gpudrive")
+BUILD_THREADS = min(16, os.cpu_count() or 1)  # threads for the builder's per-scene road work
 
 
 def obs_dim(cfg: EngineConfig) -> int:
@@ -161,17 +164,53 @@ class RoadGrid:
 
     seg_a: np.ndarray  # (S, 2) f32
     seg_b: np.ndarray  # (S, 2) f32
+    seg_mid: np.ndarray  # (S, 2) f32
     seg_type: np.ndarray  # (S,) int32
     origin: np.ndarray  # (2,) f32
     nx: int
     ny: int
     cell_start: np.ndarray  # (nx*ny + 1,) int32, segments of cell c: [cell_start[c], cell_start[c + 1])
+    max_seg_len: float  # m, the longest segment
 
     @classmethod
     def build(cls, scene: Scene, cfg: EngineConfig) -> RoadGrid:
         a, b, ty = scene_segments(scene, cfg.max_segment_length)
-        origin, nx, ny, start, order = build_road_grid(0.5 * (a + b), float(cfg.road_cell_size))
-        return cls(a[order], b[order], ty[order], origin, nx, ny, start)
+        mid = 0.5 * (a + b)
+        origin, nx, ny, start, order = build_road_grid(mid, float(cfg.road_cell_size))
+        d = b - a
+        longest = float(np.sqrt((d * d).sum(1).max())) if len(a) else 0.0
+        return cls(np.take(a, order, axis=0), np.take(b, order, axis=0), np.take(mid, order, axis=0), ty[order],
+                   origin, nx, ny, start, longest)
+
+    @staticmethod
+    def build_many(scenes: list[Scene], cfg: EngineConfig) -> list[RoadGrid]:
+        """`build` for each scene; many in threads (numpy releases the GIL in the array work)."""
+        if len(scenes) < 16:
+            return [RoadGrid.build(sc, cfg) for sc in scenes]
+        with ThreadPoolExecutor(BUILD_THREADS) as pool:
+            return list(pool.map(lambda sc: RoadGrid.build(sc, cfg), scenes))
+
+
+def concat_parallel(parts: list[np.ndarray], offsets: list[int] | None = None) -> np.ndarray:
+    """np.concatenate of `parts` (each plus its entry of `offsets`, if given), copied in threads."""
+    n = sum(len(p) for p in parts)
+    out = np.empty((n, *parts[0].shape[1:]), parts[0].dtype)
+    starts = np.cumsum([0] + [len(p) for p in parts[:-1]]).tolist()
+
+    def copy(k: int) -> None:
+        dst = out[starts[k]:starts[k] + len(parts[k])]
+        if offsets is None:
+            dst[...] = parts[k]
+        else:
+            np.add(parts[k], offsets[k], out=dst, casting="unsafe")
+
+    if len(parts) < 16:
+        for k in range(len(parts)):
+            copy(k)
+    else:
+        with ThreadPoolExecutor(BUILD_THREADS) as pool:
+            list(pool.map(copy, range(len(parts))))
+    return out
 
 
 # --------------------------------------------------------------------- slots
@@ -240,7 +279,7 @@ class Model:
         plans: dict[tuple, int] = {}  # (scene id, mask bytes) -> distinct slot plan
         roads: dict[int, int] = {}  # scene id -> distinct road grid (`scenes` keeps every id alive)
         plan_list: list[SlotPlan] = []
-        road_list: list[RoadGrid] = []
+        road_scenes: list[Scene] = []  # the distinct scenes, in order of first use
         self.world_plan = np.zeros(W, np.int64)  # distinct slot plan of each world
         world_road = np.zeros(W, np.int64)
         report = BuildReport([], [], [], [])
@@ -262,10 +301,11 @@ class Model:
             report.controlled.append(int(plan.policy.sum()))
             report.skipped_at_goal.append(plan.skipped_at_goal)
             if id(sc) not in roads:
-                roads[id(sc)] = len(road_list)
-                road_list.append(RoadGrid.build(sc, cfg))
+                roads[id(sc)] = len(road_scenes)
+                road_scenes.append(sc)
             world_road[w] = roads[id(sc)]
-            report.segments.append(len(road_list[world_road[w]].seg_a))
+        road_list = RoadGrid.build_many(road_scenes, cfg)
+        report.segments.extend(len(road_list[r].seg_a) for r in world_road)
         self.report = report
         self.max_controlled = max(report.controlled)
 
@@ -303,12 +343,15 @@ class Model:
         seg_first = np.cumsum(seg_count) - seg_count
         n_seg = int(seg_count.sum())
         cell_count = np.array([r.nx * r.ny for r in road_list], np.int64)
-        all_a = np.concatenate([r.seg_a for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
-        all_b = np.concatenate([r.seg_b for r in road_list]) if n_seg else np.zeros((1, 2), np.float32)
-        all_t = np.concatenate([r.seg_type for r in road_list]) if n_seg else np.zeros(1, np.int32)
-        cell_start = np.concatenate([r.cell_start[:-1] + f for r, f in zip(road_list, seg_first)] + [[n_seg]])
-        seg_len = np.linalg.norm(all_b - all_a, axis=1)
-        self.seg_pad = float(0.5 * seg_len.max()) + 1e-3 if n_seg else 0.0
+        if n_seg:
+            all_a, all_b, all_mid, all_t = (concat_parallel([getattr(r, f) for r in road_list])
+                                            for f in ("seg_a", "seg_b", "seg_mid", "seg_type"))
+        else:
+            all_a = all_b = all_mid = np.zeros((1, 2), np.float32)
+            all_t = np.zeros(1, np.int32)
+        cell_start = concat_parallel([r.cell_start[:-1] for r in road_list] + [np.array([n_seg], np.int32)],
+                                     offsets=seg_first.tolist() + [0])
+        self.seg_pad = float(0.5 * max(r.max_seg_len for r in road_list)) + 1e-3 if n_seg else 0.0
         grid_origin = np.array([r.origin for r in road_list], np.float32)[world_road]
         grid_nx = np.array([r.nx for r in road_list], np.int32)[world_road]
         grid_ny = np.array([r.ny for r in road_list], np.int32)[world_road]
@@ -340,13 +383,13 @@ class Model:
         self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
         self.seg_a = wp.array(all_a, dtype=wp.vec2, device=dev)
         self.seg_b = wp.array(all_b, dtype=wp.vec2, device=dev)
-        self.seg_mid = wp.array(0.5 * (all_a + all_b), dtype=wp.vec2, device=dev)
+        self.seg_mid = wp.array(all_mid, dtype=wp.vec2, device=dev)
         self.seg_type = wp.array(all_t, dtype=wp.int32, device=dev)
         self.grid_origin = wp.array(grid_origin, dtype=wp.vec2, device=dev)
         self.grid_nx = wp.array(grid_nx, dtype=wp.int32, device=dev)
         self.grid_ny = wp.array(grid_ny, dtype=wp.int32, device=dev)
         self.grid_cell_offset = wp.array(grid_off, dtype=wp.int32, device=dev)
-        self.cell_start = wp.array(cell_start.astype(np.int32), dtype=wp.int32, device=dev)
+        self.cell_start = wp.array(cell_start, dtype=wp.int32, device=dev)
         r = cfg.reward
         self.reward_weights = wp.array(np.array([getattr(r, k) for k in REWARD_TERMS], np.float32),
                                        dtype=float, device=dev)
