@@ -4,9 +4,11 @@ Phases (one row per world count):
 
     load_s     resolve the spec and fetch one scene per world, cycling the first --num-scenes
                (what TGVectorEnv's `load_scenes` does); generated scenes are made here
-    host_s     Model, host side: slot selection, masks, road segments and grids (once per distinct
-               scene of the batch) and the per-world tables
-    upload_s   Model: the distinct scenes' arrays copied to the device
+    host_s     Model, host side: slot selection and masks (once per distinct scene and masks) and
+               the per-world tables
+    roads_s    Model: road segments and grids of the distinct scenes, one batched pass on the
+               device (tg_gpudrive/engine/roads.py), their road points copied there included
+    upload_s   Model: the distinct plans' logs and the per-world tables copied to the device
     expert_s   Model: expert actions of the distinct scenes (launch_expert_actions); worlds reach
                their scene's logs and expert actions through Model.log_row, nothing is copied per world
     build_s    the whole Simulator construction (Model, State, Control, torch views): what
@@ -29,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+import torch
 import warp as wp
 
 from tg_gpudrive.benchmark import print_row
@@ -67,7 +70,8 @@ def build_once(spec: str, num_scenes: int, worlds: int, cfg: EngineConfig, devic
            "max_agents": m.max_agents, "steps": m.num_steps, "segments": sum(m.report.segments), "segments_stored": m.seg_a.shape[0],
            "load_s": load_s, **{f"{k}_s": v for k, v in m.build_seconds.items()}, "build_s": build_s}
     if sim.is_cuda:
-        row["gpu_mem_mb"] = wp.get_mempool_used_mem_current(sim.device) / 2**20
+        row["gpu_mem_mb"] = (wp.get_mempool_used_mem_current(sim.device)
+                             + torch.cuda.memory_allocated(sim.device)) / 2**20  # Warp's pool + torch's (roads)
     row["engine_mb_per_world"] = sum(sim.memory_bytes().values()) / worlds / 2**20
     return row
 

@@ -150,3 +150,30 @@ def expert_track(pos, yaw, vel, valid, init, dt=0.1, gain_long=0.3, gain_lat=1.0
             p, y, v = bicycle_forward(p, np.array(y), v, a, k, dt)
             y = float(y)
     return out
+
+
+def scene_segments(scene, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Road polylines as segments of at most `max_len` metres: (a (S,2), b (S,2), type (S,))."""
+    pts, off = scene.road_points, scene.road_offsets
+    if scene.num_polylines == 0:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)
+    counts = np.diff(off)
+    # a segment between consecutive points of the same polyline; single points become degenerate segments
+    same = np.ones(len(pts) - 1, bool)
+    same[off[1:-1] - 1] = False  # a polyline's last point and the next polyline's first
+    starts = np.nonzero(same)[0]
+    types = np.repeat(scene.road_type, counts - 1)
+    single = np.nonzero(counts == 1)[0]
+    # np.take: row gathers of (S, 2) arrays, an order of magnitude faster than fancy indexing
+    a = np.concatenate([np.take(pts, starts, axis=0), pts[off[single]]])
+    b = np.concatenate([np.take(pts, starts + 1, axis=0), pts[off[single]]])
+    types = np.concatenate([types, scene.road_type[single]]).astype(np.int32)
+    d = b - a
+    seg_len = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+    pieces = np.maximum(1, np.ceil(seg_len / max_len).astype(np.int64))
+    rep = np.repeat(np.arange(len(a)), pieces)
+    k = np.arange(len(rep)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    f0 = (k / pieces[rep])[:, None].astype(np.float32)
+    f1 = ((k + 1) / pieces[rep])[:, None].astype(np.float32)
+    a, d = np.take(a, rep, axis=0), np.take(d, rep, axis=0)
+    return (a + f0 * d).astype(np.float32), (a + f1 * d).astype(np.float32), types[rep]

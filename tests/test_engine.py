@@ -356,3 +356,40 @@ def test_worlds_sharing_a_scene_match_worlds_with_their_own_copy(womd_scenes, de
                                    rtol=0, atol=1e-6, err_msg=name)
     for x, y in zip(shared.corrective_expert(), copies.corrective_expert()):
         np.testing.assert_allclose(x.cpu().numpy(), y.cpu().numpy(), rtol=0, atol=1e-6)
+
+
+def test_batched_road_tables_match_the_per_scene_reference(womd_scenes, device):
+    """engine/roads.py builds every distinct scene's segments and grid in one batched pass; per scene
+    it must hold the reference's segments (tests/reference.py, per scene in NumPy), each in the grid
+    cell its midpoint lies in, in the reference's order within a cell."""
+    from tg_gpudrive.data.procedural.dense import dense_scene
+    from tg_gpudrive.engine.roads import build_road_tables
+
+    scenes = [*womd_scenes, dense_scene(5)]
+    cfg = EngineConfig(max_segment_length=4.0, road_cell_size=7.0)
+    t = build_road_tables(scenes, cfg, device)
+    a, b, ty, start = (x.cpu().numpy() for x in (t.seg_a, t.seg_b, t.seg_type, t.cell_start))
+    first = np.cumsum(t.segments) - t.segments
+    for s, sc in enumerate(scenes):
+        ra, rb, rt = ref.scene_segments(sc, 4.0)
+        assert t.segments[s] == len(ra)
+        mid = 0.5 * (ra + rb)
+        lo = mid.min(0) - 1e-3
+        np.testing.assert_allclose(t.origin[s], lo, atol=1e-4)
+        ix = np.clip(np.floor((mid[:, 0] - lo[0]) / 7.0).astype(int), 0, t.nx[s] - 1)
+        iy = np.clip(np.floor((mid[:, 1] - lo[1]) / 7.0).astype(int), 0, t.ny[s] - 1)
+        order = np.argsort(iy * t.nx[s] + ix, kind="stable")
+        sl = slice(first[s], first[s] + len(ra))
+        np.testing.assert_allclose(a[sl], ra[order], atol=1e-5, err_msg=sc.scene_id)
+        np.testing.assert_allclose(b[sl], rb[order], atol=1e-5, err_msg=sc.scene_id)
+        np.testing.assert_array_equal(ty[sl], rt[order])
+        cells = start[t.cell_offset[s]:t.cell_offset[s] + t.nx[s] * t.ny[s] + 1]
+        assert cells[0] == first[s] and cells[-1] == first[s] + len(ra)
+        want = np.bincount(iy * t.nx[s] + ix, minlength=t.nx[s] * t.ny[s])
+        np.testing.assert_array_equal(np.diff(cells), want)
+    # built one scene at a time (a chunk each), the tables are the same
+    c = build_road_tables(scenes, cfg, device, chunk_points=1)
+    for f in ("seg_a", "seg_b", "seg_type", "cell_start"):
+        np.testing.assert_array_equal(getattr(c, f).cpu().numpy(), getattr(t, f).cpu().numpy(), err_msg=f)
+    for f in ("origin", "nx", "ny", "cell_offset", "segments"):
+        np.testing.assert_array_equal(getattr(c, f), getattr(t, f), err_msg=f)

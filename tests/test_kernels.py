@@ -16,7 +16,6 @@ import torch
 from tg_gpudrive.config import EngineConfig, RewardConfig
 from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.engine.model import scene_segments
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.types import AgentType, RoadType
@@ -328,7 +327,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
     obs_r = sim.obs_road[0].cpu().numpy()
     ego = sim.obs_ego[0].cpu().numpy()
     p, y = scene.log_pos[:, INIT], scene.log_yaw[:, INIT]
-    a_seg, b_seg, t_seg = (x.copy() for x in scene_segments(scene, 3.0))
+    a_seg, b_seg, t_seg = (x.copy() for x in ref.scene_segments(scene, 3.0))
     mid = 0.5 * (a_seg + b_seg)
     for i in range(25):
         g = ref.to_local(scene.goal[i] - p[i], y[i])
@@ -371,7 +370,7 @@ def _brute_force_road_rows(sim, scene_list, road_k, radius, max_segment_length):
     integ = sim.integrated.cpu().numpy()
     out = {}
     for w, sc in enumerate(scene_list):
-        a, b, t = scene_segments(sc, max_segment_length)
+        a, b, t = ref.scene_segments(sc, max_segment_length)
         mid = 0.5 * (a + b)
         d = b - a
         ln = np.linalg.norm(d, axis=1)

@@ -6,8 +6,8 @@ observations, as the engine issue defines it; `valid_agent_steps_per_s`
 counts only slots that hold an agent, `controlled_agent_steps_per_s` the
 policy-driven ones, so numbers can be compared with GPUDrive's honestly.
 Scenes are a pool of distinct scenes cycled over the worlds (the engine's cost
-does not depend on which copy a world holds). Memory: `gpu_mem_mb` is Warp's
-memory pool in use (CUDA), `engine_mb_per_world` the engine's own arrays
+does not depend on which copy a world holds). Memory: `gpu_mem_mb` is the memory
+in use by Warp's pool and torch's allocator (CUDA; the road tables are torch tensors), `engine_mb_per_world` the engine's own arrays
 (`Simulator.memory_bytes`, by group in `engine_kb_per_world`); worlds that share
 a scene share its roads, logs and expert actions, so per-world memory falls
 as `distinct_scenes` falls below the world count.
@@ -65,7 +65,8 @@ def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: in
     row["engine_mb_per_world"] = sum(mem.values()) / worlds / 2**20
     row["engine_kb_per_world"] = {k: round(v / worlds / 1024, 1) for k, v in mem.items()}
     if sim.is_cuda:
-        row["gpu_mem_mb"] = wp.get_mempool_used_mem_current(sim.device) / 2**20
+        row["gpu_mem_mb"] = (wp.get_mempool_used_mem_current(sim.device)
+                             + torch.cuda.memory_allocated(sim.device)) / 2**20  # Warp's pool + torch's (roads)
     return row
 
 

@@ -66,16 +66,16 @@ import dataclasses
 import enum
 import functools
 import logging
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from typing import Generic, TypeVar
 
 import numpy as np
+import torch
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import select_slots, slot_masks
+from tg_gpudrive.engine.roads import build_road_tables
 from tg_gpudrive.kernels.dynamics import launch_expert_actions
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.kernels.reward import NUM_TERMS, REWARD_TERMS
@@ -83,7 +83,6 @@ from tg_gpudrive.scene import Scene, SceneError
 from tg_gpudrive.types import ActionSpace
 
 log = logging.getLogger("tg_gpudrive")
-BUILD_THREADS = min(16, os.cpu_count() or 1)  # threads for the builder's per-scene road work
 
 
 def obs_dim(cfg: EngineConfig) -> int:
@@ -107,110 +106,6 @@ class BuildReport:
 def agents_needed(scene: Scene) -> int:
     """Slots `scene` needs to keep every agent: those valid at some step (the ones `select_slots` keeps)."""
     return int(scene.log_valid.any(axis=1).sum())
-
-
-# --------------------------------------------------------------------- roads
-def scene_segments(scene: Scene, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Road polylines as segments of at most `max_len` metres: (a (S,2), b (S,2), type (S,))."""
-    pts, off = scene.road_points, scene.road_offsets
-    if scene.num_polylines == 0:
-        return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)
-    counts = np.diff(off)
-    # a segment between consecutive points of the same polyline; single points become degenerate segments
-    same = np.ones(len(pts) - 1, bool)
-    same[off[1:-1] - 1] = False  # a polyline's last point and the next polyline's first
-    starts = np.nonzero(same)[0]
-    types = np.repeat(scene.road_type, counts - 1)
-    single = np.nonzero(counts == 1)[0]
-    # np.take: row gathers of (S, 2) arrays, an order of magnitude faster than fancy indexing
-    a = np.concatenate([np.take(pts, starts, axis=0), pts[off[single]]])
-    b = np.concatenate([np.take(pts, starts + 1, axis=0), pts[off[single]]])
-    types = np.concatenate([types, scene.road_type[single]]).astype(np.int32)
-    d = b - a
-    seg_len = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-    pieces = np.maximum(1, np.ceil(seg_len / max_len).astype(np.int64))
-    rep = np.repeat(np.arange(len(a)), pieces)
-    k = np.arange(len(rep)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
-    f0 = (k / pieces[rep])[:, None].astype(np.float32)
-    f1 = ((k + 1) / pieces[rep])[:, None].astype(np.float32)
-    a, d = np.take(a, rep, axis=0), np.take(d, rep, axis=0)
-    return (a + f0 * d).astype(np.float32), (a + f1 * d).astype(np.float32), types[rep]
-
-
-def build_road_grid(mid: np.ndarray, cell: float) -> tuple[np.ndarray, int, int, np.ndarray, np.ndarray]:
-    """Uniform grid over segment midpoints: origin, nx, ny, cell_start (nx*ny+1) and `order` (S), the
-    segments sorted by cell (row-major), which the Model stores them in."""
-    if len(mid) == 0:
-        return np.zeros(2, np.float32), 0, 0, np.zeros(1, np.int32), np.zeros(0, np.int32)
-    lo = mid.min(0) - 1e-3
-    hi = mid.max(0)
-    nx, ny = (np.floor((hi - lo) / cell).astype(np.int64) + 1).tolist()
-    if nx * ny > 4_000_000:
-        raise SceneError("roads", "geometry", f"road extent {hi - lo} m needs {nx * ny} grid cells; "
-                         "raise road_cell_size")
-    ix = np.clip(np.floor((mid[:, 0] - lo[0]) / cell).astype(np.int64), 0, nx - 1)
-    iy = np.clip(np.floor((mid[:, 1] - lo[1]) / cell).astype(np.int64), 0, ny - 1)
-    cid = iy * nx + ix
-    items = np.argsort(cid, kind="stable").astype(np.int32)
-    start = np.zeros(nx * ny + 1, np.int64)
-    start[1:] = np.bincount(cid, minlength=nx * ny)
-    return lo.astype(np.float32), nx, ny, np.cumsum(start).astype(np.int32), items
-
-
-@dataclasses.dataclass
-class RoadGrid:
-    """One scene's road segments in grid-cell order and its grid; the Model builds one per distinct
-    scene of a batch and concatenates them (worlds holding the same scene share theirs)."""
-
-    seg_a: np.ndarray  # (S, 2) f32
-    seg_b: np.ndarray  # (S, 2) f32
-    seg_mid: np.ndarray  # (S, 2) f32
-    seg_type: np.ndarray  # (S,) int32
-    origin: np.ndarray  # (2,) f32
-    nx: int
-    ny: int
-    cell_start: np.ndarray  # (nx*ny + 1,) int32, segments of cell c: [cell_start[c], cell_start[c + 1])
-    max_seg_len: float  # m, the longest segment
-
-    @classmethod
-    def build(cls, scene: Scene, cfg: EngineConfig) -> RoadGrid:
-        a, b, ty = scene_segments(scene, cfg.max_segment_length)
-        mid = 0.5 * (a + b)
-        origin, nx, ny, start, order = build_road_grid(mid, float(cfg.road_cell_size))
-        d = b - a
-        longest = float(np.sqrt((d * d).sum(1).max())) if len(a) else 0.0
-        return cls(np.take(a, order, axis=0), np.take(b, order, axis=0), np.take(mid, order, axis=0), ty[order],
-                   origin, nx, ny, start, longest)
-
-    @staticmethod
-    def build_many(scenes: list[Scene], cfg: EngineConfig) -> list[RoadGrid]:
-        """`build` for each scene; many in threads (numpy releases the GIL in the array work)."""
-        if len(scenes) < 16:
-            return [RoadGrid.build(sc, cfg) for sc in scenes]
-        with ThreadPoolExecutor(BUILD_THREADS) as pool:
-            return list(pool.map(lambda sc: RoadGrid.build(sc, cfg), scenes))
-
-
-def concat_parallel(parts: list[np.ndarray], offsets: list[int] | None = None) -> np.ndarray:
-    """np.concatenate of `parts` (each plus its entry of `offsets`, if given), copied in threads."""
-    n = sum(len(p) for p in parts)
-    out = np.empty((n, *parts[0].shape[1:]), parts[0].dtype)
-    starts = np.cumsum([0] + [len(p) for p in parts[:-1]]).tolist()
-
-    def copy(k: int) -> None:
-        dst = out[starts[k]:starts[k] + len(parts[k])]
-        if offsets is None:
-            dst[...] = parts[k]
-        else:
-            np.add(parts[k], offsets[k], out=dst, casting="unsafe")
-
-    if len(parts) < 16:
-        for k in range(len(parts)):
-            copy(k)
-    else:
-        with ThreadPoolExecutor(BUILD_THREADS) as pool:
-            list(pool.map(copy, range(len(parts))))
-    return out
 
 
 # --------------------------------------------------------------------- slots
@@ -254,8 +149,9 @@ class Model:
     Scene object in many worlds, as when a few scenes are cycled over thousands of worlds): slot
     selection, logs and expert actions once per distinct (scene, masks) pair, road grids once per
     scene, which the worlds then share (their slots reach the logs through `log_row`).
-    `build_seconds` holds the build's phases: host (slot plans, road grids, tables), upload,
-    expert (expert actions of the distinct plans)."""
+    `build_seconds` holds the build's phases: host (slot plans, per-world tables), roads (segments
+    and grids of the distinct scenes, batched on the device: engine/roads.py), upload, expert
+    (expert actions of the distinct plans)."""
 
     def __init__(self, scenes: list[Scene], cfg: EngineConfig, device: str,
                  controlled: list[np.ndarray] | None = None, background: list[np.ndarray] | None = None):
@@ -304,8 +200,14 @@ class Model:
                 roads[id(sc)] = len(road_scenes)
                 road_scenes.append(sc)
             world_road[w] = roads[id(sc)]
-        road_list = RoadGrid.build_many(road_scenes, cfg)
-        report.segments.extend(len(road_list[r].seg_a) for r in world_road)
+        seconds = {"host": time.perf_counter() - t0}
+        t0 = time.perf_counter()
+        roads_t = build_road_tables(road_scenes, cfg, device)  # on the device, all distinct scenes at once
+        if wp.get_device(device).is_cuda:
+            torch.cuda.empty_cache()  # the build's work arrays go back to the device, not to torch's cache
+        report.segments.extend(roads_t.segments[world_road].tolist())
+        seconds["roads"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
         self.report = report
         self.max_controlled = max(report.controlled)
 
@@ -339,24 +241,13 @@ class Model:
         cell = np.array([p.cell for p in plan_list], np.float32)[self.world_plan]
         last_step = np.array([s.num_steps - 1 for s in scenes], np.int32)
 
-        seg_count = np.array([len(r.seg_a) for r in road_list], np.int64)
-        seg_first = np.cumsum(seg_count) - seg_count
-        n_seg = int(seg_count.sum())
-        cell_count = np.array([r.nx * r.ny for r in road_list], np.int64)
-        if n_seg:
-            all_a, all_b, all_mid, all_t = (concat_parallel([getattr(r, f) for r in road_list])
-                                            for f in ("seg_a", "seg_b", "seg_mid", "seg_type"))
-        else:
-            all_a = all_b = all_mid = np.zeros((1, 2), np.float32)
-            all_t = np.zeros(1, np.int32)
-        cell_start = concat_parallel([r.cell_start[:-1] for r in road_list] + [np.array([n_seg], np.int32)],
-                                     offsets=seg_first.tolist() + [0])
-        self.seg_pad = float(0.5 * max(r.max_seg_len for r in road_list)) + 1e-3 if n_seg else 0.0
-        grid_origin = np.array([r.origin for r in road_list], np.float32)[world_road]
-        grid_nx = np.array([r.nx for r in road_list], np.int32)[world_road]
-        grid_ny = np.array([r.ny for r in road_list], np.int32)[world_road]
-        grid_off = (np.cumsum(cell_count) - cell_count).astype(np.int32)[world_road]
-        seconds = {"host": time.perf_counter() - t0}
+        n_seg = int(roads_t.segments.sum())
+        self.seg_pad = float(0.5 * roads_t.max_len) + 1e-3 if n_seg else 0.0
+        grid_origin = roads_t.origin[world_road]
+        grid_nx = roads_t.nx.astype(np.int32)[world_road]
+        grid_ny = roads_t.ny.astype(np.int32)[world_road]
+        grid_off = roads_t.cell_offset.astype(np.int32)[world_road]
+        seconds["host"] += time.perf_counter() - t0
 
         t0 = time.perf_counter()
         dev = device
@@ -381,15 +272,21 @@ class Model:
         self.last_step = wp.array(last_step, dtype=wp.int32, device=dev)
         self.collision_cell_size = wp.array(cell, dtype=float, device=dev)
         self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
-        self.seg_a = wp.array(all_a, dtype=wp.vec2, device=dev)
-        self.seg_b = wp.array(all_b, dtype=wp.vec2, device=dev)
-        self.seg_mid = wp.array(all_mid, dtype=wp.vec2, device=dev)
-        self.seg_type = wp.array(all_t, dtype=wp.int32, device=dev)
+        if n_seg == 0:  # no roads anywhere: one zero segment keeps the arrays non-empty (no cell reaches it)
+            zero2, zero1 = torch.zeros((1, 2), device=torch.device(dev)), torch.zeros(1, dtype=torch.int32,
+                                                                                       device=torch.device(dev))
+            roads_t.seg_a = roads_t.seg_b = roads_t.seg_mid = zero2
+            roads_t.seg_type = zero1
+        self._road_tensors = roads_t  # the Warp arrays below are views of its tensors
+        self.seg_a = wp.from_torch(roads_t.seg_a, dtype=wp.vec2)
+        self.seg_b = wp.from_torch(roads_t.seg_b, dtype=wp.vec2)
+        self.seg_mid = wp.from_torch(roads_t.seg_mid, dtype=wp.vec2)
+        self.seg_type = wp.from_torch(roads_t.seg_type, dtype=wp.int32)
         self.grid_origin = wp.array(grid_origin, dtype=wp.vec2, device=dev)
         self.grid_nx = wp.array(grid_nx, dtype=wp.int32, device=dev)
         self.grid_ny = wp.array(grid_ny, dtype=wp.int32, device=dev)
         self.grid_cell_offset = wp.array(grid_off, dtype=wp.int32, device=dev)
-        self.cell_start = wp.array(cell_start, dtype=wp.int32, device=dev)
+        self.cell_start = wp.from_torch(roads_t.cell_start, dtype=wp.int32)
         r = cfg.reward
         self.reward_weights = wp.array(np.array([getattr(r, k) for k in REWARD_TERMS], np.float32),
                                        dtype=float, device=dev)
