@@ -204,6 +204,7 @@ class Model:
         t0 = time.perf_counter()
         roads_t = build_road_tables(road_scenes, cfg, device)  # on the device, all distinct scenes at once
         if wp.get_device(device).is_cuda:
+            torch.cuda.synchronize(device)  # built on torch's stream; Warp's kernels read them on its own
             torch.cuda.empty_cache()  # the build's work arrays go back to the device, not to torch's cache
         report.segments.extend(roads_t.segments[world_road].tolist())
         seconds["roads"] = time.perf_counter() - t0
