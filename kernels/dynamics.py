@@ -333,16 +333,16 @@ TRACK_GAIN_LONG = 0.3
 TRACK_GAIN_LAT = 1.0
 
 
-def launch_expert_actions(model, logs: tuple, out: tuple) -> None:
-    """Expert actions of logged rows under the model's scalars: `logs` (log_pos, log_yaw, log_vel,
-    log_valid), (rows, T) each, into `out` (action, index, track) of the same shape. The builder
-    runs it once, on the rows of the batch's distinct scenes."""
+def launch_expert_actions(model) -> None:
+    """Fill model.expert_action / expert_index / expert_track from the logs (once, by the builder,
+    on the rows of the batch's distinct slot plans)."""
     wp.launch(
         expert_actions_kernel,
-        dim=logs[0].shape[0],
-        inputs=[*logs, model.init_step, model.dt, model.dynamics, model.max_accel, model.max_curvature,
-                model.discrete, model.accel_bins, model.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
-        outputs=list(out),
+        dim=model.log_pos.shape[0],
+        inputs=[model.log_pos, model.log_yaw, model.log_vel, model.log_valid, model.init_step, model.dt,
+                model.dynamics, model.max_accel, model.max_curvature, model.discrete, model.accel_bins,
+                model.curvature_bins, TRACK_GAIN_LONG, TRACK_GAIN_LAT],
+        outputs=[model.expert_action, model.expert_index, model.expert_track],
         device=model.device,
     )
 

@@ -31,10 +31,9 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 import warp as wp
 
-from tg_gpudrive.benchmark import print_row
+from tg_gpudrive.benchmark import memory_row, print_row
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.store import is_store, write_store
@@ -69,11 +68,7 @@ def build_once(spec: str, num_scenes: int, worlds: int, cfg: EngineConfig, devic
     row = {"worlds": worlds, "scenes": spec, "distinct_scenes": n, "device": sim.device,
            "max_agents": m.max_agents, "steps": m.num_steps, "segments": sum(m.report.segments), "segments_stored": m.seg_a.shape[0],
            "load_s": load_s, **{f"{k}_s": v for k, v in m.build_seconds.items()}, "build_s": build_s}
-    if sim.is_cuda:
-        row["gpu_mem_mb"] = (wp.get_mempool_used_mem_current(sim.device)
-                             + torch.cuda.memory_allocated(sim.device)) / 2**20  # Warp's pool + torch's (roads)
-    row["engine_mb_per_world"] = sum(sim.memory_bytes().values()) / worlds / 2**20
-    return row
+    return row | memory_row(sim)
 
 
 def main() -> int:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 import math
 import subprocess
@@ -139,8 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_report:
         return 0
     r = exp.get("report") or {}
-    opts = ReportOptions(scenes=int(r.get("scenes", 4)), seeds=tuple(r.get("seeds", (0, 1))),
-                         br_iters=int(r.get("br_iters", 5)), br_seeds=tuple(r.get("br_seeds", (0, 1))))
+    # the experiment's report keys over ReportOptions' own defaults (an unknown key fails here)
+    opts = dataclasses.replace(ReportOptions(), **{k: tuple(v) if isinstance(v, list) else v for k, v in r.items()})
     report_main([out / n for n, _ in runs], out / "report", opts)
     print(f"wrote {out / 'report' / 'report.md'}")
     return 0

@@ -264,9 +264,7 @@ def test_cce_gap_engine_expert_below_constant_and_random():
     cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8)
     masks = control_masks(scenes, cfg, "nearest_conflict", 2, None)
     copies = 2
-    k = [int(m.sum()) * copies for m in masks]
-    sim = Simulator([s for s, n in zip(scenes, k) for _ in range(n)], cfg, "cpu",
-                    controlled=[m for m, n in zip(masks, k) for _ in range(n)])
+    sim = ex.deviation_sim(scenes, masks, cfg, "cpu", copies)
     kw = dict(seeds=(0,), max_iters=5, window=2, patience=2, min_iters=0, tol=0.02, eval_rounds=2)
     res = {name: ex.cce_gap(lambda s: ex.SimGame(sim, pol), **kw)
            for name, pol in (("expert", expert_policy), ("constant", constant_policy),

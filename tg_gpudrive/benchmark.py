@@ -61,12 +61,18 @@ def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: in
         "build_s": build_s,
         "distinct_scenes": len({id(sc) for sc in pool}),
     }
+    return row | memory_row(sim)
+
+
+def memory_row(sim: Simulator) -> dict:
+    """The engine's arrays per world (total MB, KB by group) and, on CUDA, the device memory in use
+    by Warp's pool and torch's allocator (which holds the road tables)."""
+    W = sim.num_worlds
     mem = sim.memory_bytes()
-    row["engine_mb_per_world"] = sum(mem.values()) / worlds / 2**20
-    row["engine_kb_per_world"] = {k: round(v / worlds / 1024, 1) for k, v in mem.items()}
+    row = {"engine_mb_per_world": sum(mem.values()) / W / 2**20,
+           "engine_kb_per_world": {k: round(v / W / 1024, 1) for k, v in mem.items()}}
     if sim.is_cuda:
-        row["gpu_mem_mb"] = (wp.get_mempool_used_mem_current(sim.device)
-                             + torch.cuda.memory_allocated(sim.device)) / 2**20  # Warp's pool + torch's (roads)
+        row["gpu_mem_mb"] = (wp.get_mempool_used_mem_current(sim.device) + torch.cuda.memory_allocated(sim.device)) / 2**20
     return row
 
 

@@ -55,11 +55,10 @@ class HistoryBuffer:
         self.raw = torch.zeros((W, A, self.H, _RAW_DIM), device=sim.pos.device)
         self._last = torch.full((W,), -10, dtype=torch.int64, device=sim.pos.device)
 
-    def _fill_from_log(self, sim, worlds: torch.Tensor) -> None:
-        if not bool(worlds.any()):
-            return
+    def _from_log(self, sim) -> torch.Tensor:
+        """(W, A, H, raw) window every world would hold at its current step had it replayed its log."""
         T = self._model.num_steps
-        steps = sim.world_step.long()[:, None] + torch.arange(-self.H + 1, 1, device=worlds.device)  # (W, H)
+        steps = sim.world_step.long()[:, None] + torch.arange(-self.H + 1, 1, device=self.raw.device)  # (W, H)
         ok = steps >= 0
         s = steps.clamp(0, T - 1)
         pos = sim.log_at("log_pos", s)  # (W, A, H, 2)
@@ -68,24 +67,24 @@ class HistoryBuffer:
         valid = sim.log_at("log_valid", s).float() * ok[:, None, :].float()
         act = sim.log_at("expert_action", (s - 1).clamp(min=0))[..., :2]
         act = act * (s > 0)[:, None, :, None].float()
-        new = torch.cat([pos, yaw[..., None], speed[..., None], act, valid[..., None]], dim=-1)
-        self.raw[worlds] = new[worlds]
+        return torch.cat([pos, yaw[..., None], speed[..., None], act, valid[..., None]], dim=-1)
 
     def sync(self, sim) -> None:
+        """Bring the window up to each world's current step: push the present state where a world
+        moved one step on, refill from the log where it jumped (a reset); masked selects, so an
+        ordinary step needs one host sync (whether any world must refill)."""
         if self._model is not sim.model:
             self._bind(sim)
         step = sim.world_step.long()
-        same = step == self._last
-        push = (step == self._last + 1) & ~same
-        refill = ~same & ~push
-        if bool(push.any()):
-            present = (sim.present != 0).float()
-            cur = torch.cat([sim.pos, sim.yaw[..., None], sim.speed[..., None], sim.applied_action[..., :2],
-                             present[..., None]], dim=-1)
-            rolled = torch.cat([self.raw[:, :, 1:], cur[:, :, None]], dim=2)
-            self.raw[push] = rolled[push]
-        self._fill_from_log(sim, refill)
-        self._last = step.clone()
+        push = step == self._last + 1
+        refill = (step != self._last) & ~push
+        cur = torch.cat([sim.pos, sim.yaw[..., None], sim.speed[..., None], sim.applied_action[..., :2],
+                         (sim.present != 0).float()[..., None]], dim=-1)
+        rolled = torch.cat([self.raw[:, :, 1:], cur[:, :, None]], dim=2)
+        self.raw = torch.where(push[:, None, None, None], rolled, self.raw)
+        if bool(refill.any()):
+            self.raw = torch.where(refill[:, None, None, None], self._from_log(sim), self.raw)
+        self._last = step
 
     def state_dict(self) -> dict:
         """The window and the step it was synced at (for an exact resume mid-episode)."""

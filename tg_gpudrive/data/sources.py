@@ -75,18 +75,22 @@ class SceneSource:
     def __getitem__(self, i: int) -> Scene:
         return self.get(i)
 
-    # scenes kept by `_cached` (the oldest dropped first)
+    # scenes kept by `_cached` (the least recently used dropped first; 0: none kept)
     cache_size = 20_000
 
     def _cached(self, i: int, make: Callable[[int], Scene]) -> Scene:
         """Scene i from the source's cache, made by `make(i)` when missing. One object per scene: a
         batch that repeats a scene holds it once, and the Model builder does its work once."""
         cache = self.__dict__.setdefault("_cache", OrderedDict())
-        if i not in cache:
-            cache[i] = make(i)
+        if i in cache:
+            cache.move_to_end(i)
+            return cache[i]
+        scene = make(i)
+        if self.cache_size > 0:
+            cache[i] = scene
             if len(cache) > self.cache_size:
                 cache.popitem(last=False)
-        return cache[i]
+        return scene
 
     def _check(self, i: int) -> int:
         n = len(self)
@@ -231,15 +235,7 @@ class FileSource(SceneSource):
         item = self._items[i]
         if isinstance(item, Scene):
             return item
-        if i in self._cache:
-            self._cache.move_to_end(i)
-            return self._cache[i]
-        scene = self._load(item)[0]
-        if self.cache_size > 0:
-            self._cache[i] = scene
-            if len(self._cache) > self.cache_size:
-                self._cache.popitem(last=False)
-        return scene
+        return self._cached(i, lambda j: self._load(self._items[j])[0])
 
 
 class MixedSource(SceneSource):

@@ -70,7 +70,6 @@ import time
 from typing import Generic, TypeVar
 
 import numpy as np
-import torch
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
@@ -203,9 +202,6 @@ class Model:
         seconds = {"host": time.perf_counter() - t0}
         t0 = time.perf_counter()
         roads_t = build_road_tables(road_scenes, cfg, device)  # on the device, all distinct scenes at once
-        if wp.get_device(device).is_cuda:
-            torch.cuda.synchronize(device)  # built on torch's stream; Warp's kernels read them on its own
-            torch.cuda.empty_cache()  # the build's work arrays go back to the device, not to torch's cache
         report.segments.extend(roads_t.segments[world_road].tolist())
         seconds["roads"] = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -266,18 +262,13 @@ class Model:
         self.num_plans = G
         log_row = self.world_plan[:, None] * A + np.arange(A)
         self.log_row = wp.array(log_row.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
-        logs = (wp.array(g["log_pos"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
-                wp.array(g["log_yaw"].reshape(G * A, T), dtype=float, device=dev),
-                wp.array(g["log_vel"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev),
-                wp.array(g["log_valid"].reshape(G * A, T), dtype=wp.int32, device=dev))
+        self.log_pos = wp.array(g["log_pos"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev)
+        self.log_yaw = wp.array(g["log_yaw"].reshape(G * A, T), dtype=float, device=dev)
+        self.log_vel = wp.array(g["log_vel"].reshape(G * A, T, 2), dtype=wp.vec2, device=dev)
+        self.log_valid = wp.array(g["log_valid"].reshape(G * A, T), dtype=wp.int32, device=dev)
         self.last_step = wp.array(last_step, dtype=wp.int32, device=dev)
         self.collision_cell_size = wp.array(cell, dtype=float, device=dev)
         self.nearest_cap = self.collision_cell_size  # one array: the cap is the cell size (see above)
-        if n_seg == 0:  # no roads anywhere: one zero segment keeps the arrays non-empty (no cell reaches it)
-            zero2, zero1 = torch.zeros((1, 2), device=torch.device(dev)), torch.zeros(1, dtype=torch.int32,
-                                                                                       device=torch.device(dev))
-            roads_t.seg_a = roads_t.seg_b = roads_t.seg_mid = zero2
-            roads_t.seg_type = zero1
         self._road_tensors = roads_t  # the Warp arrays below are views of its tensors
         self.seg_a = wp.from_torch(roads_t.seg_a, dtype=wp.vec2)
         self.seg_b = wp.from_torch(roads_t.seg_b, dtype=wp.vec2)
@@ -295,14 +286,12 @@ class Model:
         seconds["upload"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        expert = (wp.zeros((G * A, T), dtype=wp.vec3, device=dev), wp.zeros((G * A, T), dtype=wp.int32, device=dev),
-                  wp.zeros((G * A, T), dtype=wp.vec2, device=dev))
-        launch_expert_actions(self, logs, expert)
+        self.expert_action = wp.zeros((G * A, T), dtype=wp.vec3, device=dev)
+        self.expert_index = wp.zeros((G * A, T), dtype=wp.int32, device=dev)
+        self.expert_track = wp.zeros((G * A, T), dtype=wp.vec2, device=dev)
+        launch_expert_actions(self)
         wp.synchronize_device(dev)
         seconds["expert"] = time.perf_counter() - t0
-
-        self.log_pos, self.log_yaw, self.log_vel, self.log_valid = logs
-        self.expert_action, self.expert_index, self.expert_track = expert
         self.build_seconds = seconds
 
     @functools.cached_property

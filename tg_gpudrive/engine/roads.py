@@ -6,7 +6,7 @@ over its segment midpoints, and the segments of all scenes are stored sorted by 
 cell's segments are contiguous and a scene's cells follow each other:
 
     field         shape        meaning
-    seg_a, seg_b  (S, 2) f32   m, segment end points, in (scene, cell) order
+    seg_a, seg_b  (S, 2) f32   m, segment end points, in (scene, cell) order (one zero row when S = 0)
     seg_mid       (S, 2) f32   m, their midpoints
     seg_type      (S,) int32   RoadType
     cell_start    (C + 1,)     int32, segments [cell_start[g], cell_start[g + 1]) lie in cell g
@@ -63,9 +63,17 @@ def build_road_tables(scenes: list[Scene], cfg: EngineConfig, device: str,
         cur.append(sc)
         size += len(sc.road_points)
     chunks.append(cur)
-    parts = [_build_chunk(c, cfg, torch.device(device)) for c in chunks]
-    if len(parts) == 1:
-        return parts[0]
+    dev = torch.device(device)
+    parts = [_build_chunk(c, cfg, dev) for c in chunks]
+    tables = _nonempty(parts[0] if len(parts) == 1 else _concat(parts))
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)  # built on torch's stream; Warp's kernels read the tables on its own
+        torch.cuda.empty_cache()  # the work arrays go back to the device, not to torch's cache
+    return tables
+
+
+def _concat(parts: list[RoadTables]) -> RoadTables:
+    """The tables of consecutive chunks of scenes as one: segment and cell indices shifted."""
     seg_base = np.cumsum([0] + [int(p.segments.sum()) for p in parts[:-1]])
     cell_base = np.cumsum([0] + [len(p.cell_start) - 1 for p in parts[:-1]])
     return RoadTables(
@@ -77,6 +85,15 @@ def build_road_tables(scenes: list[Scene], cfg: EngineConfig, device: str,
         ny=np.concatenate([p.ny for p in parts]),
         cell_offset=np.concatenate([p.cell_offset + b for p, b in zip(parts, cell_base)]),
         segments=np.concatenate([p.segments for p in parts]), max_len=max(p.max_len for p in parts))
+
+
+def _nonempty(t: RoadTables) -> RoadTables:
+    """A batch without any road keeps one zero segment, which no grid cell reaches: the kernels'
+    segment arrays are never empty. `segments` still counts none."""
+    if len(t.seg_a) == 0:
+        t.seg_a = t.seg_b = t.seg_mid = t.seg_a.new_zeros((1, 2))
+        t.seg_type = t.seg_type.new_zeros(1)
+    return t
 
 
 def _build_chunk(scenes: list[Scene], cfg: EngineConfig, dev: torch.device) -> RoadTables:

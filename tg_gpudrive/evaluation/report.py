@@ -161,14 +161,6 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     return np.asarray(Image.open(path).convert("RGB"))
 
 
-def _gap_game_sim(cfg, scenes, masks, device, copies: int = 1):
-    """Worlds = each scene `copies` times per policy agent, so every agent deviates in `copies`
-    worlds (ex.SimGame cycles a scene's copies over its agents)."""
-    k = [max(1, int(m.sum())) * max(1, copies) for m in masks]
-    return Simulator([s for s, n in zip(scenes, k) for _ in range(n)], cfg.env, device,
-                     controlled=[m for m, n in zip(masks, k) for _ in range(n)])
-
-
 def _br_copies(opts: ReportOptions, device: str) -> int:
     """Episodes per agent and PPO iteration: --br-copies, else 16 on a GPU and 4 on the CPU (where a
     report is a try of the pipeline: 4 x the agents' worlds already cost seconds per iteration)."""
@@ -358,8 +350,9 @@ def gap_curve(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: fl
     ci95}], oldest first."""
     points = []
     for update, f in kept:
-        g = ex.cce_gap(lambda s, f=f: ex.SimGame(gsim, load_policy(f, gsim), actor=load_actor(f, gsim)[0]),
-                       seeds=opts.br_seeds, config=br_config(opts, gamma))
+        gpolicy, actor = load_policy(f, gsim), load_actor(f, gsim)[0]  # once per file, shared by the seeds
+        g = ex.cce_gap(lambda s: ex.SimGame(gsim, gpolicy, actor=actor), seeds=opts.br_seeds,
+                       config=br_config(opts, gamma))
         points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
     if points and last and last_update is not None and last_update > points[-1]["update"]:
         points.append({"update": last_update, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
@@ -457,13 +450,11 @@ def _pm(mean, half) -> str:
 
 
 def _br_text(meta: dict) -> str:
-    b = meta.get("best_response")
-    if not b:
-        return f"{meta['br_iters']} best-response iterations x seeds {meta['br_seeds']}"
+    b = meta["best_response"]
     return (f"a PPO best response per agent (others frozen), {b['copies']} episodes per agent and iteration, "
             f"until its discounted return (gamma: {b['gamma']}) plateaus (no new best {b['window']}-iteration "
             f"moving mean by {b['tol']:g} x max(1, |best|) for {b['patience']} iterations, at least "
-            f"{b.get('min_iters', 0)}; cap {b['max_iters']}), "
+            f"{b['min_iters']}; cap {b['max_iters']}), "
             f"seeds {meta['br_seeds']}")
 
 
@@ -479,14 +470,11 @@ def _gap_sections(results: list[dict]) -> list[str]:
     rows = []
     for label, g in gapped:
         n = len(g["agents"])
-        types = g.get("types") or ["-"] * n
-        ci = g.get("gain_ci95_per_agent") or [None] * n
-        iters = np.asarray(g.get("iters") or [[None] * n]).T.tolist()
-        plat = np.asarray(g.get("plateaued") or [[True] * n]).T.tolist()
+        iters, plat = np.asarray(g["iters"]).T.tolist(), np.asarray(g["plateaued"]).T.tolist()
         for a in range(n):
-            its = ", ".join("-" if i is None else f"{i}{'' if p else '*'}" for i, p in zip(iters[a], plat[a]))
-            rows.append([label, g["agents"][a], types[a], g["gap_per_agent"][a],
-                         _pm(g["gain_per_agent"][a], ci[a]), g["j_pi_per_agent"][a], g["j_br_per_agent"][a], its])
+            its = ", ".join(f"{i}{'' if p else '*'}" for i, p in zip(iters[a], plat[a]))
+            rows.append([label, g["agents"][a], g["types"][a], g["gap_per_agent"][a],
+                         _pm(g["gain_per_agent"][a], g["gain_ci95_per_agent"][a]), g["j_pi_per_agent"][a], g["j_br_per_agent"][a], its])
     L.append(_table(["policy", "agent", "scenario type", "gap", "raw gain ± 95% CI", "J(pi)", "J(BR)",
                      "PPO iterations"], rows))
     L.append("\n## CCE-gap per scenario type\n\nMean gap over the agents of that scenario type with its "
@@ -495,9 +483,9 @@ def _gap_sections(results: list[dict]) -> list[str]:
     rows = []
     for label, g in gapped:
         n = len(g["agents"])
-        rows.append([label, "all", n, _pm(g["mean_gap"], g["ci95"]), g.get("mean_gain"),
-                     _fmt(g.get("ci95_seeds")), g.get("mean_iters")])
-        for t, v in (g.get("per_type") or {}).items():
+        rows.append([label, "all", n, _pm(g["mean_gap"], g["ci95"]), g["mean_gain"], _fmt(g["ci95_seeds"]),
+                     g["mean_iters"]])
+        for t, v in g["per_type"].items():
             rows.append([label, t, v["agents"], _pm(v["mean_gap"], v["ci95"]), v["mean_gain"], "-", "-"])
     L.append(_table(["policy", "scenario type", "agents", "CCE-gap ± 95% CI (agents)", "mean raw gain",
                      "95% CI (seeds)", "mean PPO iterations"], rows))
@@ -613,7 +601,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
             copies = _br_copies(opts, device)
-            gsim = _gap_game_sim(cfg, scenes, masks, device, copies)
+            gsim = ex.deviation_sim(scenes, masks, cfg.env, device, copies)
             label = run.name
             if i == 0:  # baselines on the first run's scenes and engine
                 logged_all = logged
@@ -664,7 +652,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     if gap_curves:
         plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "br_iters": opts.br_iters, "br_seeds": list(opts.br_seeds),
+            "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
                               "copies": copies, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
