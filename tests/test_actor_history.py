@@ -46,25 +46,26 @@ def test_the_window_changes_the_actors_output_and_is_required():
     assert Actor(2, 3, discrete=True, num_actions=5, hidden=16)(obs).shape == (6, 5)  # no history: as before
 
 
-def test_rollout_stores_the_window_the_actor_saw(tmp_path):
+def test_rollout_stores_the_window_the_actor_saw(tmp_path, device):
     """At the first step of a rollout the newest window entry is the agent's present state: its
     position and heading in its own frame are 0 and its speed is the observation's ego speed."""
-    tr = Trainer(tiny(tmp_path), tmp_path, progress=False)
+    tr = Trainer(tiny(tmp_path, device=device), tmp_path, progress=False)
     buf, _ = tr.rollout()
     live = buf["mask"][0]
-    h = buf["hist"][0][live]  # (n, H, HIST_DIM)
+    h = buf["hist"][0][live].cpu()  # (n, H, HIST_DIM)
     assert h.shape[1:] == (3, HIST_DIM) and len(h) > 0
     newest = h[:, -1]
     np.testing.assert_allclose(newest[:, :3].numpy(), 0.0, atol=1e-4)  # dx, dy, dyaw
-    np.testing.assert_allclose(newest[:, 3].numpy(), buf["obs"][0][live][:, 0].numpy(), atol=1e-5)  # speed
+    obs = buf["obs"][0][live].cpu()  # bf16 on a GPU (the trainer stores what autocast would round to)
+    np.testing.assert_allclose(newest[:, 3].to(obs.dtype).float().numpy(), obs[:, 0].float().numpy(), atol=1e-5)  # speed
     assert (newest[:, 6] == 1).all()  # valid
 
 
-def test_a_history_checkpoint_evaluates_and_warm_starts_the_best_response(tmp_path):
-    Trainer(tiny(tmp_path), tmp_path, progress=False).train()
+def test_a_history_checkpoint_evaluates_and_warm_starts_the_best_response(tmp_path, device):
+    Trainer(tiny(tmp_path, device=device), tmp_path, progress=False).train()
     cfg = tiny(tmp_path)
     src = resolve_scenes(cfg.scenes, n=2, seed=123)
-    sim = Simulator([src.get(i) for i in range(2)], cfg.env, "cpu")
+    sim = Simulator([src.get(i) for i in range(2)], cfg.env, device)
     tr = record_episodes(sim, load_policy(tmp_path, sim), label="history")
     assert tr.valid[tr.policy].any()
     actor = load_actor(tmp_path, sim)[0]

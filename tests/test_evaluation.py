@@ -253,7 +253,7 @@ def test_cce_gap_single_agent_engine_game():
     assert bad["j_br_per_agent"][0] > good["j_pi_per_agent"][0] - 0.5
 
 
-def test_cce_gap_engine_expert_below_constant_and_random():
+def test_cce_gap_engine_expert_below_constant_and_random(device):
     """Procedural merge and T-junction scenes, two policy agents each, every other agent frozen at
     the profile: the expert profile is hardly exploitable, the constant (keep speed and heading)
     and the uniformly random profiles are; reported per agent and per scenario type, with the PPO
@@ -264,11 +264,11 @@ def test_cce_gap_engine_expert_below_constant_and_random():
     cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8)
     masks = control_masks(scenes, cfg, "nearest_conflict", 2, None)
     copies = 2
-    sim = ex.deviation_sim(scenes, masks, cfg, "cpu", copies)
+    sim = ex.deviation_sim(scenes, masks, cfg, device, copies)
     kw = dict(seeds=(0,), max_iters=5, window=2, patience=2, min_iters=0, tol=0.02, eval_rounds=2)
     res = {name: ex.cce_gap(lambda s: ex.SimGame(sim, pol), **kw)
            for name, pol in (("expert", expert_policy), ("constant", constant_policy),
-                             ("random", make_random_policy(0, "cpu")))}
+                             ("random", make_random_policy(0, device)))}
     for name, r in res.items():
         assert len(r["agents"]) == 4 and set(r["per_type"]) == {"merge", "t_junction"}, name
         assert all(v["agents"] == 2 for v in r["per_type"].values())
