@@ -3,7 +3,7 @@
     python scripts/wm_traffic.py --models shipped runs/wm_gpu/model.pt runs/wm_cont/model.pt:0.1 \\
         --scenes procedural:all --seed 90000 --num-scenes 256 --device cuda --seeds 0 1 [--json]
 
-Each `--models` entry is a world-model checkpoint (or `shipped`), optionally `:T` for the driver's
+Each `--models` entry is a world-model checkpoint (or a packaged name: `shipped`, `small_cpu`), optionally `:T` for the driver's
 sampling temperature (`:0` greedy; default: WorldModelDriver's, 1 discrete / 0.1 continuous). The
 scenes are generated for the model's action space and `env` (max_agents, partner_k, road_k from
 the checkpoint's training config when it has one, else --set). Prints one row per model and seed
@@ -26,7 +26,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.worldmodel import WorldModelDriver, load_world_model
 from tg_gpudrive.worldmodel.metrics import background_rates
-from tg_gpudrive.worldmodel.prior import SHIPPED
+from tg_gpudrive.worldmodel.prior import PACKAGED
 
 
 def _env_of(path: str, overrides: list[str]) -> EngineConfig:
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     replayed = set()  # (action space, env) pairs whose expert replay is printed
     for spec in args.models:
         path, _, temp = spec.partition(":")
-        path = str(SHIPPED) if path == "shipped" else path
+        path = str(PACKAGED.get(path, path))
         env = _env_of(path, args.set)
         model = load_world_model(path, device=device)
         # the checkpoint decides the action space; scenes and replay are per action space and env

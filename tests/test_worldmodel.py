@@ -123,14 +123,18 @@ def test_background_traffic_close_to_expert_replay_over_4s(shipped, heldout, wm_
     assert abs(wm["offroad_rate"] - ex["offroad_rate"]) <= 0.10
 
 
-def test_background_traffic_full_episode_gap_stays_bounded(shipped, heldout, wm_cfg):
-    """Over a full 8 s episode the teacher-forced shipped model drifts more (it is not
-    closed-loop fine-tuned): measured collision 0.027 and off-road 0.107 against the expert's 0 and 0.
-    The bound below holds that known gap where it is, so a regression (or a broken model, which
-    leaves the road most of the time) fails."""
+def test_background_traffic_full_episode_within_issue_12s_bar(shipped, heldout, wm_cfg):
+    """Over a full 8 s episode every vehicle of six held-out scenes (75) driven by the shipped model
+    (GPU-trained, closed-loop fine-tuned): measured collision 0.000 and off-road 0.013 against the
+    expert's 0 and 0 (seed 0; 512 held-out scenes on a GPU: 0.003 / 0.006). Issue 12's bar is 0.02;
+    on 75 vehicles off-road gets 0.03 (two vehicles). The CPU model this one replaced, also packaged
+    (`small_cpu`), misses it (0.027 / 0.107), so the bound tells the two apart."""
     wm, ex = _background(shipped, heldout, wm_cfg.env, None)
-    assert abs(wm["collision_rate"] - ex["collision_rate"]) <= 0.10
-    assert abs(wm["offroad_rate"] - ex["offroad_rate"]) <= 0.15
+    assert wm["collision_rate"] - ex["collision_rate"] <= 0.02
+    assert wm["offroad_rate"] - ex["offroad_rate"] <= 0.03
+    old, _ = _background(load_world_model("small_cpu"), heldout, wm_cfg.env, None)
+    assert old["offroad_rate"] - ex["offroad_rate"] > 0.03
+    assert load_world_model("small_cpu").hparams["hidden"] == 64 and shipped.hparams["hidden"] == 128
 
 
 def test_driver_writes_only_its_rows(shipped, heldout, wm_cfg):
@@ -285,6 +289,46 @@ def test_the_continuous_magnet_is_the_top_mixture_component():
     b = top.log_scale[:, 0].exp()
     want = (torch.log(2 * b / s_) - 0.5 * math.log(2 * math.pi * math.e) + s_ * math.sqrt(2 / math.pi) / b).sum(-1)
     torch.testing.assert_close(kl, want, rtol=1e-5, atol=1e-6)
+
+
+def test_the_continuous_magnet_is_no_sharper_than_min_std(wm_cfg):
+    """A continuous world model whose components are as sharp as the head allows: the prior widens
+    each to the std `min_std` (Laplace scale std / sqrt 2) and leaves wider ones alone. Hand-computed:
+    a Gaussian of that std on the location is KL = -1/2 log(2 pi e) + 1/2 log 2 + 2 / sqrt(pi)
+    = 0.0561 nats per dimension, whatever the std."""
+    from tg_gpudrive.engine.simulator import Simulator
+
+    cfg = _cont_cfg(wm_cfg)
+    wm = build_model(cfg).eval()
+    K = cfg.mixtures
+    with torch.no_grad():
+        wm.head[-1].weight.zero_()
+        bias = torch.zeros(K, 5)
+        bias[:, 0] = torch.arange(K, dtype=torch.float32)  # component K-1 is the most probable
+        bias[:, 3:] = -30.0  # log-scales at the head's minimum
+        bias[K - 1, 4] = 30.0  # ... except the top component's curvature: the head's widest
+        wm.head[-1].bias.copy_(torch.cat([bias[:, 0], bias[:, 1:].reshape(-1)]))
+    sim = Simulator([generate_scene("merge", 3)], cfg.env, "cpu")
+    sim.reset()
+    min_std = (0.7, 0.001)
+    prior = WorldModelPrior(wm, sim, min_std=min_std)
+    raw = WorldModelPrior(wm, sim)
+    C = 4
+    ctx = prior.context(sim, C)
+    obs = sim.obs[:, :C]
+    top, sharp = prior.distribution(ctx, obs), raw.distribution(ctx, obs)
+    b = top.log_scale[..., 0, :].exp()
+    b_raw = sharp.log_scale[..., 0, :].exp()
+    assert float(b_raw[..., 0].max()) < 0.7 / math.sqrt(2) and float(b_raw[..., 1].min()) > 0.001
+    torch.testing.assert_close(b[..., 0], torch.full_like(b[..., 0], 0.7 / math.sqrt(2)))  # floored
+    torch.testing.assert_close(b[..., 1], b_raw[..., 1])  # wider than the floor: untouched
+    loc = top.loc[..., 0, :]
+    kl = top.kl_from((loc, torch.log(torch.stack([torch.full_like(b[..., 0], 0.7), b[..., 1] * math.sqrt(2)], -1))))
+    per_dim = -0.5 * math.log(2 * math.pi * math.e) + 0.5 * math.log(2) + 2 / math.sqrt(math.pi)
+    assert per_dim == pytest.approx(0.0561, abs=1e-4)
+    torch.testing.assert_close(kl, torch.full_like(kl, 2 * per_dim), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="min_std"):
+        WorldModelPrior(wm, sim, min_std=(0.7, 0.0))
 
 
 def test_gaussian_to_laplace_kl():
@@ -550,8 +594,9 @@ def test_closed_loop_finetuning_runs_and_logs(shipped, wm_cfg, tmp_path):
     import csv
     import json
 
+    arch = {k: shipped.hparams[k] for k in ("hidden", "heads", "history", "max_partners", "max_roads")}
     cfg = dataclasses.replace(wm_cfg, num_scenes=2, val_scenes=1, num_worlds=2, steps=0, init_model=str(SHIPPED),
-                              batch_size=64, closed_loop_steps=4, closed_loop_rounds=2, closed_loop_horizon=12,
+                              batch_size=64, **arch, closed_loop_steps=4, closed_loop_rounds=2, closed_loop_horizon=12,
                               out_dir=str(tmp_path))
     res = train_world_model(cfg, progress=False)
     rows = list(csv.DictReader((tmp_path / "closed_loop.csv").open()))

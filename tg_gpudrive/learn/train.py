@@ -70,7 +70,8 @@ def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
         return BehaviourPrior()
     if cfg.prior == "world_model":
         model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
-        return WorldModelPrior(model, sim, top_component=cfg.prior_top_component)
+        return WorldModelPrior(model, sim, top_component=cfg.prior_top_component,
+                               min_std=(cfg.prior_sigma_accel, cfg.prior_sigma_curvature))
     return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop, cfg.prior_floor)
 
 

@@ -20,12 +20,14 @@ Gaussian-only KL still gets a defined (unimodal) magnet.
 Checkpoints (`save_world_model` / `load_world_model`) hold the weights, the
 model's hyper-parameters and the action grid (discrete) or box (continuous) it
 was trained on; loading onto a simulator whose action space, grid or box
-differs is an error. `load_shipped(sim)` loads the small discrete model trained
-on procedural scenes that ships in the package (shipped.pt).
+differs is an error. `load_shipped(sim)` loads the discrete model that ships in
+the package (shipped.pt): trained on procedural scenes on one GPU, teacher forcing
+then closed-loop fine-tuning (configs/worldmodel/gpu.yaml).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import torch
@@ -37,6 +39,12 @@ from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 from tg_gpudrive.worldmodel.model import WorldModel, check_action_space
 
 SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
+# world models that ship in the package, by the name a config or `--background-model` may give:
+# shipped    configs/worldmodel/gpu.yaml on one GPU (teacher forcing + closed-loop fine-tuning); the default
+# small_cpu  configs/worldmodel/small_cpu.yaml on a laptop CPU (the shipped model until 2026-11-25): the
+#            magnet of configs/train/small_cpu.yaml, whose 30-update, 8-world run with a small
+#            observation learns from this softer model and not from the sharper GPU one (BENCHMARKS.md)
+PACKAGED = {"shipped": SHIPPED, "small_cpu": SHIPPED.with_name("small_cpu.pt")}
 
 
 def grid_of(cfg) -> dict:
@@ -56,9 +64,10 @@ def save_world_model(model: WorldModel, path: str | Path, env_cfg, extra: dict |
 
 
 def load_world_model(path: str | Path, sim=None, device: str | None = None) -> WorldModel:
-    """A WorldModel from `path` (a world-model checkpoint or a train-world-model run's checkpoint.pt),
-    laid out for `sim`'s observation rows and on its device, in eval mode."""
-    path = Path(path)
+    """A WorldModel from `path` (a world-model checkpoint, a train-world-model run's checkpoint.pt
+    or run directory, or a PACKAGED name), laid out for `sim`'s observation rows and on its
+    device, in eval mode."""
+    path = PACKAGED.get(str(path), Path(path))
     if path.is_dir():
         path = path / "model.pt"
     ck = torch.load(path, map_location="cpu", weights_only=False)
@@ -90,15 +99,25 @@ class WorldModelPrior(BehaviourPrior):
     distribution(context, obs) -> logits (..., num_actions), or a LaplaceMixture (continuous)
     whose KL from the Gaussian policy is the closed-form bound (`kl_samples` None) or a
     Monte Carlo estimate with that many fixed draws. `top_component` (default, as TrafficGamer
-    does): the continuous magnet is the mixture's most probable component alone."""
+    does): the continuous magnet is the mixture's most probable component alone. `min_std`
+    (accel m/s^2, curvature 1/m), continuous only: each component is widened to at least this
+    standard deviation (Laplace scale std / sqrt 2). A model trained on the GPU predicts the
+    logged action to 0.02 m/s^2, and the KL of any Gaussian policy to so sharp a target is about
+    10 nats, which swamped the advantage (BENCHMARKS.md, issue 12); the discrete magnet can be no
+    sharper than a grid bin, and this gives the continuous one a like floor."""
 
-    def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None, top_component: bool = True):
+    def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None, top_component: bool = True,
+                 min_std: tuple[float, float] | None = None):
         if sim is not None:
             check_action_space(model, sim.cfg)
             model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
         self.model = model
         self.kl_samples = kl_samples
         self.top_component = top_component  # continuous: the most probable component is the magnet
+        if min_std is not None and min(min_std) <= 0:
+            raise ValueError(f"min_std must be > 0 (m/s^2, 1/m), got {min_std}")
+        # log of the least Laplace scale b = std / sqrt(2), per action dimension
+        self.min_log_scale = None if min_std is None else [math.log(x / math.sqrt(2.0)) for x in min_std]
         self.history = HistoryBuffer(model.history)
 
     @property
@@ -125,7 +144,10 @@ class WorldModelPrior(BehaviourPrior):
             out = self.model(obs.float(), hist.float())
         if self.model.discrete:
             return out.float()
-        mix = LaplaceMixture(out.logits.float(), out.loc.float(), out.log_scale.float(), self.kl_samples)
+        log_scale = out.log_scale.float()
+        if self.min_log_scale is not None:
+            log_scale = torch.maximum(log_scale, log_scale.new_tensor(self.min_log_scale))
+        mix = LaplaceMixture(out.logits.float(), out.loc.float(), log_scale, self.kl_samples)
         return mix.top_component() if self.top_component else mix
 
 

@@ -17,10 +17,10 @@ Rounds are logged to closed_loop.csv (roll-out drift, collision and off-road of
 the model driving, and the held-out background rates before and after);
 the checkpoint is written once the phase ends (a resume during it repeats it).
 It is tuned for the discrete head only: keep closed_loop_steps 0 for the
-continuous head, whose drift it made worse (BENCHMARKS.md, "World model").
+continuous head, whose drift it made worse on the CPU (BENCHMARKS.md, "World model").
 
-Shipped model: `tg-gpudrive train-world-model --config configs/worldmodel/small_cpu.yaml
---out runs/wm_small && cp runs/wm_small/model.pt tg_gpudrive/worldmodel/shipped.pt`.
+Shipped model: the two commands at the top of configs/worldmodel/gpu.yaml (teacher forcing, then
+closed-loop fine-tuning, on one GPU), then `cp runs/wm_gpu_dagger/model.pt tg_gpudrive/worldmodel/shipped.pt`.
 
 On a WOMD store, set `scenes: <store dir>` (made with `tg-gpudrive convert`), raise
 `env.max_agents` to 128, `num_scenes` to what fits in memory (a sample is about
