@@ -345,3 +345,30 @@ def test_kept_policies_are_listed_in_order_and_load(tmp_path):
     sim.reset()
     load_policy(kept[0][1], sim)(sim)
     assert kept[0][1].stat().st_size < (tmp_path / "checkpoint.pt").stat().st_size
+
+
+def test_init_policy_fine_tunes_from_a_trained_run(tmp_path):
+    """init_policy starts the actor and critic from another run's weights (TrafficGamer fine-tunes a
+    pretrained driver) while the optimiser, multipliers and update count start fresh; the first
+    rollout of the new run acts as the old policy does. A run whose networks differ is a one-line
+    error naming each key, before any training."""
+    from tg_gpudrive.config import ConfigError
+
+    src = tmp_path / "src"
+    Trainer(tiny(src, updates=2, lambda_init=0.0), src, progress=False).train()
+    old = torch.load(src / "checkpoint.pt", weights_only=False)
+    dst = tmp_path / "dst"
+    tr = Trainer(tiny(dst, init_policy=str(src), env=dataclasses.replace(tiny(dst).env, beta=6.0)), dst,
+                 progress=False)
+    for k, v in tr.actor.state_dict().items():
+        assert torch.equal(v.cpu(), old["actor"][k].cpu()), k
+    for k, v in tr.critic.state_dict().items():
+        assert torch.equal(v.cpu(), old["critic"][k].cpu()), k
+    assert tr.update == 0 and not tr.opt.state  # a fresh optimiser and counter
+    fresh = Trainer(tiny(tmp_path / "fresh"), tmp_path / "fresh", progress=False)
+    assert not all(torch.equal(v, fresh.actor.state_dict()[k]) for k, v in tr.actor.state_dict().items())
+    with pytest.raises(ConfigError, match=r"init_policy .*hidden 32 \(this run: 64\).*env.road_k"):
+        Trainer(tiny(tmp_path / "bad", init_policy=str(src), hidden=64,
+                     env=dataclasses.replace(tiny(dst).env, road_k=8)), tmp_path / "bad", progress=False)
+    with pytest.raises(ConfigError, match=r"init_policy shipped: .*hidden 128"):
+        Trainer(tiny(tmp_path / "bad2", init_policy="shipped"), tmp_path / "bad2", progress=False)

@@ -184,6 +184,10 @@ class TrainConfig:
     prior_sigma_curvature: float = 0.01  # 1/m (one grid bin is 0.05)
     prior_floor: float = 0.05  # expert prior (discrete): uniform share mixed in, bounds log p and keeps entropy
     prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
+    # start the actor and critic from a trained run's weights (a checkpoint file, run directory or
+    # "shipped"): fine-tuning, as TrafficGamer starts from a pretrained driver; the optimiser, the
+    # multipliers and the update count start fresh. "" = random init; a --resume ignores it
+    init_policy: str = ""
     # bookkeeping
     time_limit_s: float = 0.0  # stop (and save) once this much training wall-clock has passed (0: off)
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)

@@ -39,8 +39,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY_DIR, load_checkpoint, save_atomic
-from tg_gpudrive.config import TrainConfig, to_dict
+from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, save_atomic
+from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.control import control_masks
@@ -142,6 +142,8 @@ class Trainer:
         if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
             self.actor.load_state_dict(ck["actor"])
             self.critic.load_state_dict(ck["critic"])
+        elif cfg.init_policy:
+            self._init_weights(cfg.init_policy)
         self.actor_fwd, self.critic_fwd = self.actor, self.critic
         if self.world > 1:
             ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
@@ -174,6 +176,30 @@ class Trainer:
         self.csv_path = self.out / "metrics.csv"
 
     # ------------------------------------------------------------ setup bits
+    # what a checkpoint's networks must share with this run's for their weights to load
+    ARCH_KEYS = ("hidden", "heads", "actor_history", "quantiles", "env.action_space", "env.dynamics",
+                 "env.partner_k", "env.road_k")
+
+    def _init_weights(self, source: str) -> None:
+        """Actor and critic weights from the training checkpoint `source` (init_policy)."""
+        path = checkpoint_path(source, "init_policy")
+        ck = load_checkpoint(path, "init_policy", map_location=self.device)
+        theirs = from_dict(TrainConfig, ck["config"], str(path))
+
+        def get(cfg, key):
+            obj = cfg
+            for part in key.split("."):
+                obj = getattr(obj, part)
+            return obj
+
+        diff = [f"{k} {get(theirs, k)} (this run: {get(self.cfg, k)})" for k in self.ARCH_KEYS
+                if get(theirs, k) != get(self.cfg, k)]
+        if diff:
+            raise ConfigError(f"init_policy {source}: its networks differ from this run's: {'; '.join(diff)}")
+        self.actor.load_state_dict(ck["actor"])
+        self.critic.load_state_dict(ck["critic"])
+        log.info("actor and critic initialised from %s (update %s of that run)", path, ck.get("update"))
+
     @staticmethod
     def _seed(seed: int) -> None:
         random.seed(seed)
