@@ -87,6 +87,12 @@ def test_cli_simulate_reports_the_background_driver(capsys):
     assert (out["background"], out["background_model"], out["agents_background"]) == ("log", None, 0)
     assert main(base + ["--background-model", "x.pt"]) == 2
     assert "--background-model" in capsys.readouterr().err
+    # the packaged CPU model by name; an unknown name lists the packaged ones
+    assert main(base + ["--background", "world_model", "--background-model", "small_cpu"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["background_model"] == "small_cpu" and out["agents_background"] > 0
+    assert main(base + ["--background", "world_model", "--background-model", "nope"]) == 2
+    assert "packaged name: shipped, small_cpu" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(base + ["--background", "replay"])
     assert "--background" in capsys.readouterr().err

@@ -98,7 +98,7 @@ def _background_args(p: argparse.ArgumentParser) -> None:
                         "reacting to the policy's vehicles")
     p.add_argument("--background-model", default=None, metavar="PATH",
                    help="--background world_model: a world-model checkpoint (model.pt or a train-world-model "
-                        "run directory; default: the shipped model)")
+                        "run directory, or small_cpu: the packaged CPU model; default: the shipped model)")
 
 
 def positive_int(text: str) -> int:

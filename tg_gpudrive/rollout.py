@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
+from tg_gpudrive.worldmodel.prior import PACKAGED, WorldModelDriver, load_shipped, load_world_model
 
 Policy = Callable[[Simulator], None]
 
@@ -96,7 +96,7 @@ def background_masks(scenes: Sequence, cfg, background: str = "log",
 def make_background_driver(sim: Simulator, background: str = "log", model: str | Path | None = None,
                            seed: int = 0, option: str = "background_model") -> Policy | None:
     """None for log replay; else a `WorldModelDriver` of the background rows, with the checkpoint
-    `model` (a world-model .pt or a train-world-model run directory) or the shipped model.
+    `model` (a world-model .pt, a train-world-model run directory or a packaged name) or the shipped model.
     The model's action space must match the simulator's (the loader raises ValueError otherwise;
     the shipped model is discrete)."""
     if check_background(background) == "log":
@@ -106,9 +106,10 @@ def make_background_driver(sim: Simulator, background: str = "log", model: str |
     if model is None:
         wm = load_shipped(sim)
     else:
-        path = Path(model)
+        path = PACKAGED.get(str(model), Path(model))
         if not (path / "model.pt" if path.is_dir() else path).is_file():
-            raise FileNotFoundError(f"{option}: no world-model checkpoint at {path}")
+            raise FileNotFoundError(f"{option}: no world-model checkpoint at {path} (a file, a run directory "
+                                    f"or a packaged name: {', '.join(PACKAGED)})")
         wm = load_world_model(path, sim)
     return WorldModelDriver(wm, rows="background", seed=seed)
 
