@@ -340,11 +340,14 @@ def test_report_on_tiny_runs(tmp_path):
         assert (out / f).stat().st_size > 0, f
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
     md = (out / "report.md").read_text()
-    for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "| cce | CCE-MAPPO", "| mappo | MAPPO", "realism (ours)"):
+    for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model", "| cce | CCE-MAPPO",
+                  "| mappo | MAPPO", "realism (ours)"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",
-                                                         "cce", "mappo"}
+                                                         "world model", "cce", "mappo"}
+    wm = next(r for r in summary["results"] if r["label"] == "world model")
+    assert wm["cce_gap"] and math.isfinite(wm["cce_gap"]["mean_gap"])  # exploitability of the world model alone
     assert list((out / "scenarios" / "cce").glob("*.json"))
     # the CCE-gap over training: the cce run kept its policy after updates 1 and 2, mappo kept none
     curve = {r["label"]: r.get("gap_curve") for r in summary["results"]}

@@ -12,8 +12,11 @@ tg_gpudrive/policies/shipped.pt): config from the checkpoint, no training
 curves. Baselines on the first run's scenes: log replay (the engine replaying
 every agent's log, recorded like a policy: the floor of the divergences; no
 CCE-gap, nobody drives), the closed-loop inverse-dynamics expert in the run's
-action space, and the behaviour prior alone (actions sampled from the expert
-prior, learn/prior.py, discrete action spaces). A
+action space, the behaviour prior alone (actions sampled from the expert
+prior, learn/prior.py, discrete action spaces) and the world model alone (the
+first run's magnet, `prior_model`, default the shipped model, sampling every
+policy agent's action: the paper's baseline beside plain MAPPO; continuous runs
+need a continuous `prior_model`). A
 run counts as plain MAPPO when its config switches the magnet, the proximal
 term and the constraint off
 (eta1 = 0, eta2 = inf, constraint = false; see
@@ -70,6 +73,7 @@ from tg_gpudrive.evaluation.stats import spearman_ci
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import load_actor, load_policy
 from tg_gpudrive.rollout import expert_policy
+from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_world_model
 
 FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "summary.json")
 
@@ -138,6 +142,12 @@ def prior_policy(sim):
         sim_.actions_index.copy_(a.to(torch.int32))
 
     return policy
+
+
+def world_model_policy(cfg: TrainConfig, sim) -> WorldModelDriver:
+    """The world model alone driving every policy agent (sampled, as the magnet is a distribution):
+    the run's `prior_model`, or the shipped model when it names none."""
+    return WorldModelDriver(load_world_model(cfg.prior_model or "shipped", sim), rows="policy", seed=0)
 
 
 def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool = False) -> np.ndarray:
@@ -576,8 +586,10 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     threads = torch.get_num_threads()
-    discrete = _run_files(runs[0])[0].env.discrete  # the behaviour-prior baseline needs it
-    bar = tqdm(total=len(runs) + 2 + discrete, desc="report", unit="policy", disable=not opts.progress)
+    first = _run_files(runs[0])[0]
+    discrete = first.env.discrete  # the behaviour-prior baseline needs it
+    with_wm = discrete or bool(first.prior_model)  # a continuous run names its own (continuous) world model
+    bar = tqdm(total=len(runs) + 2 + discrete + with_wm, desc="report", unit="policy", disable=not opts.progress)
     if not 0 <= opts.grid_scene < opts.scenes:
         raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
@@ -615,6 +627,9 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                 if discrete:
                     keep(*_evaluate("behaviour prior", sim, prior_policy(sim), logged, opts,
                                     lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar, cfg.gamma))
+                if with_wm:
+                    keep(*_evaluate("world model", sim, world_model_policy(cfg, sim), logged, opts,
+                                    lambda s: ex.SimGame(gsim, world_model_policy(cfg, gsim)), bar, cfg.gamma))
             policy = load_policy(ckpt, sim)
             gpolicy = load_policy(ckpt, gsim)
             actor = load_actor(ckpt, gsim)[0]
