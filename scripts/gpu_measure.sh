@@ -12,6 +12,7 @@
 #   storebuild  a 10,000-scene procedural store in /tmp/store (CPU only: runs beside GPU stages)
 #   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
 #   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py)
+#   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU
 #   (time to 95 % on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
@@ -124,10 +125,33 @@ store10k)
   ;;
 grid)
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
-    --set updates=${GRID_UPDATES:-60} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
+    ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   slim
   timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --report-only \
     "${SETS[@]}" 2>&1 | tail -3
+  ;;
+wm)
+  # the shipped world model's two steps (configs/worldmodel/gpu.yaml) and a continuous one, side by
+  # side, then every model as traffic on 512 held-out scenes (scripts/wm_traffic.py); the models
+  # stay in /tmp/res/wm/<name>/model.pt for a later stage on the same machine (e.g. quality with
+  # QUALITY_VARIANTS="cont:env.action_space=continuous,prior_model=/tmp/res/wm/cont/model.pt")
+  WC="$R"/configs/worldmodel/gpu.yaml
+  WMS=(); for x in ${WM_SET:-}; do WMS+=(--set "$x"); done  # overrides of every world-model run
+  wmrun() { local name=$1; shift; timeout ${WM_SECONDS:-330} python3 -m tg_gpudrive.worldmodel.cli --config "$WC" \
+    --out "$RES/$name" --json "${WMS[@]}" "$@" > "$RES/$name.json" 2> "$RES/$name.err"; echo "$name rc $?"; }
+  (wmrun disc && wmrun dagger --set init_model="$RES/disc/model.pt" --set steps=0 --set num_scenes=1000 \
+    --set closed_loop_steps=2000 --set closed_loop_rounds=2) &
+  # continuous: closed-loop fine-tuning made the CPU model worse; on the GPU it is tried with roll-outs
+  # at the driver's temperature (0.1)
+  (wmrun cont --set env.action_space=continuous && wmrun contdagger --set env.action_space=continuous \
+    --set init_model="$RES/cont/model.pt" --set steps=0 --set num_scenes=1000 --set closed_loop_steps=2000 \
+    --set closed_loop_rounds=2 --set closed_loop_temperature=0.1) &
+  wait
+  M=""; for n in disc dagger; do [ -f "$RES/$n/model.pt" ] && M="$M $RES/$n/model.pt"; done
+  for n in cont contdagger; do [ -f "$RES/$n/model.pt" ] && M="$M $RES/$n/model.pt $RES/$n/model.pt:0"; done
+  timeout ${WM_EVAL_SECONDS:-150} python3 "$R"/scripts/wm_traffic.py --models shipped $M --num-scenes ${WM_EVAL_N:-512} \
+    --seeds 0 1 --device ${WM_DEVICE:-cuda} 2> "$RES/traffic.err" | tee "$RES/traffic.txt"
+  find "$RES" -name checkpoint.pt -delete
   ;;
 scale)
   for n in 1 2; do
