@@ -28,6 +28,7 @@ from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 _EGO_SCALE = [20.0, 5.0, 2.0, 50.0, 50.0, 1.0, 1.0, 5.0, 5.0, 8.0]
 _PARTNER_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 20.0, 20.0, 5.0, 2.0, 4.0]
 _ROAD_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 5.0, 7.0]
+INIT_STD_FRACTION = 0.2  # continuous head: initial exploration std per action dimension / its range
 
 
 def mlp(sizes: list[int], last_act: bool = True) -> nn.Sequential:
@@ -92,8 +93,12 @@ class Actor(nn.Module):
         self.head_w = nn.Parameter(torch.randn(heads, hidden, out) * (0.01 / hidden**0.5))
         self.head_b = nn.Parameter(torch.zeros(heads, out))
         if not discrete:
-            self.log_std = nn.Parameter(torch.full((act_dim,), -0.5))
-            self.register_buffer("act_scale", torch.tensor(act_scale or [1.0] * act_dim))
+            scale = torch.tensor(act_scale or [1.0] * act_dim)
+            # exploration starts at a fifth of each dimension's range (1.2 m/s^2, 0.06 1/m by default):
+            # one std of 0.61 for both, as before, spanned twice the curvature box, so most early
+            # curvature draws were clipped to a full turn
+            self.log_std = nn.Parameter(torch.log(INIT_STD_FRACTION * scale))
+            self.register_buffer("act_scale", scale)
 
     def forward(self, obs: torch.Tensor, slot: torch.Tensor | None = None, hist: torch.Tensor | None = None):
         h = self.encoder(obs)
