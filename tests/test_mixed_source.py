@@ -67,6 +67,36 @@ def test_every_scene_has_a_scenario_type():
     assert len(one) == 1 and one.get(0).metadata["scenario_type"] == "womd"
 
 
+def test_generator_knobs_in_a_spec_and_in_a_mix():
+    src = resolve_scenes("procedural:t_junction[parking=1,stop_lines=0.5,max_parked=4]", n=3, seed=7)
+    assert src.params.parking == 1.0 and src.params.stop_lines == 0.5 and src.params.max_parked == 4
+    sc = src.get(0)
+    assert sc.metadata["params"]["parking"] == 1.0 and 0 < sc.metadata["num_parked"] <= 4
+    assert sc.metadata["scenario_type"] == "t_junction" and sc.metadata["seed"] == 7
+    plain = resolve_scenes("procedural:t_junction", n=3, seed=7)
+    assert plain.params is None and plain.get(0).metadata["num_parked"] == 0
+    # '=' inside the brackets is not a weight; a weight follows the closing bracket
+    mix = resolve_scenes("mix:procedural:merge=3,procedural:all[parking=0.5,kerb_stops=0.5]", n=8)
+    assert mix.weights == [0.75, 0.25] and mix.parts[1].params.kerb_stops == 0.5
+    mix = resolve_scenes("mix:procedural:merge,procedural:all[parking=0.5]=3", n=8)
+    assert mix.weights == [0.25, 0.75] and mix.parts[1].params.parking == 0.5
+
+
+@pytest.mark.parametrize("spec, why", [
+    ("procedural:all[parkng=0.5]", "unknown generator knob 'parkng'"),
+    ("procedural:all[parking=lots]", "parking='lots' is not a valid value"),
+    ("procedural:all[parking=2]", "must be in [0, 1]"),
+    ("procedural:all[parking]", "is not key=value"),
+    ("procedural:all[parking=0.5", "must end with ']'"),
+    ("procedural:dense[parking=0.5]", "takes no generator knobs"),
+    ("mix:procedural:merge=1,procedural:all[parkng=1]=2", "mix part 'procedural:all[parkng=1]=2'"),
+])
+def test_bad_generator_knobs_are_one_line_errors(spec, why):
+    with pytest.raises(ValueError) as e:
+        resolve_scenes(spec, n=4)
+    assert why in str(e.value).splitlines()[0]
+
+
 def test_path_with_equals_sign(tmp_path):
     d = tmp_path / "a=b"
     d.mkdir()

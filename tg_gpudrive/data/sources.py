@@ -8,6 +8,9 @@ specs (`SPEC_FORMS`):
     procedural:all         all six types, scene i = generate_scene(type i % 6, seed + i)
     procedural:dense       WOMD-size benchmark scenes, scene i = dense_scene(seed + i): 64-128 agents,
                            20-40 k road points (tiles of all six types, data/procedural/dense.py)
+    procedural:<type or all>[key=value,...]
+                           generator knobs (fields of `ProceduralParams`), e.g. urban streets with
+                           parked cars and queues at stop lines: "procedural:all[parking=0.8,stop_lines=0.5]"
     <dir with manifest>    a packed store (`store.open_store`)
     <file>.json            one GPUDrive processed WOMD JSON
     <file> *tfrecord*      one raw WOMD TFRecord (all its scenes, read at resolve time)
@@ -22,6 +25,7 @@ Opening a source validates what it can cheaply (a directory's scenes are checked
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import multiprocessing
@@ -34,7 +38,7 @@ from typing import Callable, Sequence
 import numpy as np
 from tqdm import tqdm
 
-from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
+from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene
 from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store, load_file, open_store
 from tg_gpudrive.scene import Scene
@@ -46,6 +50,7 @@ SPEC_FORMS = (
     "procedural:<type> (type one of merge, dual_lane_intersection, t_junction, dense_intersection, "
     "roundabout, y_junction)",
     "procedural:all",
+    "procedural:<type or all>[<ProceduralParams field>=<value>,...], e.g. procedural:all[parking=0.8,stop_lines=0.5]",
     "a packed store directory (holding manifest.json)",
     "a GPUDrive .json file",
     "a WOMD .tfrecord file (or a name containing 'tfrecord')",
@@ -392,7 +397,7 @@ def _mix_part(part: str, spec: str) -> tuple[str, float]:
     text, weight = part.strip(), 1.0
     if not text:
         raise bad("empty part")
-    if "=" in text:
+    if "=" in text.rpartition("]")[2]:  # '=' inside a procedural spec's [knobs] is not a weight
         head, tail = text.rsplit("=", 1)
         try:
             w = float(tail)
@@ -478,6 +483,42 @@ def _resolve_mix(spec: str, body: str, n: int | None, seed: int) -> MixedSource:
     return mix
 
 
+def _procedural_params(spec: str, kind: str) -> tuple[str, ProceduralParams | None]:
+    """("all", ProceduralParams(parking=0.8)) from "all[parking=0.8]"; (kind, None) without brackets.
+    An unknown field or a bad value is a one-line ValueError naming it."""
+    if "[" not in kind:
+        return kind, None
+    head, _, body = kind.partition("[")
+    if not body.endswith("]"):
+        raise _spec_error(spec, "generator knobs must end with ']'")
+    fields = {f.name: f for f in dataclasses.fields(ProceduralParams)}
+    values = {}
+    for item in _split_top(body[:-1]):
+        key, eq, text = (x.strip() for x in item.partition("="))
+        if not key or not eq:
+            raise _spec_error(spec, f"generator knob {item.strip()!r} is not key=value")
+        if key not in fields:
+            raise _spec_error(spec, f"unknown generator knob {key!r} (knobs: {', '.join(fields)})")
+        default = getattr(ProceduralParams(), key)
+        try:
+            if isinstance(default, bool):
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                values[key] = text.lower() in ("true", "1")
+            elif isinstance(default, int) or key == "num_lanes":
+                values[key] = None if text.lower() == "none" else int(text)
+            else:
+                values[key] = float(text)
+        except ValueError:
+            raise _spec_error(spec, f"generator knob {key}={text!r} is not a valid value") from None
+    if head.strip().lower() == "dense":
+        raise _spec_error(spec, "procedural:dense takes no generator knobs")
+    try:
+        return head.strip(), ProceduralParams(**values)
+    except ValueError as e:
+        raise _spec_error(spec, str(e)) from None
+
+
 def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSource:
     """The `SceneSource` named by `spec` (see module docstring / `SPEC_FORMS`).
 
@@ -496,7 +537,9 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
     if spec.lower().startswith("mix:"):
         return _resolve_mix(spec, spec[4:], n, seed)
     if spec.lower().startswith("procedural:"):
-        kind = spec.split(":", 1)[1].strip().lower()
+        kind = spec.split(":", 1)[1].strip()
+        kind, params = _procedural_params(spec, kind)
+        kind = kind.lower()
         if kind == "dense":  # WOMD-size benchmark scenes (data/procedural/dense.py), not a paper type
             return ProceduralSource(["dense"], DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed,
                                     name="procedural:dense")
@@ -506,8 +549,8 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
             types = [kind]
         else:
             raise _spec_error(spec, f"unknown scenario type {kind!r} (types: {', '.join(SCENARIO_TYPES)}, all, dense)")
-        return ProceduralSource(types, DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed,
-                                name=f"procedural:{kind}")
+        return ProceduralSource(types, DEFAULT_PROCEDURAL_SCENES if n is None else int(n), seed, params,
+                                name=spec if params is not None else f"procedural:{kind}")
 
     path = Path(spec).expanduser()
     if is_store(path):

@@ -23,6 +23,11 @@ R_MIN = 6.5  # m, smallest lane radius: curvature 0.154 < 0.25 leaves room for i
 MAX_LEN, MAX_WID = 5.5, 2.2  # m, largest vehicle box the lanes must carry
 SWEEP_INFLATE = 0.15  # m added to each half extent when sweeping lanes against curbs
 POINT_SPACING = 1.0  # m between exported polyline points
+# Kerbside parking (junction arms only): a strip between the outer lane and the kerb, as on the urban
+# streets of WOMD, where most vehicles of a scene are parked 2-2.5 m from the nearest lane centre.
+PARK_WIDTH = (2.3, 2.7)  # m, strip width drawn per kerb side; the widest car (2.2 m) fits with room
+PARK_TAPER = 5.0  # m along the arm over which the kerb steps out from the lane edge to the strip
+PARK_MIN_CORNER = math.radians(60)  # no strip on a side whose corner is tighter: strips would meet
 
 
 class GeometryError(RuntimeError):
@@ -189,6 +194,7 @@ class RoadMap:
     crosswalks: list[np.ndarray] = field(default_factory=list)
     routes: list[list[int]] = field(default_factory=list)
     spawn: list[tuple[int, float, float]] = field(default_factory=list)  # (lane, s_ref, weight)
+    strips: list["ParkingStrip"] = field(default_factory=list)
     info: dict = field(default_factory=dict)
 
     def add_lane(self, path: Path, **kw) -> int:
@@ -231,6 +237,40 @@ class RoadMap:
         return sorted(set(lane_of[ib[hit]].tolist()))
 
 
+@dataclass(frozen=True)
+class ParkingStrip:
+    """Kerbside parking along one side of a junction arm, from t0 to t1 m out from the centre.
+
+    Its inner edge (the outer lane's edge) lies at normal offset `side * inner` of the arm, its
+    kerb at `side * (inner + width)`; cars parked in it face the traffic of their side. `lane` is
+    the outer lane beside it (a straight lane of the arm), `r_stop` the arm's stop-line distance."""
+
+    theta: float  # the arm's outward direction
+    side: int  # +1: the inbound side (+normal), -1: the outbound side
+    inner: float  # m from the arm's centre line to the strip's inner edge
+    width: float  # m
+    t0: float
+    t1: float
+    lane: int
+    r_stop: float
+    half_lane: float  # m from the lane's centre to the strip's inner edge
+
+    def lane_s(self, t):
+        """Arc length along `lane` of the point t m out along the arm."""
+        return t - self.r_stop if self.side < 0 else self.t1 - t
+
+    def arm_t(self, s):
+        """Inverse of lane_s."""
+        return s + self.r_stop if self.side < 0 else self.t1 - s
+
+    def pose(self, t: float, lateral: float) -> tuple[float, float, float]:
+        """(x, y, heading) of a car centred t m out along the arm, `lateral` m from the inner edge."""
+        u = np.array([math.cos(self.theta), math.sin(self.theta)])
+        n = np.array([-u[1], u[0]])
+        xy = t * u + self.side * (self.inner + lateral) * n
+        return float(xy[0]), float(xy[1]), float(self.theta + (math.pi if self.side > 0 else 0.0))
+
+
 # ----------------------------------------------------------------------------- junctions
 @dataclass
 class Arm:
@@ -240,6 +280,8 @@ class Arm:
     length: float  # m from the centre to the far end
     major: bool = False  # on the priority road
     r_stop: float = 0.0  # m from the centre to the stop line (junction box boundary)
+    park_in: float = 0.0  # m, width of the parking strip on the inbound kerb side (0: none)
+    park_out: float = 0.0  # m, the same on the outbound side
 
     @property
     def u(self):
@@ -271,16 +313,35 @@ def _classify(defl: float) -> str:
     return "L" if defl > 0 else "R"
 
 
-def build_junction(arms: list[Arm], w: float, allowed, rng, crosswalks: bool) -> RoadMap:
+def _draw_parking(arms: list[Arm], parking: float, prng: np.random.Generator) -> None:
+    """Each kerb side of each arm gets a parking strip with probability `parking` (sides whose
+    corner is tighter than PARK_MIN_CORNER excepted). `prng` is the generator's own stream for
+    street furniture, so the scene's other draws do not depend on it."""
+    na = len(arms)
+    for i in range(na):
+        a, b = arms[i], arms[(i + 1) % na]
+        alpha = float(wrap(b.theta - a.theta)) % (2 * math.pi)
+        wide = alpha >= PARK_MIN_CORNER
+        if prng.random() < parking and wide:
+            a.park_in = float(prng.uniform(*PARK_WIDTH))
+        if prng.random() < parking and wide:
+            b.park_out = float(prng.uniform(*PARK_WIDTH))
+
+
+def build_junction(arms: list[Arm], w: float, allowed, rng, crosswalks: bool, parking: float = 0.0,
+                   prng: np.random.Generator | None = None) -> RoadMap:
     """A junction of straight arms meeting at the origin.
 
     `allowed(a, b)` says whether traffic may go from arm a to arm b. Inbound
     lane k of an arm sits at normal offset +(k + 1/2) w, outbound lane k at
     -(k + 1/2) w (right-hand traffic); k = 0 is next to the centre line.
+    `parking` > 0 adds kerbside parking strips (drawn from `prng`, see `_draw_parking`).
     """
     order = np.argsort([wrap(a.theta) for a in arms])
     arms = [arms[i] for i in order]
     na = len(arms)
+    if parking > 0:
+        _draw_parking(arms, parking, prng)
     # initial stop distances: room for a right-turn radius r_target at every corner
     r_target = float(rng.uniform(8.0, 12.0))
     for a in arms:
@@ -372,14 +433,15 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
                 c = m.add_lane(path, prio=prio, arms=(i, j))
                 m.edges += [(lane_in[i, k], c), (c, lane_out[j, kk])]
                 m.routes.append([lane_in[i, k], c, lane_out[j, kk]])
-    # curbs: one per corner between consecutive arms
+    # curbs: one per corner between consecutive arms; where an arm side has a parking strip, the
+    # kerb runs at the strip's outer edge and steps in to the lane edge over PARK_TAPER before the corner
     for i in range(na):
         a, b = arms[i], arms[(i + 1) % na]
         alpha = float(wrap(b.theta - a.theta)) % (2 * math.pi)
-        ea = a.point(a.length, a.n_in * w)
+        head = _kerb_run(a, a.n_in * w, a.park_in, +1)
+        tail = _kerb_run(b, b.n_out * w, b.park_out, -1).reversed()
         if abs(alpha - math.pi) < 1e-6:
-            eb = b.point(b.length, -b.n_out * w)
-            m.curbs.append(line(ea[0], ea[1], a.theta + math.pi, float(np.linalg.norm(eb - ea))))
+            m.curbs.append(head + _segment(head.end[:2], tail.start[:2]) + tail)
             continue
         if alpha > math.pi:
             raise GeometryError("reflex corner between arms")
@@ -389,12 +451,13 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
         if turn is None:
             raise _Grow([i, (i + 1) % na])
         curb = turn.offset(-w / 2)
-        sx, sy, _ = curb.start
-        ex, ey, _ = curb.end
-        head = line(ea[0], ea[1], a.theta + math.pi, float(np.linalg.norm(np.array([sx, sy]) - ea)))
-        eb = b.point(b.length, -b.n_out * w)
-        tail = line(ex, ey, b.theta, float(np.linalg.norm(eb - np.array([ex, ey]))))
-        m.curbs.append(head + curb + tail)
+        m.curbs.append(head + curb + tail)  # the runs end where the corner's kerb starts and ends
+    for i, a in enumerate(arms):
+        for side, inner, width, lane in ((+1, a.n_in * w, a.park_in, lane_in.get((i, a.n_in - 1), -1)),
+                                         (-1, a.n_out * w, a.park_out, lane_out.get((i, a.n_out - 1), -1))):
+            if width > 0:
+                m.strips.append(ParkingStrip(float(a.theta), side, inner, width, a.r_stop + PARK_TAPER, a.length,
+                                             lane, a.r_stop, w / 2))
     # road lines along the arms, crosswalks at the stop lines
     for a in arms:
         ln = a.length - a.r_stop
@@ -411,6 +474,24 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
     return m
 
 
+def _segment(p, q) -> Path:
+    p, q = np.asarray(p, float), np.asarray(q, float)
+    d = q - p
+    return line(p[0], p[1], math.atan2(d[1], d[0]), float(np.linalg.norm(d)))
+
+
+def _kerb_run(a: Arm, edge: float, park: float, side: int) -> Path:
+    """The kerb along one side of arm `a`, from its far end in to the stop line: at the lane edge
+    (normal offset side * edge), or with a parking strip of width `park` at side * (edge + park)
+    until PARK_TAPER before the stop line, then stepping in to the lane edge."""
+    far = a.point(a.length, side * (edge + park))
+    stop = a.point(a.r_stop, side * edge)
+    if park <= 0:
+        return _segment(far, stop)
+    knee = a.point(a.r_stop + PARK_TAPER, side * (edge + park))
+    return _segment(far, knee) + _segment(knee, stop)
+
+
 def _movement_prio(cls: str, from_major: bool, has_major: bool) -> int:
     """Who goes first at a conflict: the priority road (its left turns after its
     straight and right movements), then the minor road; a junction without a
@@ -425,29 +506,29 @@ def _rot(rng) -> float:
     return float(rng.uniform(-math.pi, math.pi))
 
 
-def map_dual_lane(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_dual_lane(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
     rho = _rot(rng)
     phi = float(rng.uniform(math.radians(70), math.radians(110)))
     n = 2
     arms = [Arm(rho + d, n, n, scale * float(rng.uniform(100, 140))) for d in (0, phi, math.pi, phi + math.pi)]
-    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks, parking, prng)
     m.info.update(lanes_per_direction=n, crossing_angle_deg=math.degrees(phi))
     return m
 
 
-def map_dense(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_dense(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
     rho = _rot(rng)
     phi = float(rng.uniform(math.radians(75), math.radians(105)))
     na = lanes if lanes else int(rng.integers(3, 5))
     nb = lanes if lanes else int(rng.integers(3, 5))
     arms = [Arm(rho + d, n, n, scale * float(rng.uniform(100, 140)))
             for d, n in ((0, na), (phi, nb), (math.pi, na), (phi + math.pi, nb))]
-    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks, parking, prng)
     m.info.update(lanes_per_direction=[na, nb], crossing_angle_deg=math.degrees(phi))
     return m
 
 
-def map_t_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_t_junction(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
     rho = _rot(rng)
     nm = lanes if lanes else int(rng.integers(1, 3))
     ns = lanes if lanes else int(rng.integers(1, 3))
@@ -455,12 +536,12 @@ def map_t_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
     arms = [Arm(rho, nm, nm, scale * float(rng.uniform(100, 140)), major=True),
             Arm(rho + math.pi, nm, nm, scale * float(rng.uniform(100, 140)), major=True),
             Arm(rho + math.pi + psi, ns, ns, scale * float(rng.uniform(100, 140)))]
-    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks)
+    m = build_junction(arms, w, lambda a, b: True, rng, crosswalks, parking, prng)
     m.info.update(lanes_per_direction=[nm, ns], stem_angle_deg=math.degrees(psi))
     return m
 
 
-def map_y_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_y_junction(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
     rho = _rot(rng)
     n = lanes if lanes else int(rng.integers(1, 3))
     bl = float(rng.uniform(math.radians(22), math.radians(40)))
@@ -470,12 +551,13 @@ def map_y_junction(rng, w, scale, lanes, crosswalks) -> RoadMap:
             Arm(rho + math.pi / 2 - br, n, n, scale * float(rng.uniform(100, 140)))]
     stem = arms[0]
     # no branch-to-branch movements
-    m = build_junction(arms, w, lambda a, b: a is stem or b is stem, rng, crosswalks)
+    m = build_junction(arms, w, lambda a, b: a is stem or b is stem, rng, crosswalks, parking, prng)
     m.info.update(lanes_per_direction=n, branch_angles_deg=[math.degrees(bl), math.degrees(br)])
     return m
 
 
-def map_roundabout(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_roundabout(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
+    # no kerbside parking on roundabouts: `parking` and `prng` are unused
     rho = _rot(rng)
     na = int(rng.choice([3, 4, 4, 5]))
     rc = float(rng.uniform(16.0, 20.0) if na == 5 else rng.uniform(12.5, 19.0))
@@ -590,7 +672,8 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
     return m
 
 
-def map_merge(rng, w, scale, lanes, crosswalks) -> RoadMap:
+def map_merge(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:
+    # no kerbside parking on merges: `parking` and `prng` are unused
     n = lanes if lanes else int(rng.integers(1, 4))
     gamma = float(rng.uniform(math.radians(8), math.radians(18)))
     r_ramp = float(rng.uniform(60, 120))

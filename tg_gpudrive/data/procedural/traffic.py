@@ -40,8 +40,9 @@ LAT_ACC = 2.5  # m/s^2, lateral acceleration that sets the curve speed
 B_CURVE = 1.5  # m/s^2, deceleration ahead of curves
 GAP_ACCEPT = 1.0  # s, time a minor-road vehicle wants between clearing and the major's arrival
 # Holding a yielding vehicle at its stop line (instead of at the conflict zone inside the junction)
-# avoids some waiting in the junction box but roughly halves throughput and interactions: off.
-HOLD_AT_STOP_LINE = False
+# avoids some waiting in the junction box but roughly halves throughput and interactions, so it is
+# off unless a scene asks for it (`rollout(hold_at_stop_line=True)`, ProceduralParams.stop_lines):
+# then queues form at the stop lines, as at the stop-controlled junctions of WOMD.
 MIN_MOVE_AFTER_10 = 5.5  # m, a vehicle must travel this far after step 10 or be dropped
 
 
@@ -215,6 +216,20 @@ class Vehicles:
     min_gap: np.ndarray  # m
     a_max: np.ndarray  # m/s^2
     b_comf: np.ndarray  # m/s^2
+    # kerb stops (`plan_kerb_stops`): the vehicle ends its trip parked beside its lane, stopping with its
+    # centre at route arc length stop_s after moving kerb_off m to the right over the last ramp_len m
+    stop_s: np.ndarray | None = None  # m, inf: drives on to its route's end
+    ramp_len: np.ndarray | None = None  # m
+    kerb_off: np.ndarray | None = None  # m
+
+    def __post_init__(self):
+        n = len(self.routes)
+        if self.stop_s is None:
+            self.stop_s = np.full(n, np.inf)
+        if self.ramp_len is None:
+            self.ramp_len = np.ones(n)
+        if self.kerb_off is None:
+            self.kerb_off = np.zeros(n)
 
     def __len__(self):
         return len(self.routes)
@@ -222,7 +237,25 @@ class Vehicles:
     def subset(self, keep: np.ndarray) -> "Vehicles":
         idx = np.flatnonzero(keep)
         return Vehicles([self.routes[i] for i in idx], *(getattr(self, f)[idx] for f in (
-            "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf")))
+            "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf",
+            "stop_s", "ramp_len", "kerb_off")))
+
+    def lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(offset to the right of the lane centre, its derivative along s) of vehicle i at route arc
+        lengths s: a smoothstep from 0 to kerb_off over the ramp before stop_s (zero without a stop)."""
+        if not np.isfinite(self.stop_s[i]):
+            return np.zeros_like(s), np.zeros_like(s)
+        L = self.ramp_len[i]
+        x = np.clip((s - (self.stop_s[i] - L)) / L, 0.0, 1.0)
+        return self.kerb_off[i] * x * x * (3 - 2 * x), self.kerb_off[i] * 6 * x * (1 - x) / L
+
+    def out_of_lane_s(self) -> np.ndarray:
+        """(N,) route s beyond which a kerb-stopping vehicle has left its lane for the kerb (offset
+        past its width plus the check margins): followers no longer queue behind it. inf otherwise."""
+        frac = np.clip((self.width + 2 * CHECK_MARGIN) / np.maximum(self.kerb_off, 1e-6), 0.0, 1.0)
+        # smoothstep^-1 of frac (x = 1/2 - sin(asin(1 - 2 frac) / 3))
+        x = 0.5 - np.sin(np.arcsin(1.0 - 2.0 * frac) / 3.0)
+        return np.where(np.isfinite(self.stop_s) & (self.kerb_off > 0), self.stop_s - self.ramp_len * (1 - x), np.inf)
 
 
 def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_mean: float,
@@ -270,6 +303,66 @@ def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_m
         return Vehicles([], *(np.zeros(0) for _ in range(10)))
     cols = list(zip(*rows))
     return Vehicles(list(cols[2]), *(np.array(c, np.float64) for c in cols[3:]))
+
+
+KERB_RAMP = (10.0, 16.0)  # m over which a kerb-stopping vehicle moves from its lane into the strip
+KERB_REACH = 30.0  # m of strip after the ramp's earliest end where the stop is drawn
+KERB_RUNWAY = 12.0  # m a kerb stop lies short of where the vehicle would have got to without it
+
+
+def plan_kerb_stops(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: np.random.Generator, prob: float,
+                    clear: float) -> int:
+    """Each vehicle whose route runs along a lane beside a parking strip (before the junction or after
+    it) and which drives far enough along it in the episode (`reach`: (N,) route arc length each
+    vehicle reached in a rollout without stops) ends its trip parked in that strip with probability
+    `prob`, as logged drivers pull in at the kerb: the stop is drawn beside the strip, within
+    KERB_REACH m of the earliest possible one and at least KERB_RUNWAY m short of `reach` (room to slow
+    down); the ramp lies on the lane's straight run, ahead of the vehicle's start; the box keeps `clear`
+    m from the kerb. Vehicles drawn are updated in place; returns how many."""
+    strips = {st.lane: st for st in tm.map.strips if st.lane >= 0}
+    if not strips or prob <= 0:
+        return 0
+    count = 0
+    for i, lanes in enumerate(veh.routes):
+        k = next((k for k, lane in enumerate(lanes) if lane in strips), None)
+        if k is None or rng.random() >= prob:
+            continue
+        st = strips[lanes[k]]
+        ramp = float(rng.uniform(*KERB_RAMP))
+        half = veh.length[i] / 2
+        start = tm.route(lanes).starts[k]
+        s_a, s_b = sorted((st.lane_s(st.t0), st.lane_s(st.t1)))  # the strip's run along the lane
+        lo = max(s_a + 1.0 + ramp, veh.s0[i] - start + 2.0 + ramp)
+        hi = min(lo + KERB_REACH, s_b - half - 3.0, reach[i] - start - KERB_RUNWAY)
+        if hi <= lo:
+            continue
+        off = st.half_lane + st.width / 2 + float(rng.uniform(-0.1, 0.1))
+        off = _kerb_offset(off, st.half_lane + st.width - clear, ramp, half, veh.width[i] / 2)
+        veh.stop_s[i] = start + float(rng.uniform(lo, hi))
+        veh.ramp_len[i] = ramp
+        veh.kerb_off[i] = off
+        count += 1
+    return count
+
+
+def _kerb_offset(want: float, limit: float, ramp: float, hl: float, hw: float) -> float:
+    """The largest final offset <= `want` for which the box (half extents hl, hw) never reaches
+    further right than `limit` m from the lane centre along the smoothstep ramp: turned by
+    atan(d'), its front corner swings out by hl sin + hw cos of that angle."""
+    x = np.linspace(0.0, 1.0, 201)
+    shape, slope = x * x * (3 - 2 * x), 6 * x * (1 - x) / ramp
+
+    def reach(d: float) -> float:
+        ang = np.arctan(d * slope)
+        return float(np.max(d * shape + hl * np.sin(ang) + hw * np.cos(ang)))
+
+    if reach(want) <= limit:
+        return want
+    lo, hi = 0.0, want
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if reach(mid) <= limit else (lo, mid)
+    return lo
 
 
 # ----------------------------------------------------------------------------- rollout
@@ -339,8 +432,9 @@ def _travel_time(d, v, a, vmax):
     return np.where(d <= d_acc, t1, t2)
 
 
-def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollout:
-    """Integrate every vehicle along its route; see the module docstring for the rules."""
+def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> Rollout:
+    """Integrate every vehicle along its route; see the module docstring for the rules.
+    `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone."""
     n = len(veh)
     routes = [tm.route(k) for k in veh.routes]
     n_lanes = len(tm.map.lanes)
@@ -369,6 +463,10 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollo
         if len(jl) and jl[0] > 0:
             stop_s[i], lim_s[i] = r.starts[jl[0]], r.starts[jl[0] + 1]
     halfsum = half[:, None] + half[None, :]
+    # a kerb-stopping vehicle meets its stop as the IDM's standing obstacle (its centre comes to rest
+    # about at stop_s) and stops leading its followers once it is out of their lane
+    s_end = np.minimum(rlen, veh.stop_s + half - 1.0)
+    gone_s = veh.out_of_lane_s()
     v_des, a_max, headway, min_gap = veh.v_des, veh.a_max, veh.headway, veh.min_gap
     sqrt_ab = 2 * np.sqrt(veh.a_max * veh.b_comf)
 
@@ -413,11 +511,11 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollo
         ls = st - bounds[ar, k]
         pos = off_tab[:, lane_ids[ar, k]] + ls[None, :]
         with np.errstate(invalid="ignore"):
-            gap = np.where(pos > st[:, None], pos - st[:, None] - halfsum, np.inf)
+            gap = np.where((pos > st[:, None]) & (st < gone_s)[None, :], pos - st[:, None] - halfsum, np.inf)
         j = np.argmin(gap, 1)
         g_lead = gap[ar, j]
         dv = vt - vt[j]
-        g_obs = rlen - st - half + 2.0  # the route end stands in the way
+        g_obs = s_end - st - half + 2.0  # the route end (or the kerb stop) stands in the way
         to_stop = np.maximum(stop_s - st, 0.0)
         near = np.isinf(ticket) & (to_stop < 30.0 + 3.0 * vt)
         if near.any():
@@ -436,7 +534,7 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollo
                                 ticket[pa] + 1e-6 * pa, ticket[pb] + 1e-6 * pb)
             lose_b, lose_a = state == 1, state == 2
             gb, ga = room_b - 0.3, room_a - 0.3
-            if HOLD_AT_STOP_LINE:
+            if hold_at_stop_line:
                 hold_b, hold_a = stop_b - sb - half[pb], stop_a - sa - half[pa]
                 ok_b = jz_b & (vb * vb <= 2 * B_HARD * np.maximum(hold_b - 1.0, 0.0))
                 ok_a = jz_a & (va * va <= 2 * B_HARD * np.maximum(hold_a - 1.0, 0.0))
@@ -466,6 +564,14 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float) -> Rollo
         xy[i, :, 0] = np.interp(s[i], g, r.grid_xy[:, 0])
         xy[i, :, 1] = np.interp(s[i], g, r.grid_xy[:, 1])
         yaw[i] = np.interp(s[i], g, r.grid_yaw)
+        if np.isfinite(veh.stop_s[i]):
+            # the kerb ramp lies on a straight lane (`plan_kerb_stops`): the path is the lane offset
+            # d(s) to the right, its heading turned by atan(d') and its speed scaled by sqrt(1 + d'^2)
+            d, dd = veh.lateral(i, s[i])
+            xy[i, :, 0] += d * np.sin(yaw[i])
+            xy[i, :, 1] -= d * np.cos(yaw[i])
+            yaw[i] -= np.arctan(dd)
+            v[i] *= np.sqrt(1.0 + dd * dd)
     return Rollout(s, v, xy, yaw)
 
 
@@ -486,11 +592,12 @@ def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN) -> list[tuple
     return sorted(zip(ti[hit].tolist(), ii[hit].tolist(), jj[hit].tolist()))
 
 
-def settle(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, min_keep: int = 2):
+def settle(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, min_keep: int = 2,
+           hold_at_stop_line: bool = False):
     """Roll out, drop offending vehicles, repeat until no box overlap and everyone moves."""
     dropped = []
     while True:
-        ro = rollout(tm, veh, num_steps, dt)
+        ro = rollout(tm, veh, num_steps, dt, hold_at_stop_line)
         bad = np.zeros(len(veh), bool)
         for _, i, j in overlapping_pairs(ro.xy, ro.yaw, veh.length, veh.width):
             if not bad[i] and not bad[j]:
