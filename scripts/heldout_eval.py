@@ -77,6 +77,9 @@ def main(argv=None) -> int:
                    "per_type": {t: {k: round(v[k], 4) for k in ("episodes", "goal_rate", "collision_rate",
                                                                 "offroad_rate")}
                                 for t, v in out.get("per_type", {}).items()}}
+            if "kerb_stops" in out:  # agents whose goal lies at the kerb (procedural kerb_stops)
+                row["kerb_stops"] = {k: round(out["kerb_stops"][k], 4) for k in ("episodes", "goal_rate",
+                                                                               "collision_rate", "offroad_rate")}
             rows.append(row)
             print(json.dumps(row), flush=True)
             if args.out:

@@ -3,6 +3,7 @@ run over the union of the batches; a 2-rank run trains, checkpoints, and resumes
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 
@@ -83,10 +84,26 @@ def test_two_rank_run_checkpoints_and_resumes_with_one(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ck["world_size"] == 2 and ck["update"] == 2 and out["ranks"] == 2
+    # where each rank's time went: a row per rank and update; a rank's rollout plus its wait is the
+    # same on both ranks (both wait for the slowest), and metrics.csv names the slowest rollout
+    timing = list(csv.DictReader((run / "timing.csv").open()))
+    assert [(r["update"], r["rank"]) for r in timing] == [("1", "0"), ("1", "1"), ("2", "0"), ("2", "1")]
+    metrics = list(csv.DictReader((run / "metrics.csv").open()))
+    for u in ("1", "2"):
+        rows = [r for r in timing if r["update"] == u]
+        own = [float(r["rollout_s"]) for r in rows]
+        until = [float(r["rollout_s"]) + float(r["wait_s"]) for r in rows]
+        assert all(x > 0 for x in own) and all(float(r["update_s"]) > 0 for r in rows)
+        assert abs(until[0] - until[1]) < 0.5 * max(until) and min(until) >= max(own) - 0.05
+        m = next(r for r in metrics if r["update"] == u)
+        assert float(m["time/rollout_slowest_s"]) == pytest.approx(max(own), rel=1e-4)
+        assert float(m["time/rollout_s"]) == pytest.approx(own[0], rel=1e-4)
     assert cli.main(["train", "--config", str(SMALL), "--resume", str(run), "--set", "updates=3", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ck["world_size"] == 1 and ck["update"] == 3 and out["update"] == 3
+    timing = list(csv.DictReader((run / "timing.csv").open()))
+    assert [(r["update"], r["rank"]) for r in timing][-1] == ("3", "0") and len(timing) == 5
 
 
 def test_shards_are_disjoint_cover_the_source_and_mix_scene_types():

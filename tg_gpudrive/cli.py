@@ -269,9 +269,12 @@ def cmd_simulate(args) -> int:
 
 def _print_rates(out: dict) -> None:
     for k, v in out.items():
-        if k not in ("per_type", "episodes"):  # "episodes" is printed by name: agent_episodes
+        if k not in ("per_type", "episodes", "kerb_stops"):  # "episodes" is printed by name: agent_episodes
             print(f"{k:>22}: {v:.4g}" if isinstance(v, float) else f"{k:>22}: {v}")
-    for name, r in out.get("per_type", {}).items():
+    groups = dict(out.get("per_type", {}))
+    if "kerb_stops" in out:  # the agents whose goal lies at the kerb (procedural kerb_stops)
+        groups["(kerb stops)"] = out["kerb_stops"]
+    for name, r in groups.items():
         print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
               f"offroad {r['offroad_rate']:.3f}  ({r['episodes']} agent episodes)")
 

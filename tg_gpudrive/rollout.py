@@ -115,7 +115,9 @@ def make_background_driver(sim: Simulator, background: str = "log", model: str |
 
 
 class EpisodeStats:
-    """Sums of episode outcomes per scenario type, accumulated on the device."""
+    """Sums of episode outcomes per scenario type, accumulated on the device; where the scenes mark
+    kerb stops (procedural `kerb_stops`: vehicles whose goal lies at the kerb, off the lane centre),
+    also over those agents alone (`summary()["kerb_stops"]`)."""
 
     KEYS = ("episodes", "goal", "collided", "offroad", "cost", "min_dist", "return", "steps")
 
@@ -126,16 +128,26 @@ class EpisodeStats:
         self.world_type = torch.tensor([self.type_names.index(t) for t in types], device=sim.reward.device)
         n = len(self.type_names)
         self.sums = {k: torch.zeros(n, dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
+        slot_agent = np.asarray(sim.model.slot_agent)
+        kerb = np.zeros(slot_agent.shape, bool)
+        for w, sc in enumerate(sim.model.scenes):
+            if sc.metadata.get("kerb_stops"):
+                kerb[w] = np.isin(slot_agent[w], sc.metadata["kerb_stops"]) & (slot_agent[w] >= 0)
+        self.kerb = torch.as_tensor(kerb, device=sim.reward.device) if kerb.any() else None
+        self.kerb_sums = {k: torch.zeros(1, dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
         self.speed_sum = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
         self.scene_episodes = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
         self.alive_steps = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
 
     def _add(self, rows: torch.Tensor, goal, collided, offroad, cost, min_dist, ret, steps) -> None:
         wt = self.world_type[:, None].expand_as(rows)[rows]
+        kerb = None if self.kerb is None else self.kerb & rows
         for key, val in (("episodes", torch.ones_like(goal, dtype=torch.float64)), ("goal", goal),
                          ("collided", collided), ("offroad", offroad), ("cost", cost), ("min_dist", min_dist),
                          ("return", ret), ("steps", steps)):
             self.sums[key].index_add_(0, wt, val[rows].to(torch.float64))
+            if kerb is not None:
+                self.kerb_sums[key] += (val.to(torch.float64) * kerb).sum()
 
     def after_step(self) -> None:
         s = self.sim
@@ -177,6 +189,8 @@ class EpisodeStats:
         if len(self.type_names) > 1:
             out["per_type"] = {name: rates({k: float(v[i]) for k, v in self.sums.items()})
                                for i, name in enumerate(self.type_names)}
+        if self.kerb is not None:
+            out["kerb_stops"] = rates({k: float(v.sum()) for k, v in self.kerb_sums.items()})
         return out
 
 

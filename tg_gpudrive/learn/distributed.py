@@ -50,6 +50,16 @@ def all_reduce_sum_(tensors: dict) -> None:
             dist.all_reduce(t, op=dist.ReduceOp.SUM)
 
 
+def gather_floats(values: list[float], device) -> list[list[float]]:
+    """Every rank's `values`, in rank order, on every rank (one row when not distributed)."""
+    if not is_dist():
+        return [list(values)]
+    t = torch.tensor(values, dtype=torch.float64, device=device)
+    out = [torch.empty_like(t) for _ in range(dist.get_world_size())]
+    dist.all_gather(out, t)
+    return [o.tolist() for o in out]
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

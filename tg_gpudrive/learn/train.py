@@ -477,14 +477,20 @@ class Trainer:
                 self._resample()
             t0 = time.perf_counter()
             buf, stats = self.rollout()
+            self._sync()
+            t_own = time.perf_counter() - t0  # this rank's rollout
             dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
-            if self.sim.is_cuda:
-                torch.cuda.synchronize(self.device)
-            t_roll = time.perf_counter() - t0
+            self._sync()
+            t_roll = time.perf_counter() - t0  # until the slowest rank's rollout is in
             row = self.learn(buf)
-            if self.sim.is_cuda:
-                torch.cuda.synchronize(self.device)
+            self._sync()
             dt = time.perf_counter() - t0
+            # where each rank's time went: its rollout, waiting for the slowest rollout, the update
+            # (backward's gradient all-reduce waits for the slowest backward inside it); every rank's
+            # row goes to timing.csv, rank 0's and the slowest rollout to metrics.csv
+            phases = dist_util.gather_floats([t_own, t_roll - t_own, dt - t_roll], self.device)
+            row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
+                        "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
             self.wall += dt
             steps = int(stats["alive"])
             self.agent_steps += steps
@@ -512,6 +518,7 @@ class Trainer:
                 row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
             if self.lead:
                 self._log(row)
+                self._log_timing(phases)
             last = row
             if bar is not None:
                 bar.update(1)
@@ -558,6 +565,10 @@ class Trainer:
         goals, eps = (sum(x) for x in zip(*self._recent))
         return len(self._recent) == 3 and eps > 0 and goals / eps >= self.cfg.target_goal_rate
 
+    def _sync(self) -> None:
+        if self.sim.is_cuda:
+            torch.cuda.synchronize(self.device)
+
     # ------------------------------------------------------------ logging
     def _log(self, row: dict) -> None:
         new = not self.csv_path.exists()
@@ -572,6 +583,18 @@ class Trainer:
                 if isinstance(v, (int, float)) and k != "update" and math.isfinite(v):
                     tb.add_scalar(k, v, row["update"])
             tb.flush()
+
+    def _log_timing(self, phases: list[list[float]]) -> None:
+        """timing.csv: one row per rank and update (rollout, wait for the slowest rollout, update, s),
+        long format so a run resumed on another number of ranks appends cleanly."""
+        path = self.out / "timing.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as f:
+            w = csv.writer(f)
+            if new:
+                w.writerow(["update", "rank", "rollout_s", "wait_s", "update_s"])
+            for r, (own, wait, upd) in enumerate(phases):
+                w.writerow([self.update, r, f"{own:.6f}", f"{wait:.6f}", f"{upd:.6f}"])
 
     def _tensorboard(self):
         """A SummaryWriter into the run directory when `tensorboard` is installed (the optional extra
@@ -646,16 +669,18 @@ class Trainer:
         self._trim_csv()
 
     def _trim_csv(self) -> None:
-        # metrics.csv may hold rows written after this checkpoint: keep only those up to it
-        if self.lead and (self.out / "metrics.csv").exists():
-            rows = list(csv.DictReader((self.out / "metrics.csv").open()))
+        # metrics.csv and timing.csv may hold rows written after this checkpoint: keep only those up to it
+        for path in (self.out / "metrics.csv", self.out / "timing.csv"):
+            if not (self.lead and path.exists()):
+                continue
+            rows = list(csv.DictReader(path.open()))
             # a row cut short by a kill (missing fields, a partial number) is dropped with the rest
             whole = [r for r in rows if None not in r.values() and str(r.get("update", "")).isdigit()]
             if len(whole) != len(rows):
-                log.warning("%s: %d damaged row(s) dropped", self.out / "metrics.csv", len(rows) - len(whole))
+                log.warning("%s: %d damaged row(s) dropped", path, len(rows) - len(whole))
             keep = [r for r in whole if int(r["update"]) <= self.update]
             if len(keep) != len(rows):
-                with (self.out / "metrics.csv").open("w", newline="") as f:
+                with path.open("w", newline="") as f:
                     w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
                     w.writeheader()
                     w.writerows(keep)
