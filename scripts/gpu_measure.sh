@@ -13,7 +13,9 @@
 #   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
 #   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
-#   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU
+#   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
+#   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
+#             queues and kerb stops; held-out plain / urban / real rates beside the shipped policy
 #   (time to 95 % on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
 # TRAIN_SET adds `--set` overrides to every training run (a CPU dry run shrinks everything).
@@ -40,6 +42,8 @@ slim() {
 import sys, torch, pathlib
 for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
     ck = torch.load(p, map_location="cpu", weights_only=False)
+    if "actor" not in ck:  # a world-model run's checkpoint: its model.pt is what comes back
+        continue
     torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
 PY
 }
@@ -51,6 +55,8 @@ import csv, pathlib, sys
 # rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
 for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
     rows = list(csv.DictReader((d / "metrics.csv").open()))
+    if not rows or "goal_rate" not in rows[0]:  # not a policy run (a world model's log)
+        continue
     done = [r for r in rows[-10:] if r["goal_rate"] not in ("", "nan")]
     n = sum(float(r["episodes"]) for r in done) or float("nan")
     rate = lambda k: sum(float(r[k]) * float(r["episodes"]) for r in done) / n  # noqa: E731
@@ -158,6 +164,50 @@ scale)
     CUDA_VISIBLE_DEVICES=0,1 timeout 150 python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/scale$n" \
       --nproc $n --set updates=${SCALE_UPDATES:-10} --set resample_every=0 --set num_worlds=${SCALE_WORLDS:-4096} --set checkpoint_every=100000 \
       "${SETS[@]}" 2>&1 | bar 1
+  done
+  # per rank, median over updates 3..: its own rollout, waiting for the slowest rollout, the update
+  python3 - "$RES" <<'PY'
+import csv, pathlib, statistics, sys
+for d in sorted(pathlib.Path(sys.argv[1]).glob("scale*")):
+    rows = [r for r in csv.DictReader((d / "timing.csv").open()) if int(r["update"]) >= 3] if (d / "timing.csv").exists() else []
+    m = list(csv.DictReader((d / "metrics.csv").open())) if (d / "metrics.csv").exists() else []
+    sps = statistics.median(float(r["agent_steps_per_s"]) for r in m[2:]) if len(m) > 2 else float("nan")
+    roll = statistics.median(float(r["rollout_agent_steps_per_s"]) for r in m[2:]) if len(m) > 2 else float("nan")
+    print(f"{d.name}: {sps:,.0f} agent steps/s end to end, rollout {roll:,.0f}")
+    for rank in sorted({r["rank"] for r in rows}):
+        own = [r for r in rows if r["rank"] == rank]
+        med = {k: statistics.median(float(r[k]) for r in own) for k in ("rollout_s", "wait_s", "update_s")}
+        print(f"  rank {rank}: rollout {med['rollout_s']:.3f} s, wait {med['wait_s']:.3f} s, update {med['update_s']:.3f} s")
+PY
+  ;;
+urban)
+  # issue 12's real-scene transfer: a training mix with street furniture (parked cars, queues at stop
+  # lines, kerb stops), the shipped world model fine-tuned on it as the magnet, CCE-MAPPO trained on it
+  # for the shipped policy's time, then held-out rates per collision mode on plain procedural scenes,
+  # urban ones (kerb stops apart) and the two real WOMD scenes, beside the shipped policy
+  MIX=${URBAN_MIX:-"mix:procedural:all=0.5,procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5]=0.5"}
+  URB=${URBAN_EVAL:-"procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5]"}
+  WC="$R"/configs/worldmodel/gpu.yaml
+  cli simulate --scenes procedural:merge --worlds 4 --device cuda --json > /dev/null 2>&1  # compile once
+  timeout ${URBAN_WM_SECONDS:-200} python3 -m tg_gpudrive.worldmodel.cli --config "$WC" --out "$RES/wm" --json \
+    --set init_model=shipped --set scenes="$MIX" --set env.max_agents=64 --set steps=${URBAN_WM_STEPS:-1000} \
+    --set closed_loop_steps=${URBAN_WM_CL:-1000} --set closed_loop_rounds=1 ${URBAN_WM_SET:-} > "$RES/wm.json" 2> "$RES/wm.err"
+  echo "world model rc $?"; tail -2 "$RES/wm.err"
+  PM=shipped; [ -f "$RES/wm/model.pt" ] && PM="$RES/wm/model.pt"
+  timeout $(( ${URBAN_SECONDS:-463} + 120 )) python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/cce" \
+    --set scenes="$MIX" --set env.max_agents=64 --set prior_model="$PM" --set time_limit_s=${URBAN_SECONDS:-463} \
+    --set checkpoint_every=50 "${SETS[@]}" 2>&1 | bar 3
+  summarize
+  slim
+  for spec in procedural:all "$URB"; do
+    timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs "$RES/cce" shipped --scenes "$spec" \
+      --modes ignore stop remove --num-scenes ${EVAL_N:-1024} --device ${EVAL_DEVICE:-cuda} --out "$RES/heldout.jsonl" 2>>"$RES/heldout.err" | tail -7
+  done
+  for mode in ignore stop remove; do
+    for run in "$RES/cce" shipped; do
+      timeout 120 python3 -m tg_gpudrive.cli evaluate --checkpoint "$run" --scenes "$R"/tests/data --num-scenes 2 \
+        --worlds 64 --episodes 64 --collision-mode $mode --json 2>>"$RES/real.err" | tee -a "$RES/real.jsonl" | head -c 300; echo
+    done
   done
   ;;
 *) echo "unknown stage $stage"; exit 2 ;;
