@@ -50,12 +50,16 @@ def test_resume_continues_exactly(tmp_path, history):
     # the "kill": a later row that was logged after the last checkpoint must be dropped on resume
     with (b / "metrics.csv").open("a") as f:
         f.write(",".join(["999"] * len(rows(b)[0])) + "\n")
+    with (b / "timing.csv").open("a") as f:
+        f.write("999,0,1.0,0.0,1.0\n")
     Trainer(tiny(b, actor_history=history), b, resume=b, progress=False).train()
     ra, rb = rows(a), rows(b)
     assert len(ra) == len(rb) == 4
+    timing = (b / "timing.csv").read_text().splitlines()  # the wall-clock phases, one row per update here
+    assert [t.split(",")[0] for t in timing] == ["update", "1", "2", "3", "4"]
     for x, y in zip(ra, rb):
         for k in x:
-            if k not in ("wall_s", "agent_steps_per_s", "rollout_agent_steps_per_s"):
+            if k not in ("wall_s", "agent_steps_per_s", "rollout_agent_steps_per_s") and not k.startswith("time/"):
                 assert x[k] == y[k], (x["update"], k)
     assert (a / "curves.png").stat().st_size > 10_000
 
