@@ -76,7 +76,8 @@ class ProceduralParams:
                     lane centre)
 
     Street furniture (parking, stop lines, kerb stops) is drawn from its own random stream: with
-    parking = 0 and stop_lines = 0    (kerb stops need parking) every scene is what it was before these knobs existed.
+    parking = 0 and stop_lines = 0 (kerb stops need parking) every scene is what it was before these
+    knobs existed, bit for bit.
     """
 
     size_scale: float = 1.0
@@ -209,8 +210,9 @@ class Parked:
 
 def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int) -> Parked:
     """Fill the map's parking strips with cars, kerbside, facing their side's traffic; drop any that
-    would come within the rollout's check margin of a moving vehicle at any step or touch a kerb
-    (by construction none should), keep the `max_parked` nearest to the conflict point."""
+    would come within the rollout's check margin of a moving vehicle at any step (which leaves the
+    space a kerb stop pulls into) or touch a kerb (by construction none should); keep the
+    `max_parked` nearest to the conflict point."""
     rows = []
     for st in m.strips:
         fill = float(rng.uniform(*PARK_FILL))
