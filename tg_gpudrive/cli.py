@@ -83,7 +83,9 @@ def _engine_args(p: argparse.ArgumentParser) -> None:
 def _scene_args(p: argparse.ArgumentParser, default: str = "procedural:all",
                 num_scenes_default: str = "min(worlds, source size)") -> None:
     p.add_argument("--scenes", default=default,
-                   help="procedural:<type> | procedural:all | a store, .json/.tfrecord file or directory")
+                   help="procedural:<type> | procedural:all, either with generator knobs such as "
+                        "procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5] | a store, .json/.tfrecord "
+                        "file or directory | mix:<spec>=<weight>,...")
     p.add_argument("--num-scenes", type=positive_int, default=None,
                    help=f"distinct scenes to draw from the source (default: {num_scenes_default})")
 
