@@ -258,7 +258,8 @@ def cmd_simulate(args) -> int:
     scenes, skipped = _load_scenes(args, args.worlds)
     sim, background = _simulator_with_background(args, cfg, scenes)
     steps = args.steps or sim.episode_length
-    out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=not args.json,
+    # progress goes to stderr, so --json keeps stdout to one line and a long run still shows it is alive
+    out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=True,
                       background=background)
     out.update({"policy": args.policy, "collision_mode": str(cfg.collision_mode), "scenes": args.scenes,
                 "scene_files_skipped": skipped, **sim.report(), **_background_report(args, cfg)})
@@ -368,7 +369,7 @@ def cmd_evaluate(args) -> int:
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
-    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=not args.json, background=background,
+    out = run_rollout(sim, policy, rounds * sim.episode_length, progress=True, background=background,
                       desc="evaluate")
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, "scene_files_skipped": skipped,
