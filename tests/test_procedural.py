@@ -190,6 +190,7 @@ def check_routes_and_goals(sc, tag=""):
     assert len(edges) and all(a in lanes and b in lanes for a, b in edges), tag
     routes = sc.metadata["routes"]
     kerb = set(sc.metadata["kerb_stops"])
+    offsets = np.abs(sc.metadata["lane_offsets"])  # drivers off the lane centre (lane_offset)
     assert len(routes) == sc.num_agents - sc.metadata["num_parked"]
     for i, route in enumerate(routes):
         assert all(k in lanes for k in route), tag
@@ -199,8 +200,8 @@ def check_routes_and_goals(sc, tag=""):
         if i in kerb:  # parked at the kerb: in the strip beside its last lane, off the lane centre
             assert 2.0 < d_goal < 4.5, tag
             continue
-        assert d_goal < 0.05, tag
-        assert point_polyline_distance(sc.log_pos[i, 0].astype(np.float64), sc.polyline(route[0])) < 0.05, tag
+        assert d_goal < offsets[i] + 0.05, tag
+        assert point_polyline_distance(sc.log_pos[i, 0].astype(np.float64), sc.polyline(route[0])) < offsets[i] + 0.05, tag
     kinds = set(np.unique(sc.road_type).tolist())
     assert {RoadType.LANE, RoadType.ROAD_EDGE, RoadType.ROAD_LINE} <= kinds, tag
     # polylines are dense enough for observation sampling
@@ -296,7 +297,7 @@ def test_unknown_type_and_bad_params():
 
 
 # ----------------------------------------------------------------------------- street furniture
-URBAN = ProceduralParams(parking=0.8, stop_lines=0.5, kerb_stops=0.6)
+URBAN = ProceduralParams(parking=0.8, stop_lines=0.5, kerb_stops=0.6, lane_offset=0.4)
 JUNCTIONS = ("dual_lane_intersection", "t_junction", "dense_intersection", "y_junction")
 
 
@@ -333,9 +334,27 @@ def test_parked_cars_stand_in_strips_beside_the_lanes():
         assert generate_scene(kind, 0, URBAN).metadata["num_parked"] == 0
 
 
+def test_lane_offsets_move_drivers_and_goals_off_the_centre():
+    """With lane_offset, drivers keep their own offset from the lane centre on straight road (within
+    the lane: check_routes_and_goals bounds every goal by it), so goals lie off the centre too."""
+    offs, goal_d = [], []
+    for kind in SCENARIO_TYPES:
+        sc = generate_scene(kind, 2, ProceduralParams(lane_offset=0.4))
+        lanes = sc.metadata["routes"]
+        for i, b in enumerate(sc.metadata["lane_offsets"]):
+            offs.append(abs(b))
+            if abs(b) >= 0.2:
+                goal_d.append(point_polyline_distance(sc.goal[i].astype(np.float64), sc.polyline(lanes[i][-1])))
+        check_routes_and_goals(sc, kind)
+        check_kinematics(sc, kind)
+    assert np.mean(offs) > 0.15 and max(offs) <= 0.65  # at most (4.5 - 1.8) / 2 - 0.25 m
+    assert np.mean(goal_d) > 0.1
+
+
 def test_street_knobs_are_deterministic_and_off_by_default():
     sc = generate_scene("t_junction", 5)
     assert sc.metadata["num_parked"] == 0 and sc.metadata["kerb_stops"] == [] and not sc.metadata["hold_at_stop_line"]
+    assert not any(sc.metadata["lane_offsets"])
     a, b = generate_scene("t_junction", 5, URBAN), generate_scene("t_junction", 5, URBAN)
     assert np.array_equal(a.log_pos, b.log_pos) and np.array_equal(a.road_points, b.road_points)
     # the street stream is separate: the moving traffic of a scene without kerb stops does not change

@@ -12,10 +12,12 @@ no box touches a curb, trajectories obey a kinematic bicycle model (speed >= 0,
 every goal lies on the last lane of the vehicle's route (`metadata["routes"]`).
 
 Street furniture of real urban scenes, off by default (`ProceduralParams.parking`, `stop_lines`,
-`kerb_stops`; in a scene spec `procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5]`): parking
-strips along junction arms filled with parked cars (static agents after the moving ones,
-`metadata["num_parked"]`), queues at stop lines, and vehicles that end their trip parked at the kerb
-(`metadata["kerb_stops"]`: their goal lies in the strip, 2-4 m off the lane centre). A policy trained
+`kerb_stops`, `lane_offset`; in a scene spec
+`procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4]`): parking strips along
+junction arms filled with parked cars (static agents after the moving ones, `metadata["num_parked"]`),
+queues at stop lines, vehicles that end their trip parked at the kerb (`metadata["kerb_stops"]`: their
+goal lies in the strip, 2-4 m off the lane centre), and drivers who keep their own offset from the
+lane centre on straight road (`metadata["lane_offsets"]`, m to the right). A policy trained
 without them misses such goals: the shipped one reached 9 % of them against 94 % of the others
 (BENCHMARKS.md, "Real-scene transfer"), as it missed the kerbside goals of the real WOMD scenes.
 
@@ -35,7 +37,8 @@ import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
 from tg_gpudrive.data.procedural.checks import box_segment_overlap, near_pairs
-from tg_gpudrive.data.procedural.traffic import TrafficModel, overlapping_pairs, plan_kerb_stops, settle, spawn
+from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_offsets,
+                                                 settle, spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
 
@@ -74,10 +77,13 @@ class ProceduralParams:
     kerb_stops      probability that a vehicle driving beside a parking strip (before or after the
                     junction) ends its trip parked in it (its goal then lies at the kerb, off the
                     lane centre)
+    lane_offset     m, std of each driver's offset from the lane centre on straight road (clipped
+                    to keep 0.25 m inside the lane; back on the centre through curves). Logged
+                    WOMD drivers keep 0.2-1.5 m off the lane centre; procedural ones 0 by default.
 
-    Street furniture (parking, stop lines, kerb stops) is drawn from its own random stream: with
-    parking = 0 and stop_lines = 0 (kerb stops need parking) every scene is what it was before these
-    knobs existed, bit for bit.
+    Street furniture (parking, stop lines, kerb stops, lane offsets) is drawn from its own random
+    stream: with parking = 0, stop_lines = 0 and lane_offset = 0 (kerb stops need parking) every scene
+    is what it was before these knobs existed, bit for bit.
     """
 
     size_scale: float = 1.0
@@ -100,6 +106,7 @@ class ProceduralParams:
     max_parked: int = 32
     stop_lines: float = 0.0
     kerb_stops: float = 0.0
+    lane_offset: float = 0.0
 
     def __post_init__(self):
         checks = [
@@ -118,6 +125,7 @@ class ProceduralParams:
             (all(0.0 <= x <= 1.0 for x in (self.parking, self.stop_lines, self.kerb_stops)),
              "parking, stop_lines and kerb_stops must be in [0, 1]"),
             (0 <= self.max_parked <= 128, "max_parked must be in [0, 128]"),
+            (0.0 <= self.lane_offset <= 1.0, "lane_offset must be in [0, 1] m"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -171,6 +179,7 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
         if len(veh) < p.min_vehicles:
             boost *= 1.5
             continue
+        plan_lane_offsets(veh, street, p.lane_offset, p.lane_width)
         veh, ro, dropped = settle(tm, veh, p.num_steps, p.dt, p.min_vehicles, hold)
         if veh is not None:
             # kerb stops are drawn where the free rollout shows a vehicle gets far enough, then the
@@ -261,7 +270,7 @@ def _parked_at_kerb(veh, ro) -> np.ndarray:
     """(N,) bool: the kerb-stopping vehicles that end the episode in their strip (most of the way over)."""
     out = np.zeros(len(veh), bool)
     for i in np.flatnonzero(np.isfinite(veh.stop_s)):
-        out[i] = veh.lateral(i, ro.s[i, -1:])[0][0] >= 0.9 * veh.kerb_off[i]
+        out[i] = veh.kerb_lateral(i, ro.s[i, -1:])[0][0] >= 0.9 * veh.kerb_off[i]
     return out
 
 
@@ -304,6 +313,7 @@ def _export(kind: str, seed: int, p: ProceduralParams, m: geo.RoadMap, veh, ro, 
         source="procedural", routes=routes, geometry=info, num_dropped=n_dropped,
         num_parked=k, hold_at_stop_line=hold_at_stop_line,
         kerb_stops=[int(i) for i in np.flatnonzero(_parked_at_kerb(veh, ro))],
+        lane_offsets=[round(float(b), 4) for b in veh.bias],
     )
     if k:
         ppos = np.repeat(tf(parked.xy)[:, None], t, 1)

@@ -14,9 +14,11 @@ is IDM (desired speed, time headway, minimum gap) against:
     `_decide`) and the second holds back behind the "frontier" that the first
     one's current position still leaves free (reservation of the zone),
   * the curve speed limit (lateral acceleration LAT_ACC) and the route end.
-After the rollout every box pair is checked exactly (separating axes with a
-safety margin); an overlapping later-spawned vehicle, or one that barely moves,
-is dropped and the rollout repeated, so the invariants hold by construction.
+Kerb stops and lane offsets (`Vehicles.lateral`) move a vehicle sideways off its centreline, only
+where its route is straight, after the 1-D rollout; a kerb-stopping vehicle stops leading its
+followers once it has left their lane. After the rollout every box pair is checked exactly
+(separating axes with a safety margin); an overlapping later-spawned vehicle, or one that barely
+moves, is dropped and the rollout repeated, so the invariants hold by construction.
 Nothing here draws random numbers after spawning: the rollout is deterministic.
 """
 
@@ -59,6 +61,26 @@ class Route:
     @property
     def length(self) -> float:
         return self.path.length
+
+    def straight_weight(self, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(w, dw/ds) at arc lengths s: 1 on straight road at least 1 + LANE_OFFSET_RAMP m from any
+        curved piece of the route, 0 on and within 1 m of one, a smoothstep between. A lane offset
+        scaled by w therefore changes only where the route is straight."""
+        s = np.asarray(s, np.float64)
+        pieces = self.path.pieces
+        curved = [k for k, p in enumerate(pieces) if p.curv != 0.0]
+        if not curved:
+            return np.ones_like(s), np.zeros_like(s)
+        a = self.path.starts[curved]
+        b = a + np.array([pieces[k].length for k in curved])
+        before, after = a[None, :] - s[:, None], s[:, None] - b[None, :]
+        dist = np.maximum(np.maximum(before, after), 0.0)
+        k = np.argmin(dist, 1)
+        ar = np.arange(len(s))
+        d = dist[ar, k]
+        slope = np.where(before[ar, k] > 0, -1.0, np.where(after[ar, k] > 0, 1.0, 0.0))
+        x = np.clip((d - 1.0) / LANE_OFFSET_RAMP, 0.0, 1.0)
+        return x * x * (3 - 2 * x), 6 * x * (1 - x) / LANE_OFFSET_RAMP * slope
 
     def prio_at(self, s: float) -> int:
         k = int(np.clip(np.searchsorted(self.starts, s, side="right") - 1, 0, len(self.lanes) - 1))
@@ -221,9 +243,14 @@ class Vehicles:
     stop_s: np.ndarray | None = None  # m, inf: drives on to its route's end
     ramp_len: np.ndarray | None = None  # m
     kerb_off: np.ndarray | None = None  # m
+    # lane offset (`plan_lane_offsets`): the vehicle drives bias m to the right of the lane centre
+    # (negative: left) wherever its route is straight, back on the centre through curves
+    bias: np.ndarray | None = None  # m
 
     def __post_init__(self):
         n = len(self.routes)
+        if self.bias is None:
+            self.bias = np.zeros(n)
         if self.stop_s is None:
             self.stop_s = np.full(n, np.inf)
         if self.ramp_len is None:
@@ -238,16 +265,26 @@ class Vehicles:
         idx = np.flatnonzero(keep)
         return Vehicles([self.routes[i] for i in idx], *(getattr(self, f)[idx] for f in (
             "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf",
-            "stop_s", "ramp_len", "kerb_off")))
+            "stop_s", "ramp_len", "kerb_off", "bias")))
 
-    def lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(offset to the right of the lane centre, its derivative along s) of vehicle i at route arc
-        lengths s: a smoothstep from 0 to kerb_off over the ramp before stop_s (zero without a stop)."""
+    def kerb_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(offset to the right of the lane centre, its derivative along s) of vehicle i's kerb stop at
+        route arc lengths s: a smoothstep from 0 to kerb_off over the ramp before stop_s (zero without)."""
         if not np.isfinite(self.stop_s[i]):
             return np.zeros_like(s), np.zeros_like(s)
         L = self.ramp_len[i]
         x = np.clip((s - (self.stop_s[i] - L)) / L, 0.0, 1.0)
         return self.kerb_off[i] * x * x * (3 - 2 * x), self.kerb_off[i] * 6 * x * (1 - x) / L
+
+    def lateral(self, i: int, s: np.ndarray, route: Route) -> tuple[np.ndarray, np.ndarray]:
+        """Vehicle i's whole offset to the right of its lane centre and its derivative along s: the
+        lane offset (on straight road) plus the kerb stop. Both change only where the route is
+        straight, so the path's curvature is d'' there and the lane's own elsewhere."""
+        d, dd = self.kerb_lateral(i, s)
+        if self.bias[i]:
+            w, dw = route.straight_weight(s)
+            d, dd = d + self.bias[i] * w, dd + self.bias[i] * dw
+        return d, dd
 
     def out_of_lane_s(self) -> np.ndarray:
         """(N,) route s beyond which a kerb-stopping vehicle has left its lane for the kerb (offset
@@ -305,6 +342,19 @@ def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_m
     return Vehicles(list(cols[2]), *(np.array(c, np.float64) for c in cols[3:]))
 
 
+LANE_OFFSET_RAMP = 6.0  # m over which a lane offset fades in after a curve and out before one
+LANE_OFFSET_CLEAR = 0.25  # m a biased box keeps from its lane's edge
+
+
+def plan_lane_offsets(veh: Vehicles, rng: np.random.Generator, sigma: float, lane_width: float) -> None:
+    """Each vehicle drives off its lane centre by N(0, sigma) m (clipped so its box keeps
+    LANE_OFFSET_CLEAR from the lane's edges), as logged drivers do; in place."""
+    if sigma <= 0:
+        return
+    room = np.maximum(lane_width / 2 - veh.width / 2 - LANE_OFFSET_CLEAR, 0.0)
+    veh.bias[:] = np.clip(rng.normal(0.0, sigma, len(veh)), -room, room)
+
+
 KERB_RAMP = (10.0, 16.0)  # m over which a kerb-stopping vehicle moves from its lane into the strip
 KERB_REACH = 30.0  # m of strip after the ramp's earliest end where the stop is drawn
 KERB_RUNWAY = 12.0  # m a kerb stop lies short of where the vehicle would have got to without it
@@ -341,6 +391,7 @@ def plan_kerb_stops(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: np.
         veh.stop_s[i] = start + float(rng.uniform(lo, hi))
         veh.ramp_len[i] = ramp
         veh.kerb_off[i] = off
+        veh.bias[i] = 0.0  # the ramp's clearance was worked out from the lane centre
         count += 1
     return count
 
@@ -564,10 +615,11 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_
         xy[i, :, 0] = np.interp(s[i], g, r.grid_xy[:, 0])
         xy[i, :, 1] = np.interp(s[i], g, r.grid_xy[:, 1])
         yaw[i] = np.interp(s[i], g, r.grid_yaw)
-        if np.isfinite(veh.stop_s[i]):
-            # the kerb ramp lies on a straight lane (`plan_kerb_stops`): the path is the lane offset
-            # d(s) to the right, its heading turned by atan(d') and its speed scaled by sqrt(1 + d'^2)
-            d, dd = veh.lateral(i, s[i])
+        if np.isfinite(veh.stop_s[i]) or veh.bias[i]:
+            # kerb ramps and lane offsets change only on straight road (`Vehicles.lateral`): the path
+            # is the lane offset d(s) to the right, its heading turned by atan(d'), its speed scaled
+            # by sqrt(1 + d'^2)
+            d, dd = veh.lateral(i, s[i], r)
             xy[i, :, 0] += d * np.sin(yaw[i])
             xy[i, :, 1] -= d * np.cos(yaw[i])
             yaw[i] -= np.arctan(dd)
