@@ -1,15 +1,19 @@
 """Save a PNG grid with one procedural scene of each type.
 
     python scripts/procedural_gallery.py out.png [--seed 0] [--extent 60] [--density 1.0]
+        [--knobs parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4]
 
 Curbs black, lane centrelines thin blue, lane dividers dashed olive,
 crosswalks green; each vehicle's trajectory is a coloured line with its box
-drawn at the first step (filled) and the last step (outline).
+drawn at the first step (filled) and the last step (outline). `--knobs` takes
+generator knobs as a scene spec does (`procedural:all[...]`); parked cars are
+drawn grey, and a kerb stop's final box thick black.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import matplotlib
 
@@ -18,6 +22,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene  # noqa: E402
+from tg_gpudrive.data.sources import resolve_scenes  # noqa: E402
 from tg_gpudrive.types import RoadType  # noqa: E402
 
 
@@ -35,20 +40,26 @@ def draw(ax, scene, extent):
              RoadType.CROSSWALK: dict(color="#3a9a3a", lw=0.8)}
     for kind, pts in scene.polylines():
         ax.plot(pts[:, 0], pts[:, 1], **style.get(RoadType(kind), dict(color="grey", lw=0.5)))
-    colors = plt.cm.tab20(np.linspace(0, 1, max(scene.num_agents, 2)))
+    movers = scene.num_agents - scene.metadata.get("num_parked", 0)
+    kerb = set(scene.metadata.get("kerb_stops", []))
+    colors = plt.cm.tab20(np.linspace(0, 1, max(movers, 2)))
     for i in range(scene.num_agents):
         xy = scene.log_pos[i]
-        ax.plot(xy[:, 0], xy[:, 1], color=colors[i], lw=1.5)
         first = box_corners(xy[0], scene.log_yaw[i, 0], scene.length[i], scene.width[i])
+        if i >= movers:  # parked
+            ax.fill(first[:, 0], first[:, 1], color="0.6")
+            continue
+        ax.plot(xy[:, 0], xy[:, 1], color=colors[i], lw=1.5)
         last = box_corners(xy[-1], scene.log_yaw[i, -1], scene.length[i], scene.width[i])
         ax.fill(first[:, 0], first[:, 1], color=colors[i], alpha=0.8)
-        ax.plot(last[:, 0], last[:, 1], color=colors[i], lw=1.0)
+        ax.plot(last[:, 0], last[:, 1], color="k" if i in kerb else colors[i], lw=2.5 if i in kerb else 1.0)
     ax.plot(*scene.metadata["conflict_point"], "r+", ms=10)
     ax.set_xlim(-extent, extent)
     ax.set_ylim(-extent, extent)
     ax.set_aspect("equal")
-    ax.set_title(f"{scene.metadata['scenario_type']} seed {scene.metadata['seed']}: "
-                 f"{scene.num_agents} vehicles", fontsize=10)
+    parked = scene.num_agents - movers
+    ax.set_title(f"{scene.metadata['scenario_type']} seed {scene.metadata['seed']}: {movers} vehicles"
+                 + (f", {parked} parked, {len(kerb)} kerb stops" if parked else ""), fontsize=10)
 
 
 def main(argv=None):
@@ -57,8 +68,11 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--extent", type=float, default=60.0, help="half width of each panel, m")
     ap.add_argument("--density", type=float, default=1.0)
+    ap.add_argument("--knobs", default="", help="generator knobs as in a scene spec, e.g. parking=0.8,kerb_stops=0.5")
     args = ap.parse_args(argv)
     params = ProceduralParams(density=args.density)
+    if args.knobs:  # the scene spec's parser: an unknown knob is a one-line error
+        params = dataclasses.replace(resolve_scenes(f"procedural:all[{args.knobs}]", n=1).params, density=args.density)
     fig, axs = plt.subplots(2, 3, figsize=(18, 12))
     for ax, kind in zip(axs.ravel(), SCENARIO_TYPES):
         draw(ax, generate_scene(kind, args.seed, params), args.extent)
