@@ -26,7 +26,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.worldmodel import WorldModelDriver, load_world_model
 from tg_gpudrive.worldmodel.metrics import background_rates
-from tg_gpudrive.worldmodel.prior import PACKAGED
+from tg_gpudrive.worldmodel.prior import world_model_file
 
 
 def _env_of(path: str, overrides: list[str]) -> EngineConfig:
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     replayed = set()  # (action space, env) pairs whose expert replay is printed
     for spec in args.models:
         path, _, temp = spec.partition(":")
-        path = str(PACKAGED.get(path, path))
+        path = str(world_model_file(path))  # _env_of reads the checkpoint's training config
         env = _env_of(path, args.set)
         model = load_world_model(path, device=device)
         # the checkpoint decides the action space; scenes and replay are per action space and env

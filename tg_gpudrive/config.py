@@ -273,6 +273,12 @@ def from_dict(cls, data: dict, source: str = "<dict>", prefix: str = ""):
         raise ConfigError(f"{source}: {e}") from None
 
 
+def coerce_field(cls, key: str, value: Any, source: str = "<dict>") -> Any:
+    """`value` (as YAML gives it) checked and converted for field `key` of dataclass `cls`, as
+    `from_dict` does for every field; a wrong type is a ConfigError naming key and source."""
+    return _coerce(typing.get_type_hints(cls)[key], value, key, source)
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     if "=" not in text:
         raise ConfigError(f"override {text!r}: expected key=value")

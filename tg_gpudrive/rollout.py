@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.worldmodel.prior import PACKAGED, WorldModelDriver, load_shipped, load_world_model
+from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
 
 Policy = Callable[[Simulator], None]
 
@@ -106,11 +106,10 @@ def make_background_driver(sim: Simulator, background: str = "log", model: str |
     if model is None:
         wm = load_shipped(sim)
     else:
-        path = PACKAGED.get(str(model), Path(model))
-        if not (path / "model.pt" if path.is_dir() else path).is_file():
-            raise FileNotFoundError(f"{option}: no world-model checkpoint at {path} (a file, a run directory "
-                                    f"or a packaged name: {', '.join(PACKAGED)})")
-        wm = load_world_model(path, sim)
+        try:
+            wm = load_world_model(model, sim)
+        except FileNotFoundError as e:
+            raise FileNotFoundError(f"{option}: {e}") from None
     return WorldModelDriver(wm, rows="background", seed=seed)
 
 

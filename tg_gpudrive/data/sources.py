@@ -36,8 +36,10 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+import yaml
 from tqdm import tqdm
 
+from tg_gpudrive.config import ConfigError, coerce_field
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene
 from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store, load_file, open_store
@@ -491,7 +493,7 @@ def _procedural_params(spec: str, kind: str) -> tuple[str, ProceduralParams | No
     head, _, body = kind.partition("[")
     if not body.endswith("]"):
         raise _spec_error(spec, "generator knobs must end with ']'")
-    fields = {f.name: f for f in dataclasses.fields(ProceduralParams)}
+    fields = [f.name for f in dataclasses.fields(ProceduralParams)]
     values = {}
     for item in _split_top(body[:-1]):
         key, eq, text = (x.strip() for x in item.partition("="))
@@ -499,18 +501,11 @@ def _procedural_params(spec: str, kind: str) -> tuple[str, ProceduralParams | No
             raise _spec_error(spec, f"generator knob {item.strip()!r} is not key=value")
         if key not in fields:
             raise _spec_error(spec, f"unknown generator knob {key!r} (knobs: {', '.join(fields)})")
-        default = getattr(ProceduralParams(), key)
-        try:
-            if isinstance(default, bool):
-                if text.lower() not in ("true", "false", "1", "0"):
-                    raise ValueError(text)
-                values[key] = text.lower() in ("true", "1")
-            elif isinstance(default, int) or key == "num_lanes":
-                values[key] = None if text.lower() == "none" else int(text)
-            else:
-                values[key] = float(text)
-        except ValueError:
-            raise _spec_error(spec, f"generator knob {key}={text!r} is not a valid value") from None
+        try:  # a value as a config file or --set reads it
+            values[key] = coerce_field(ProceduralParams, key, yaml.safe_load(text), spec)
+        except (ConfigError, yaml.YAMLError) as e:
+            why = str(e).rpartition(": ")[2] if isinstance(e, ConfigError) else "not YAML"
+            raise _spec_error(spec, f"generator knob {key}={text!r} is not a valid value ({why})") from None
     if head.strip().lower() == "dense":
         raise _spec_error(spec, "procedural:dense takes no generator knobs")
     try:

@@ -26,6 +26,7 @@ sampler position and the engine State mid-episode.
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import logging
 import math
@@ -69,7 +70,10 @@ def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
     if cfg.eta1 <= 0:
         return BehaviourPrior()
     if cfg.prior == "world_model":
-        model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
+        try:
+            model = load_world_model(cfg.prior_model, sim) if cfg.prior_model else load_shipped(sim)
+        except FileNotFoundError as e:
+            raise ConfigError(f"prior_model: {e}") from None
         return WorldModelPrior(model, sim, top_component=cfg.prior_top_component,
                                min_std=(cfg.prior_sigma_accel, cfg.prior_sigma_curvature))
     return ExpertPrior(sim, cfg.prior_sigma_accel, cfg.prior_sigma_curvature, cfg.prior_closed_loop, cfg.prior_floor)
@@ -186,11 +190,8 @@ class Trainer:
         ck = load_checkpoint(path, "init_policy", map_location=self.device)
         theirs = from_dict(TrainConfig, ck["config"], str(path))
 
-        def get(cfg, key):
-            obj = cfg
-            for part in key.split("."):
-                obj = getattr(obj, part)
-            return obj
+        def get(cfg, key):  # "env.road_k" -> cfg.env.road_k
+            return functools.reduce(getattr, key.split("."), cfg)
 
         diff = [f"{k} {get(theirs, k)} (this run: {get(self.cfg, k)})" for k in self.ARCH_KEYS
                 if get(theirs, k) != get(self.cfg, k)]

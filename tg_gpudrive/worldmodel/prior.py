@@ -63,13 +63,23 @@ def save_world_model(model: WorldModel, path: str | Path, env_cfg, extra: dict |
                         **(extra or {})}, path)
 
 
-def load_world_model(path: str | Path, sim=None, device: str | None = None) -> WorldModel:
-    """A WorldModel from `path` (a world-model checkpoint, a train-world-model run's checkpoint.pt
-    or run directory, or a PACKAGED name), laid out for `sim`'s observation rows and on its
-    device, in eval mode."""
+def world_model_file(path: str | Path) -> Path:
+    """The checkpoint file `path` names: a world-model checkpoint, a train-world-model run's
+    checkpoint.pt or run directory (its model.pt), or a PACKAGED name. A missing one is a
+    FileNotFoundError that lists the accepted forms."""
     path = PACKAGED.get(str(path), Path(path))
     if path.is_dir():
         path = path / "model.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"no world-model checkpoint at {path} (a file, a run directory or a packaged "
+                                f"name: {', '.join(PACKAGED)})")
+    return path
+
+
+def load_world_model(path: str | Path, sim=None, device: str | None = None) -> WorldModel:
+    """A WorldModel from `path` (see `world_model_file`), laid out for `sim`'s observation rows and on
+    its device, in eval mode."""
+    path = world_model_file(path)
     ck = torch.load(path, map_location="cpu", weights_only=False)
     if "model" in ck and "state_dict" not in ck:  # a training checkpoint
         ck = ck["model"]

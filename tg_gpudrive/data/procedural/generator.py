@@ -36,7 +36,6 @@ from typing import Callable
 import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
-from tg_gpudrive.data.procedural.checks import box_segment_overlap, near_pairs
 from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_offsets,
                                                  settle, spawn)
 from tg_gpudrive.scene import Scene
@@ -255,13 +254,7 @@ def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int
         for a in (i, j):
             if a >= n:
                 ok[a - n] = False
-    segs = m.curb_segments()
-    if len(segs):
-        mids = segs.mean(1)
-        reach = np.hypot(L, W).max() / 2 + np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1).max() / 2 + 1e-3
-        ib, js = near_pairs(xy, mids, reach)
-        hit = box_segment_overlap(xy[ib], h[ib], L[ib] / 2, W[ib] / 2, segs[js, 0], segs[js, 1])
-        ok[ib[hit]] = False
+    ok &= ~m.curb_hits(xy, h, L / 2, W / 2)
     keep = np.flatnonzero(ok)[:max_parked]
     return Parked(xy[keep], h[keep], L[keep], W[keep])
 

@@ -227,14 +227,21 @@ class RoadMap:
             hs.append(h)
             lane_of.append(np.full(len(xy), i))
         pts, hs, lane_of = np.concatenate(pts), np.concatenate(hs), np.concatenate(lane_of)
-        hl, hw = MAX_LEN / 2 + SWEEP_INFLATE, MAX_WID / 2 + SWEEP_INFLATE
-        mids = segs.mean(1)
+        hit = self.curb_hits(pts, hs, MAX_LEN / 2 + SWEEP_INFLATE, MAX_WID / 2 + SWEEP_INFLATE, segs)
+        return sorted(set(lane_of[hit].tolist()))
+
+    def curb_hits(self, xy: np.ndarray, heading: np.ndarray, hl, hw, segs: np.ndarray | None = None) -> np.ndarray:
+        """(K,) bool: which boxes (centres xy (K, 2), headings, half extents hl, hw: scalars or (K,))
+        touch a curb (`segs`: the curb segments, when the caller has them already)."""
+        segs = self.curb_segments() if segs is None else segs
+        out = np.zeros(len(xy), bool)
+        if not len(segs) or not len(xy):
+            return out
+        hl, hw = np.broadcast_to(hl, (len(xy),)), np.broadcast_to(hw, (len(xy),))
         seg_half = np.linalg.norm(segs[:, 1] - segs[:, 0], axis=1).max() / 2
-        ib, js = near_pairs(pts, mids, math.hypot(hl, hw) + seg_half + 1e-3)
-        if not len(ib):
-            return []
-        hit = box_segment_overlap(pts[ib], hs[ib], hl, hw, segs[js, 0], segs[js, 1])
-        return sorted(set(lane_of[ib[hit]].tolist()))
+        ib, js = near_pairs(xy, segs.mean(1), float(np.hypot(hl, hw).max()) + seg_half + 1e-3)
+        out[ib[box_segment_overlap(xy[ib], heading[ib], hl[ib], hw[ib], segs[js, 0], segs[js, 1])]] = True
+        return out
 
 
 @dataclass(frozen=True)
@@ -258,10 +265,6 @@ class ParkingStrip:
     def lane_s(self, t):
         """Arc length along `lane` of the point t m out along the arm."""
         return t - self.r_stop if self.side < 0 else self.t1 - t
-
-    def arm_t(self, s):
-        """Inverse of lane_s."""
-        return s + self.r_stop if self.side < 0 else self.t1 - s
 
     def pose(self, t: float, lateral: float) -> tuple[float, float, float]:
         """(x, y, heading) of a car centred t m out along the arm, `lateral` m from the inner edge."""
