@@ -16,7 +16,9 @@
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
 #             queues and kerb stops; held-out plain / urban / real rates beside the shipped policy
-#   (time to 95 % on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95)
+#   (time to quality on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95: training stops
+#   once goal >= 0.95 with collision <= 0.05 and off-road <= 0.02 over 3 updates; summarize prints
+#   the 10-update-window time to quality of BENCHMARKS.md)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
 # TRAIN_SET adds `--set` overrides to every training run (a CPU dry run shrinks everything).
 set -u
@@ -51,6 +53,7 @@ PY
 summarize() {
   python3 - "$RES" <<'PY'
 import csv, pathlib, sys
+from tg_gpudrive.learn.plots import time_to_quality
 # goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
 # rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
 for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
@@ -65,6 +68,8 @@ for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.
           f"off {rate('offroad_rate'):.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
           f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} (max {float(last.get('lambda_max') or 0):.2f}) "
           f"cvar {float(last['cvar']):.2f} budget {float(last.get('cost_budget') or 0):.2f} wall {float(last['wall_s']):.0f}s")
+    q = time_to_quality(rows)  # goal >= 0.95 with collision <= 0.05 and off-road <= 0.02, 10-update window
+    print(f"  time to quality: " + (f"{q['wall_s']:.0f} s (update {q['update']})" if q else "not reached"))
 PY
 }
 
@@ -119,10 +124,12 @@ storebuild)
   ;;
 store10k)
   N=${STORE_N:-10000}
-  [ -f /tmp/store/manifest.json ] || bash "$R"/scripts/gpu_measure.sh storebuild
+  [ -f /tmp/store/manifest.json ] || (cd "$R" && bash scripts/gpu_measure.sh storebuild)
   CUDA_VISIBLE_DEVICES=${STORE_GPUS:-$CUDA_VISIBLE_DEVICES} timeout ${STORE_TRAIN_SECONDS:-240} python3 -m tg_gpudrive.cli \
     train --config "$CFG" --out "$RES/run" --nproc ${STORE_NPROC:-1} --set scenes=/tmp/store --set num_scenes="$N" \
-    --set resample_every=5 --set checkpoint_every=5 --set target_goal_rate=${STORE_TARGET:-0} "${SETS[@]}" 2>&1 | bar 3
+    --set resample_every=5 --set checkpoint_every=5 --set target_goal_rate=${STORE_TARGET:-0} \
+    --set target_max_collision=0.05 --set target_max_offroad=0.02 --set time_limit_s=${STORE_LIMIT:-0} "${SETS[@]}" 2>&1 | bar 3
+  summarize
   for mode in ignore stop remove; do
     timeout ${EVAL_SECONDS:-150} python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \
       --seed 50000 --num-scenes ${EVAL_N:-1024} --episodes ${EVAL_N:-1024} --worlds ${EVAL_N:-1024} \

@@ -201,7 +201,8 @@ def test_nan_in_the_loss_itself_is_caught(tmp_path):
 def test_target_goal_rate_counts_the_last_three_updates_episodes():
     tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
     tr.cfg = TrainConfig(target_goal_rate=0.95)
-    st = lambda g, n: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n))}  # noqa: E731
+    st = lambda g, n, c=0, o=0: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n)),  # noqa: E731
+                                 "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
     assert not tr._reached_target(st(10, 10))  # one update is not enough
     assert not tr._reached_target(st(10, 10))
     assert not tr._reached_target(st(0, 10))  # 20 / 30 = 0.67
@@ -210,6 +211,40 @@ def test_target_goal_rate_counts_the_last_three_updates_episodes():
     assert tr._reached_target(st(100, 100))  # (95 + 100 + 100) / 300 = 0.983
     tr.cfg = TrainConfig(target_goal_rate=0.0)
     assert not tr._reached_target(st(100, 100))  # 0 switches the target off
+
+
+def test_target_quality_needs_collision_and_offroad_within_bounds_too():
+    tr = Trainer.__new__(Trainer)
+    tr.cfg = TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02)
+    st = lambda g, c, o: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(100.0),  # noqa: E731
+                          "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
+    assert not tr._reached_target(st(100, 6, 0))
+    assert not tr._reached_target(st(100, 6, 0))
+    assert not tr._reached_target(st(100, 6, 0))  # goal 1.0 but collision 0.06 > 0.05
+    assert not tr._reached_target(st(100, 6, 3))  # collision 0.06, off-road 0.01
+    tr._recent = []
+    assert not tr._reached_target(st(96, 5, 2))
+    assert not tr._reached_target(st(96, 5, 2))
+    assert tr._reached_target(st(96, 5, 2))  # 0.96 / 0.05 / 0.02: every bound inclusive
+    assert not tr._reached_target(st(96, 5, 3))  # off-road (2 + 2 + 3) / 300 = 0.0233 > 0.02
+    assert not tr._reached_target(st(96, 6, 0))  # collision (5 + 5 + 6) / 300 = 0.0533 > 0.05
+
+
+def test_time_to_quality_takes_the_first_full_window_meeting_all_three_bounds():
+    from tg_gpudrive.learn.plots import time_to_quality
+    row = lambda u, g, c, o, n=10: {"update": u, "wall_s": 2.0 * u, "episodes": n,  # noqa: E731
+                                    "goal_rate": g, "collision_rate": c, "offroad_rate": o}
+    rows = [row(1, 1.0, 0.0, 0.0), row(2, 1.0, 0.0, 0.0)]  # perfect, but shorter than the window
+    assert time_to_quality(rows, window=3) is None
+    rows += [row(3, 0.9, 0.1, 0.0)]  # window 1-3: goal 0.967, collision 0.033
+    got = time_to_quality(rows, window=3)
+    assert got["update"] == 3 and got["wall_s"] == 6.0 and abs(got["goal_rate"] - 29 / 30) < 1e-12
+    rows = [row(1, 1.0, 0.0, 0.1), row(2, 1.0, 0.0, 0.0), row(3, 1.0, 0.0, 0.0, n=0),
+            row(4, 1.0, 0.0, 0.0)]
+    # window 1-3: off-road 1 / 20 = 0.05 > 0.02; window 2-4 (update 3 had no episode): 0
+    assert time_to_quality(rows, window=3)["update"] == 4
+    rows = [{**row(u, 0.99, 0.0, 0.0), "goal_rate": "", "episodes": "0"} for u in (1, 2, 3)]
+    assert time_to_quality(rows, window=3) is None  # no episode ended: no rate, no quality
 
 
 def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):

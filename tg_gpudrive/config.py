@@ -191,6 +191,10 @@ class TrainConfig:
     # bookkeeping
     time_limit_s: float = 0.0  # stop (and save) once this much training wall-clock has passed (0: off)
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 3 updates' episodes reaches it (0: off)
+    # ... and, over the same episodes, the collision and off-road rates are at most these (issue 12's
+    # quality: a goal reached through a crash or off the road is not quality); 1.0: goal rate alone
+    target_max_collision: float = 1.0
+    target_max_offroad: float = 1.0
     checkpoint_every: int = 10
     keep_policy_every: int = 0  # also keep the policy every N updates (policies/update_NNNNNN.pt): the report's CCE-gap curve; 0: off
     out_dir: str = "runs/train"

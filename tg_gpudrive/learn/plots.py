@@ -30,6 +30,19 @@ def windowed_rates(rows: Sequence[dict], window: int = RATE_WINDOW) -> dict[str,
         return None
     return {k: sum(num(r[k]) * num(r["episodes"]) for r in recent) / n for k in RATE_KEYS}
 
+def time_to_quality(rows: Sequence[dict], goal: float = 0.95, collision: float = 0.05, offroad: float = 0.02,
+                    window: int = RATE_WINDOW) -> dict | None:
+    """The first metrics.csv row whose windowed rates (the `window` updates up to it) meet the
+    quality bar: goal >= `goal` with collision <= `collision` and off-road <= `offroad`. Returns
+    that row's update, wall_s and rates, or None if training never got there (BENCHMARKS.md's
+    time to quality; a full window is required, so a lucky first update does not count)."""
+    for i in range(window, len(rows) + 1):
+        r = windowed_rates(rows[:i], window)
+        if r and r["goal_rate"] >= goal and r["collision_rate"] <= collision and r["offroad_rate"] <= offroad:
+            return {"update": int(float(rows[i - 1]["update"])), "wall_s": float(rows[i - 1]["wall_s"]), **r}
+    return None
+
+
 PANELS = (
     (f"rates (episode-weighted, last {RATE_WINDOW} updates)", RATE_KEYS),
     ("reward terms (per agent-step)", None),  # every reward/* column

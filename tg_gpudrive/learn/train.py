@@ -543,10 +543,12 @@ class Trainer:
                 last["target_reached_s"] = self.wall
                 if self.lead:
                     (self.out / "target.json").write_text(json.dumps(
-                        {"target_goal_rate": cfg.target_goal_rate, "update": self.update, "wall_s": self.wall,
+                        {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
+                         "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
                          "agent_steps": self.agent_steps}, indent=1))
                     if bar is not None:
-                        bar.write(f"goal rate {cfg.target_goal_rate} reached after {self.wall:.0f} s "
+                        bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
+                                  f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
                                   f"(update {self.update}, {self.agent_steps:,} agent steps)")
                 break
         if bar is not None:
@@ -558,13 +560,16 @@ class Trainer:
         return last
 
     def _reached_target(self, stats: dict) -> bool:
-        """Goal rate over the episodes of the last 3 updates (all ranks) >= target_goal_rate."""
-        if self.cfg.target_goal_rate <= 0:
+        """Over the episodes of the last 3 updates (all ranks): goal rate >= target_goal_rate,
+        collision rate <= target_max_collision and off-road rate <= target_max_offroad."""
+        cfg = self.cfg
+        if cfg.target_goal_rate <= 0:
             return False
-        recent = getattr(self, "_recent", [])
-        self._recent = (recent + [(float(stats["goal"]), float(stats["episodes"]))])[-3:]
-        goals, eps = (sum(x) for x in zip(*self._recent))
-        return len(self._recent) == 3 and eps > 0 and goals / eps >= self.cfg.target_goal_rate
+        now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
+        self._recent = (getattr(self, "_recent", []) + [now])[-3:]
+        goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
+        return (len(self._recent) == 3 and eps > 0 and goals / eps >= cfg.target_goal_rate
+                and coll / eps <= cfg.target_max_collision and off / eps <= cfg.target_max_offroad)
 
     def _sync(self) -> None:
         if self.sim.is_cuda:
