@@ -198,17 +198,18 @@ def test_nan_in_the_loss_itself_is_caught(tmp_path):
         tr.learn(buf)
 
 
-def test_target_goal_rate_counts_the_last_three_updates_episodes():
+def test_target_goal_rate_counts_the_last_window_of_updates_episodes():
+    from tg_gpudrive.learn.plots import RATE_WINDOW
     tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
     tr.cfg = TrainConfig(target_goal_rate=0.95)
     st = lambda g, n, c=0, o=0: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n)),  # noqa: E731
                                  "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
-    assert not tr._reached_target(st(10, 10))  # one update is not enough
-    assert not tr._reached_target(st(10, 10))
-    assert not tr._reached_target(st(0, 10))  # 20 / 30 = 0.67
-    assert not tr._reached_target(st(95, 100))  # (10 + 0 + 95) / 120 = 0.875
-    assert not tr._reached_target(st(100, 100))  # (0 + 95 + 100) / 210 = 0.929
-    assert tr._reached_target(st(100, 100))  # (95 + 100 + 100) / 300 = 0.983
+    assert RATE_WINDOW == 10  # the hand-computed sums below
+    for _ in range(9):
+        assert not tr._reached_target(st(10, 10))  # a window is not full before its 10th update
+    assert not tr._reached_target(st(0, 10))  # 90 / 100 = 0.90
+    assert not tr._reached_target(st(90, 100))  # (80 + 0 + 90) / 190 = 0.895
+    assert tr._reached_target(st(300, 300))  # (70 + 0 + 90 + 300) / 480 = 0.958
     tr.cfg = TrainConfig(target_goal_rate=0.0)
     assert not tr._reached_target(st(100, 100))  # 0 switches the target off
 
@@ -218,16 +219,15 @@ def test_target_quality_needs_collision_and_offroad_within_bounds_too():
     tr.cfg = TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02)
     st = lambda g, c, o: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(100.0),  # noqa: E731
                           "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
-    assert not tr._reached_target(st(100, 6, 0))
-    assert not tr._reached_target(st(100, 6, 0))
-    assert not tr._reached_target(st(100, 6, 0))  # goal 1.0 but collision 0.06 > 0.05
-    assert not tr._reached_target(st(100, 6, 3))  # collision 0.06, off-road 0.01
+    for _ in range(10):
+        assert not tr._reached_target(st(100, 6, 0))  # goal 1.0 but collision 0.06 > 0.05
     tr._recent = []
-    assert not tr._reached_target(st(96, 5, 2))
-    assert not tr._reached_target(st(96, 5, 2))
-    assert tr._reached_target(st(96, 5, 2))  # 0.96 / 0.05 / 0.02: every bound inclusive
-    assert not tr._reached_target(st(96, 5, 3))  # off-road (2 + 2 + 3) / 300 = 0.0233 > 0.02
-    assert not tr._reached_target(st(96, 6, 0))  # collision (5 + 5 + 6) / 300 = 0.0533 > 0.05
+    for _ in range(9):
+        assert not tr._reached_target(st(96, 5, 2))
+    assert tr._reached_target(st(96, 5, 2))  # 0.96 / 0.05 / 0.02 over 10 updates: every bound inclusive
+    assert not tr._reached_target(st(96, 5, 12))  # off-road (9 x 2 + 12) / 1000 = 0.03 > 0.02
+    tr._recent = tr._recent[:-1]
+    assert not tr._reached_target(st(96, 15, 2))  # collision (9 x 5 + 15) / 1000 = 0.06 > 0.05
 
 
 def test_time_to_quality_takes_the_first_full_window_meeting_all_three_bounds():

@@ -560,15 +560,16 @@ class Trainer:
         return last
 
     def _reached_target(self, stats: dict) -> bool:
-        """Over the episodes of the last 3 updates (all ranks): goal rate >= target_goal_rate,
-        collision rate <= target_max_collision and off-road rate <= target_max_offroad."""
+        """Over the episodes of the last RATE_WINDOW updates (all ranks), the window the progress bar,
+        curves.png and `plots.time_to_quality` use: goal rate >= target_goal_rate, collision rate <=
+        target_max_collision and off-road rate <= target_max_offroad."""
         cfg = self.cfg
         if cfg.target_goal_rate <= 0:
             return False
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
-        self._recent = (getattr(self, "_recent", []) + [now])[-3:]
+        self._recent = (getattr(self, "_recent", []) + [now])[-RATE_WINDOW:]
         goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
-        return (len(self._recent) == 3 and eps > 0 and goals / eps >= cfg.target_goal_rate
+        return (len(self._recent) == RATE_WINDOW and eps > 0 and goals / eps >= cfg.target_goal_rate
                 and coll / eps <= cfg.target_max_collision and off / eps <= cfg.target_max_offroad)
 
     def _sync(self) -> None:
