@@ -334,6 +334,52 @@ def test_parked_cars_stand_in_strips_beside_the_lanes():
         assert generate_scene(kind, 0, URBAN).metadata["num_parked"] == 0
 
 
+NARROW = dataclasses.replace(URBAN, park_reach=1.5)
+
+
+def _parked_inner_sides(params: ProceduralParams, seeds=range(3)) -> np.ndarray:
+    """Per parked car of the junction types, its inner side's distance to the nearest lane centre (m):
+    the centre's distance less half the width."""
+    out = []
+    for kind in JUNCTIONS:
+        for seed in seeds:
+            sc = generate_scene(kind, seed, params)
+            k = sc.metadata["num_parked"]
+            lanes = [p.astype(np.float64) for t, p in sc.polylines() if t == RoadType.LANE]
+            for a in range(sc.num_agents - k, sc.num_agents):
+                d = min(point_polyline_distance(sc.log_pos[a, 0].astype(np.float64), p) for p in lanes)
+                out.append(d - sc.width[a] / 2)
+    return np.asarray(out)
+
+
+def test_park_reach_puts_parked_cars_over_the_lane_edge_and_drivers_give_room():
+    """park_reach: parked cars stand into the lane (inner side < half a lane from its centre, as in
+    the real scenes), the logs stay collision-free with them, and the drivers beside them keep left."""
+    strip, narrow = _parked_inner_sides(URBAN), _parked_inner_sides(NARROW)
+    half_lane = URBAN.lane_width / 2
+    assert strip.min() > half_lane - 0.2  # in the strip: at most 0.15 m over the edge (+ a turned box)
+    assert (narrow < half_lane - 0.5).mean() > 0.3 and np.median(narrow) < np.median(strip) - 0.4
+    assert len(narrow) > 0.8 * len(strip)  # few dropped for standing in the traffic's way
+    left = 0
+    for kind in JUNCTIONS:
+        for seed in range(3):
+            sc = generate_scene(kind, seed, NARROW)
+            tag = f"park_reach {kind} seed {seed}"
+            check_invariants(sc, tag)  # no overlap with the parked boxes at any step
+            check_kinematics(sc, tag)
+            check_routes_and_goals(sc, tag)
+            left += sum(b < -0.2 for b in sc.metadata["lane_offsets"])
+    assert left > 20
+    with pytest.raises(ValueError, match="park_reach"):
+        ProceduralParams(park_reach=2.5)
+
+
+def test_park_reach_zero_changes_nothing():
+    a = generate_scene("t_junction", 4, URBAN)
+    b = generate_scene("t_junction", 4, dataclasses.replace(URBAN, park_reach=0.0))
+    assert np.array_equal(a.log_pos, b.log_pos) and a.metadata["lane_offsets"] == b.metadata["lane_offsets"]
+
+
 def test_lane_offsets_move_drivers_and_goals_off_the_centre():
     """With lane_offset, drivers keep their own offset from the lane centre on straight road (within
     the lane: check_routes_and_goals bounds every goal by it), so goals lie off the centre too."""

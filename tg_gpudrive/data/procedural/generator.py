@@ -37,6 +37,7 @@ import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
 from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_offsets,
+                                                  plan_park_clearance,
                                                  settle, spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
@@ -79,6 +80,13 @@ class ProceduralParams:
     lane_offset     m, std of each driver's offset from the lane centre on straight road (clipped
                     to keep 0.25 m inside the lane; back on the centre through curves). Logged
                     WOMD drivers keep 0.2-1.5 m off the lane centre; procedural ones 0 by default.
+    park_reach      m a parked car may stand over the lane edge into the lane beside its strip: its
+                    inner side is drawn U(0, park_reach) m over the edge (else it stands in the middle
+                    of its strip). Kerbside parked cars of the real WOMD scenes have their inner side
+                    1.04 m from the nearest lane centre (median; 0.50 at the 10th percentile), the
+                    strips' 2.0 m. Drivers on a lane beside a strip then keep left of its centre,
+                    by 0.5-1 x the lane's room, wherever their route is straight; a parked car that
+                    would still come within the check margin of a moving one is dropped.
 
     Street furniture (parking, stop lines, kerb stops, lane offsets) is drawn from its own random
     stream: with parking = 0, stop_lines = 0 and lane_offset = 0 (kerb stops need parking) every scene
@@ -106,6 +114,7 @@ class ProceduralParams:
     stop_lines: float = 0.0
     kerb_stops: float = 0.0
     lane_offset: float = 0.0
+    park_reach: float = 0.0
 
     def __post_init__(self):
         checks = [
@@ -125,6 +134,7 @@ class ProceduralParams:
              "parking, stop_lines and kerb_stops must be in [0, 1]"),
             (0 <= self.max_parked <= 128, "max_parked must be in [0, 128]"),
             (0.0 <= self.lane_offset <= 1.0, "lane_offset must be in [0, 1] m"),
+            (0.0 <= self.park_reach <= 2.0, "park_reach must be in [0, 2] m"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -179,6 +189,8 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
             boost *= 1.5
             continue
         plan_lane_offsets(veh, street, p.lane_offset, p.lane_width)
+        if p.park_reach > 0:
+            plan_park_clearance(tm, veh, street, p.lane_width)
         veh, ro, dropped = settle(tm, veh, p.num_steps, p.dt, p.min_vehicles, hold)
         if veh is not None:
             # kerb stops are drawn where the free rollout shows a vehicle gets far enough, then the
@@ -188,7 +200,7 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
                 kerb, ro_k, dropped_k = settle(tm, kerb, p.num_steps, p.dt, p.min_vehicles, hold)
                 if kerb is not None:
                     veh, ro, dropped = kerb, ro_k, dropped + dropped_k
-            parked = park_cars(m, street, ro, veh, p.max_parked)
+            parked = park_cars(m, street, ro, veh, p.max_parked, p.park_reach)
             return _export(scenario_type, int(seed), p, m, veh, ro, len(dropped), parked, hold)
         boost *= 1.2
     raise RuntimeError(f"procedural {scenario_type} seed {seed}: no valid scene after 12 attempts")
@@ -216,11 +228,11 @@ class Parked:
         return len(self.yaw)
 
 
-def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int) -> Parked:
-    """Fill the map's parking strips with cars, kerbside, facing their side's traffic; drop any that
-    would come within the rollout's check margin of a moving vehicle at any step (which leaves the
-    space a kerb stop pulls into) or touch a kerb (by construction none should); keep the
-    `max_parked` nearest to the conflict point."""
+def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int, reach: float = 0.0) -> Parked:
+    """Fill the map's parking strips with cars, kerbside (or, with `reach` > 0, standing U(0, reach) m
+    over the lane edge), facing their side's traffic; drop any that would come within the rollout's
+    check margin of a moving vehicle at any step (which leaves the space a kerb stop pulls into) or
+    touch a kerb (by construction none should); keep the `max_parked` nearest to the conflict point."""
     rows = []
     for st in m.strips:
         fill = float(rng.uniform(*PARK_FILL))
@@ -234,6 +246,9 @@ def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int
                 sway = L / 2 * abs(dyaw) + PARK_KERB_CLEAR  # a turned box reaches further sideways
                 lo, hi = W / 2 + sway - 0.15, st.width - W / 2 - sway
                 lat = float(np.clip(st.width / 2 + rng.uniform(-0.1, 0.1), lo, max(lo, hi)))
+                if reach > 0:  # the inner side `over` m past the lane edge (towards the lane centre)
+                    over = float(rng.uniform(0.0, reach))
+                    lat = min(W / 2 + sway - over, max(lo, hi))
                 x, y, h = st.pose(t + L / 2, lat)
                 rows.append((math.hypot(x, y), x, y, h + dyaw, L, W))
                 t += L + float(rng.uniform(*PARK_GAP))

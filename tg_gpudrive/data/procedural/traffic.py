@@ -355,6 +355,17 @@ def plan_lane_offsets(veh: Vehicles, rng: np.random.Generator, sigma: float, lan
     veh.bias[:] = np.clip(rng.normal(0.0, sigma, len(veh)), -room, room)
 
 
+def plan_park_clearance(tm: TrafficModel, veh: Vehicles, rng: np.random.Generator, lane_width: float) -> None:
+    """Each vehicle whose route runs along a lane beside a parking strip keeps left of the lane
+    centre, away from the parked cars, by U(0.5, 1) x its room (the lane offset's bound), as drivers
+    give room to cars parked over the lane edge; in place (it replaces the vehicle's lane offset)."""
+    beside = {st.lane for st in tm.map.strips if st.lane >= 0}
+    room = np.maximum(lane_width / 2 - veh.width / 2 - LANE_OFFSET_CLEAR, 0.0)
+    for i, lanes in enumerate(veh.routes):
+        if beside.intersection(lanes):
+            veh.bias[i] = -room[i] * float(rng.uniform(0.5, 1.0))
+
+
 KERB_RAMP = (10.0, 16.0)  # m over which a kerb-stopping vehicle moves from its lane into the strip
 KERB_REACH = 30.0  # m of strip after the ramp's earliest end where the stop is drawn
 KERB_RUNWAY = 12.0  # m a kerb stop lies short of where the vehicle would have got to without it
