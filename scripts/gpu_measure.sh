@@ -69,7 +69,8 @@ for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.
           f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} (max {float(last.get('lambda_max') or 0):.2f}) "
           f"cvar {float(last['cvar']):.2f} budget {float(last.get('cost_budget') or 0):.2f} wall {float(last['wall_s']):.0f}s")
     q = time_to_quality(rows)  # goal >= 0.95 with collision <= 0.05 and off-road <= 0.02, 10-update window
-    print(f"  time to quality: " + (f"{q['wall_s']:.0f} s (update {q['update']})" if q else "not reached"))
+    print(f"  time to quality: " + (f"{q['wall_s']:.0f} s of rollouts and updates, {q.get('elapsed_s', float('nan')):.0f} s "
+                                    f"elapsed (update {q['update']})" if q else "not reached"))
 PY
 }
 

@@ -59,9 +59,14 @@ def test_resume_continues_exactly(tmp_path, history):
     assert [t.split(",")[0] for t in timing] == ["update", "1", "2", "3", "4"]
     for x, y in zip(ra, rb):
         for k in x:
-            if k not in ("wall_s", "agent_steps_per_s", "rollout_agent_steps_per_s") and not k.startswith("time/"):
+            if k not in ("wall_s", "elapsed_s", "agent_steps_per_s", "rollout_agent_steps_per_s") \
+                    and not k.startswith("time/"):
                 assert x[k] == y[k], (x["update"], k)
     assert (a / "curves.png").stat().st_size > 10_000
+    # the user's clock holds the time-to-quality clock and runs on across the resume
+    for r in (ra, rb):
+        el, wall = [float(x["elapsed_s"]) for x in r], [float(x["wall_s"]) for x in r]
+        assert all(e >= w > 0 for e, w in zip(el, wall)) and el == sorted(el)
 
 
 def test_nan_loss_stops_and_keeps_last_checkpoint(tmp_path):
@@ -239,6 +244,9 @@ def test_time_to_quality_takes_the_first_full_window_meeting_all_three_bounds():
     rows += [row(3, 0.9, 0.1, 0.0)]  # window 1-3: goal 0.967, collision 0.033
     got = time_to_quality(rows, window=3)
     assert got["update"] == 3 and got["wall_s"] == 6.0 and abs(got["goal_rate"] - 29 / 30) < 1e-12
+    assert "elapsed_s" not in got  # a metrics.csv from before the column
+    rows[2]["elapsed_s"] = "7.5"
+    assert time_to_quality(rows, window=3)["elapsed_s"] == 7.5
     rows = [row(1, 1.0, 0.0, 0.1), row(2, 1.0, 0.0, 0.0), row(3, 1.0, 0.0, 0.0, n=0),
             row(4, 1.0, 0.0, 0.0)]
     # window 1-3: off-road 1 / 20 = 0.05 > 0.02; window 2-4 (update 3 had no episode): 0

@@ -34,12 +34,16 @@ def time_to_quality(rows: Sequence[dict], goal: float = 0.95, collision: float =
                     window: int = RATE_WINDOW) -> dict | None:
     """The first metrics.csv row whose windowed rates (the `window` updates up to it) meet the
     quality bar: goal >= `goal` with collision <= `collision` and off-road <= `offroad`. Returns
-    that row's update, wall_s and rates, or None if training never got there (BENCHMARKS.md's
+    that row's update, wall_s (rollouts and updates), elapsed_s (all of training, where logged) and
+    rates, or None if training never got there (BENCHMARKS.md's
     time to quality; a full window is required, so a lucky first update does not count)."""
     for i in range(window, len(rows) + 1):
         r = windowed_rates(rows[:i], window)
         if r and r["goal_rate"] >= goal and r["collision_rate"] <= collision and r["offroad_rate"] <= offroad:
-            return {"update": int(float(rows[i - 1]["update"])), "wall_s": float(rows[i - 1]["wall_s"]), **r}
+            got = {"update": int(float(rows[i - 1]["update"])), "wall_s": float(rows[i - 1]["wall_s"]), **r}
+            if rows[i - 1].get("elapsed_s") not in (None, ""):
+                got["elapsed_s"] = float(rows[i - 1]["elapsed_s"])
+            return got
     return None
 
 

@@ -168,7 +168,8 @@ class Trainer:
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
         self.update = 0
         self.agent_steps = 0
-        self.wall = 0.0
+        self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
+        self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
@@ -473,6 +474,7 @@ class Trainer:
         if self.progress:
             bar = tqdm(total=cfg.updates, initial=self.update, desc="train", unit="update")
         last = {}
+        t_start, elapsed0 = time.perf_counter(), self.elapsed
         while self.update < cfg.updates:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
@@ -493,13 +495,14 @@ class Trainer:
             row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
                         "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
             self.wall += dt
+            self.elapsed = elapsed0 + time.perf_counter() - t_start
             steps = int(stats["alive"])
             self.agent_steps += steps
             self.update += 1
             n_ep = float(stats["episodes"])
             row.update({
                 "update": self.update, "agent_steps": self.agent_steps, "wall_s": self.wall,
-                "agent_steps_per_s": steps / dt, "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
+                "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt, "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
                 "episodes": n_ep,
                 "goal_rate": float(stats["goal"]) / n_ep if n_ep else float("nan"),
                 "collision_rate": float(stats["collided"]) / n_ep if n_ep else float("nan"),
@@ -632,7 +635,8 @@ class Trainer:
             "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
             "opt": self.opt.state_dict(),
             "lagrange": self.lagrange.state_dict(), "cost_budget": float(self.budget),
-            "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "rng": rng,
+            "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "elapsed": self.elapsed,
+            "rng": rng,
             "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
             "world_size": self.world,
             "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
@@ -656,6 +660,7 @@ class Trainer:
         self.opt.load_state_dict(ck["opt"])
         self.lagrange.load_state_dict(ck["lagrange"])
         self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
+        self.elapsed = ck.get("elapsed", self.wall)  # checkpoints before elapsed_s existed
         if not exact:
             # another process count: weights, optimiser, lambda and counters carry over; episodes
             # start afresh on each rank's own scene shard
