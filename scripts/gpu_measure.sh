@@ -11,7 +11,8 @@
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
 #   storebuild  a 10,000-scene procedural store in /tmp/store (CPU only: runs beside GPU stages)
 #   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
-#   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py)
+#   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py); on two GPUs
+#             GRID_GPUS=0,1 GRID_BATCH=8 trains four cells on each at a time
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
@@ -139,7 +140,7 @@ store10k)
   ;;
 grid)
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
-    ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
+    ${GRID_GPUS:+--gpus $GRID_GPUS} ${GRID_BATCH:+--batch $GRID_BATCH} ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   slim
   timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --report-only \
     "${SETS[@]}" 2>&1 | tail -3

@@ -1,11 +1,12 @@
 """Run the experiment grid (configs/experiments/grid.yaml) in batches, then the report.
 
     python scripts/run_experiments.py --config configs/experiments/grid.yaml --out runs/experiments \
-        [--batch 4] [--set device=cuda] [--dry-run] [--report-only] [--no-report]
+        [--batch 4] [--gpus 0,1] [--set device=cuda] [--dry-run] [--report-only] [--no-report]
 
 Every cell (beta x alpha) and every baseline is one `tg-gpudrive train` process
 (`python -m tg_gpudrive.cli train ...`); `--batch` of them run at the same time
-(on one GPU they share it; W worlds each). A run directory that already holds a
+(on one GPU they share it; W worlds each; `--gpus` deals them out over several,
+one CUDA_VISIBLE_DEVICES each, round robin). A run directory that already holds a
 checkpoint of its final update is skipped, so an interrupted grid resumes. When
 all runs are done, the flexibility table (how the knobs moved the multiplier,
 gaps, speed and cost during training: the mean of each run's last `--tail`
@@ -21,6 +22,7 @@ import csv
 import dataclasses
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -96,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default="runs/experiments")
     ap.add_argument("--batch", type=int, default=None, help="runs trained at once (default: the config's)")
     ap.add_argument("--set", action="append", default=[], help="extra train override for every run")
+    ap.add_argument("--gpus", default="", help="GPU ids to deal the runs of a batch over, e.g. 0,1 (default: "
+                    "the environment's CUDA_VISIBLE_DEVICES for every run)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--no-report", action="store_true", help="train and tabulate, skip the report")
@@ -114,18 +118,20 @@ def main(argv: list[str] | None = None) -> int:
         updates = yaml.safe_load(base.read_text()).get("updates")
     batch = args.batch or int(exp.get("batch", 1))
     todo = [(n, s) for n, s in runs if not done(out / n, int(updates) if updates is not None else None)]
+    gpus = [g.strip() for g in args.gpus.split(",") if g.strip()]
     if not args.report_only:
         for i in range(0, len(todo), batch):
             procs = []
-            for name, sets in todo[i:i + batch]:
+            for j, (name, sets) in enumerate(todo[i:i + batch]):
                 # an unfinished cell is trained again from the start in its own directory
                 cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--config", str(base), "--out",
                        str(out / name), "--overwrite"] + [x for s in sets for x in ("--set", s)]
-                print(" ".join(cmd), flush=True)
+                env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[j % len(gpus)]) if gpus else None
+                print((f"CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']} " if env else "") + " ".join(cmd), flush=True)
                 if not args.dry_run:
                     (out / name).mkdir(parents=True, exist_ok=True)
                     log = (out / name / "train.log").open("w")
-                    procs.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT), log))
+                    procs.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log))
             for name, p, log in procs:
                 rc = p.wait()
                 log.close()

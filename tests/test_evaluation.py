@@ -358,6 +358,22 @@ def test_report_on_tiny_runs(tmp_path):
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
 
 
+def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    exp = tmp_path / "grid.yaml"
+    exp.write_text("base: small_cpu.yaml\nbeta: [2.0, 4.0]\nalpha: [0.5]\nbaselines:\n  mappo: {eta1: 0.0}\nbatch: 3\n")
+    assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--gpus", "0,1", "--dry-run"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if " train " in x]
+    assert [x.split()[0] for x in lines] == ["CUDA_VISIBLE_DEVICES=0", "CUDA_VISIBLE_DEVICES=1", "CUDA_VISIBLE_DEVICES=0"]
+    assert [x.split("--out ")[1].split()[0].rsplit("/", 1)[1] for x in lines] == ["beta2.0_alpha0.5", "beta4.0_alpha0.5", "mappo"]
+    assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--dry-run"]) == 0
+    assert not any(x.startswith("CUDA_VISIBLE_DEVICES") for x in capsys.readouterr().out.splitlines())
+
+
 def test_flexibility_table_averages_the_last_updates(tmp_path):
     import importlib.util
 
