@@ -142,7 +142,19 @@ grid)
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
     ${GRID_GPUS:+--gpus $GRID_GPUS} ${GRID_BATCH:+--batch $GRID_BATCH} ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   slim
-  timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --report-only \
+  # the report: with GRID_GPUS one part per GPU fills its cache (policies evaluated, CCE-gaps), then one
+  # pass writes it; a part stopped by its timeout keeps what it finished for the next call
+  GC=${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml}
+  if [ -n "${GRID_GPUS:-}" ]; then
+    parts=(${GRID_GPUS//,/ }); k=0
+    for g in "${parts[@]}"; do
+      CUDA_VISIBLE_DEVICES=$g timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config "$GC" \
+        --out "$RES" --report-part $k/${#parts[@]} "${SETS[@]}" > "$RES/report_part$k.log" 2>&1 &
+      k=$((k + 1))
+    done
+    wait
+  fi
+  timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config "$GC" --out "$RES" --report-only \
     "${SETS[@]}" 2>&1 | tail -3
   ;;
 wm)

@@ -12,7 +12,10 @@ all runs are done, the flexibility table (how the knobs moved the multiplier,
 gaps, speed and cost during training: the mean of each run's last `--tail`
 updates) goes to <out>/flexibility.md and .json, then
 `tg_gpudrive.evaluation.report.report_main` writes <out>/report/ (skip it with
-`--no-report`).
+`--no-report`). The report caches each policy's evaluation (<out>/report/cache/):
+`--report-part K/N` evaluates every N-th run from the K-th (part 0 also the
+baselines), so N processes, one per GPU, share the work, and a last
+`--report-only` reads it all back and writes the report.
 """
 
 from __future__ import annotations
@@ -102,9 +105,21 @@ def main(argv: list[str] | None = None) -> int:
                     "the environment's CUDA_VISIBLE_DEVICES for every run)")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--report-part", default="", metavar="K/N",
+                    help="report-only, for runs K, K + N, ... (and the baselines when K is 0): one of N processes "
+                         "filling the report's cache")
     ap.add_argument("--no-report", action="store_true", help="train and tabulate, skip the report")
     ap.add_argument("--tail", type=int, default=5, help="updates averaged in the flexibility table")
     args = ap.parse_args(argv)
+    part = None
+    if args.report_part:
+        try:
+            part = tuple(int(x) for x in args.report_part.split("/"))
+            if len(part) != 2 or not 0 <= part[0] < part[1]:
+                raise ValueError
+        except ValueError:
+            ap.error(f"--report-part: expected K/N with 0 <= K < N, got {args.report_part!r}")
+        args.report_only = True
     cfg_path = Path(args.config)
     exp = yaml.safe_load(cfg_path.read_text())
     base = Path(exp["base"])
@@ -148,7 +163,14 @@ def main(argv: list[str] | None = None) -> int:
     r = exp.get("report") or {}
     # the experiment's report keys over ReportOptions' own defaults (an unknown key fails here)
     opts = dataclasses.replace(ReportOptions(), **{k: tuple(v) if isinstance(v, list) else v for k, v in r.items()})
-    report_main([out / n for n, _ in runs], out / "report", opts)
+    paths = [out / n for n, _ in runs]
+    if part is not None:
+        k, n = part
+        paths = paths[k::n]
+        opts = dataclasses.replace(opts, baselines=k == 0)
+        if not paths:
+            return 0
+    report_main(paths, out / "report", opts)
     print(f"wrote {out / 'report' / 'report.md'}")
     return 0
 

@@ -332,10 +332,10 @@ def test_report_on_tiny_runs(tmp_path):
         Trainer(cfg, tmp_path / name, progress=False).train()
         runs.append(str(tmp_path / name))
     out = tmp_path / "report"
-    assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--seeds", "0", "1", "--br-iters", "1",
-                 "--br-window", "1", "--br-patience", "1", "--br-tol", "0.05", "--br-copies", "2", "--br-rounds", "1",
-                 "--br-seeds", "0",
-                 "--top", "1", "--grid-scene", "1", "--grid-gifs"]) == 0
+    args = ["--scenes", "2", "--seeds", "0", "1", "--br-iters", "1", "--br-window", "1", "--br-patience", "1",
+            "--br-tol", "0.05", "--br-copies", "2", "--br-rounds", "1", "--br-seeds", "0",
+            "--top", "1", "--grid-scene", "1", "--grid-gifs"]
+    assert main(["--runs", *runs, "--out", str(out), *args]) == 0
     for f in FILES:
         assert (out / f).stat().st_size > 0, f
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
@@ -356,6 +356,18 @@ def test_report_on_tiny_runs(tmp_path):
     assert (out / "cce_gap_curve.png").stat().st_size > 0 and "## CCE-gap over training" in md
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
+    # every policy's evaluation is cached: the same report again reads it all back, nothing is recomputed
+    cache = {f.name: f.stat().st_mtime_ns for f in (out / "cache").glob("*.pkl")}
+    assert set(cache) == {"log_replay.pkl", "expert_(inverse_dynamics).pkl", "behaviour_prior.pkl",
+                          "world_model.pkl", "cce.pkl", "mappo.pkl"}
+    assert main(["--runs", *runs, "--out", str(out), *args]) == 0
+    assert {f.name: f.stat().st_mtime_ns for f in (out / "cache").glob("*.pkl")} == cache
+    again = json.loads((out / "summary.json").read_text())
+    assert json.dumps(again["results"], sort_keys=True) == json.dumps(summary["results"], sort_keys=True)
+    # another option is another evaluation; a process with some of the runs and no baselines
+    assert main(["--runs", runs[1], "--out", str(out), "--no-baselines", *args[:-5], "--top", "2", "--grid-scene", "1"]) == 0
+    assert [r["label"] for r in json.loads((out / "summary.json").read_text())["results"]] == ["mappo"]
+    assert (out / "cache" / "mappo.pkl").stat().st_mtime_ns != cache["mappo.pkl"]
 
 
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
@@ -372,6 +384,40 @@ def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
     assert [x.split("--out ")[1].split()[0].rsplit("/", 1)[1] for x in lines] == ["beta2.0_alpha0.5", "beta4.0_alpha0.5", "mappo"]
     assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--dry-run"]) == 0
     assert not any(x.startswith("CUDA_VISIBLE_DEVICES") for x in capsys.readouterr().out.splitlines())
+
+
+def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
+    import importlib.util
+
+    from tg_gpudrive.learn.train import Trainer
+
+    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    exp = tmp_path / "grid.yaml"
+    exp.write_text("base: small_cpu.yaml\noverrides: {updates: 2}\nbeta: [2.0]\nalpha: [0.25, 0.75]\n"
+                   "report: {scenes: 2, seeds: [0, 1], br_iters: 1, br_window: 1, br_patience: 1, br_min_iters: 1, "
+                   "br_copies: 2, br_rounds: 1, br_seeds: [0], device: cpu, progress: false}\n")
+    base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
+    out = tmp_path / "grid"
+    for alpha in (0.25, 0.75):  # trained here, as the grid's own train processes would
+        run = out / f"beta2.0_alpha{alpha}"
+        cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1, hidden=16,
+                                  quantiles=4, updates=2, checkpoint_every=2, alpha=alpha, out_dir=str(run))
+        Trainer(cfg, run, progress=False).train()
+    cache = out / "report" / "cache"
+    assert mod.main(["--config", str(exp), "--out", str(out), "--report-part", "1/2"]) == 0
+    assert sorted(f.name for f in cache.glob("*.pkl")) == ["beta2.0_alpha0.75.pkl"]  # the second run, no baselines
+    assert mod.main(["--config", str(exp), "--out", str(out), "--report-part", "0/2"]) == 0
+    done = {f.name: f.stat().st_mtime_ns for f in cache.glob("*.pkl")}
+    assert {"beta2.0_alpha0.25.pkl", "log_replay.pkl", "world_model.pkl"} <= set(done)
+    capsys.readouterr()
+    assert mod.main(["--config", str(exp), "--out", str(out), "--report-only"]) == 0
+    assert {f.name: f.stat().st_mtime_ns for f in cache.glob("*.pkl")} == done  # all read back
+    labels = {r["label"] for r in json.loads((out / "report" / "summary.json").read_text())["results"]}
+    assert {"log replay", "beta2.0_alpha0.25", "beta2.0_alpha0.75"} <= labels
+    with pytest.raises(SystemExit):
+        mod.main(["--config", str(exp), "--out", str(out), "--report-part", "2/2"])
 
 
 def test_flexibility_table_averages_the_last_updates(tmp_path):

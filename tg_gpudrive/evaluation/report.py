@@ -39,6 +39,10 @@ Writes into `out`:
     summary.json        every number of the tables
     scenarios/<run>/    the most critical generated scenarios as GPUDrive JSON (risk in metadata)
     frames/<run>.png    the top-down pictures of the grid
+    cache/<label>.pkl   each policy's rollouts and figures, CCE-gap included, keyed by its checkpoint
+                        files and the options: a report that was stopped goes on where it stopped, and
+                        several processes (one per GPU, each with some of the runs and --no-baselines
+                        but one) fill the cache that a last report over all the runs reads
 """
 
 from __future__ import annotations
@@ -46,8 +50,10 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
+import hashlib
 import json
 import math
+import pickle
 import sys
 import textwrap
 from pathlib import Path
@@ -99,6 +105,7 @@ class ReportOptions:
     grid_scene: int = 0  # which evaluation scene (0 .. scenes-1) the beta x alpha figure shows
     grid_gifs: bool = False  # also write frames/<run>.gif, the whole episode of that scene, per cell
     progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
+    baselines: bool = True  # log replay, expert, behaviour prior and world model on the first run's scenes
 
 
 # ------------------------------------------------------------------ helpers
@@ -244,6 +251,41 @@ def _evaluate(label, sim, policy, logged, opts, gap_game, bar, gamma: float) -> 
     res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, config=br_config(opts, gamma))
     bar.update(1)
     return res, gen
+
+
+def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
+    """What a policy's evaluation depends on: its label, the checkpoint files' contents (so a run
+    directory copied to another machine keeps its cache) and every option but the progress bar and
+    the baselines switch."""
+    h = hashlib.sha256(label.encode())
+    for f in files:
+        h.update(Path(f).read_bytes())
+    o = {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("progress", "baselines")}
+    h.update(json.dumps(o, default=str, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def _cached(out: Path, label: str, key: str, compute, bar):
+    """`compute()` (a policy's (result, rollouts)), or what cache/<label>.pkl holds under the same key
+    (advancing `bar` by the one step compute would have); stored atomically after computing."""
+    path = out / "cache" / (label.replace("/", "_").replace(" ", "_") + ".pkl")
+    if path.exists():
+        try:
+            with path.open("rb") as f:
+                hit = pickle.load(f)
+        except Exception:  # a cache from another version or a torn file: evaluate again
+            hit = None
+        if isinstance(hit, dict) and hit.get("key") == key:
+            bar.set_postfix_str(f"{label}: from {path.parent.name}/")
+            bar.update(1)
+            return hit["value"]
+    value = compute()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with tmp.open("wb") as f:
+        pickle.dump({"key": key, "value": value}, f, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(path)
+    return value
 
 
 def _read_metrics(run: Path) -> list[dict]:
@@ -589,7 +631,8 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     first = _run_files(runs[0])[0]
     discrete = first.env.discrete  # the behaviour-prior baseline needs it
     with_wm = discrete or bool(first.prior_model)  # a continuous run names its own (continuous) world model
-    bar = tqdm(total=len(runs) + 2 + discrete + with_wm, desc="report", unit="policy", disable=not opts.progress)
+    n_base = (2 + discrete + with_wm) if opts.baselines else 0
+    bar = tqdm(total=len(runs) + n_base, desc="report", unit="policy", disable=not opts.progress)
     if not 0 <= opts.grid_scene < opts.scenes:
         raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
     results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
@@ -615,33 +658,42 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             copies = _br_copies(opts, device)
             gsim = ex.deviation_sim(scenes, masks, cfg.env, device, copies)
             label = run.name
-            if i == 0:  # baselines on the first run's scenes and engine
+            if i == 0:
                 logged_all = logged
-                bar.set_postfix_str("log replay")
-                replayed = replay_episodes(scenes, masks, cfg.env, device)
-                keep(_measure("log replay", replayed, logged, opts), replayed)
-                bar.update(1)
-                # the baselines' best responses discount with the first run's gamma
-                keep(*_evaluate("expert (inverse dynamics)", sim, expert_policy, logged, opts,
-                                lambda s: ex.SimGame(gsim, expert_policy), bar, cfg.gamma))
+            if i == 0 and opts.baselines:  # baselines on the first run's scenes and engine, keyed by its checkpoint
+
+                def replay():
+                    bar.set_postfix_str("log replay")
+                    replayed = replay_episodes(scenes, masks, cfg.env, device)
+                    bar.update(1)
+                    return _measure("log replay", replayed, logged, opts), replayed
+
+                def baseline(name, make):  # the baselines' best responses discount with the first run's gamma
+                    return _cached(out, name, _cache_key(name, [ckpt], opts), lambda: _evaluate(
+                        name, sim, make(sim), logged, opts, lambda s: ex.SimGame(gsim, make(gsim)), bar, cfg.gamma), bar)
+
+                keep(*_cached(out, "log replay", _cache_key("log replay", [ckpt], opts), replay, bar))
+                keep(*baseline("expert (inverse dynamics)", lambda s: expert_policy))
                 if discrete:
-                    keep(*_evaluate("behaviour prior", sim, prior_policy(sim), logged, opts,
-                                    lambda s: ex.SimGame(gsim, prior_policy(gsim)), bar, cfg.gamma))
+                    keep(*baseline("behaviour prior", prior_policy))
                 if with_wm:
-                    keep(*_evaluate("world model", sim, world_model_policy(cfg, sim), logged, opts,
-                                    lambda s: ex.SimGame(gsim, world_model_policy(cfg, gsim)), bar, cfg.gamma))
-            policy = load_policy(ckpt, sim)
-            gpolicy = load_policy(ckpt, gsim)
-            actor = load_actor(ckpt, gsim)[0]
-            res, gen = _evaluate(label, sim, policy, logged, opts, lambda s: ex.SimGame(gsim, gpolicy, actor=actor),
-                                 bar, cfg.gamma)
-            keep(res, gen)
+                    keep(*baseline("world model", lambda s, c=cfg: world_model_policy(c, s)))
             curves[label] = _read_metrics(run)
             kept = kept_policies(run) if run.is_dir() else []
-            if kept:
-                bar.set_postfix_str(f"{label}: CCE-gap over {len(kept)} kept policies")
-                last_update = int(curves[label][-1]["update"]) if curves[label] else None
-                res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update)
+
+            def evaluate_run(ckpt=ckpt, kept=kept, label=label, gsim=gsim, sim=sim, logged=logged, cfg=cfg):
+                gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]
+                res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
+                                     lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar, cfg.gamma)
+                if kept:
+                    bar.set_postfix_str(f"{label}: CCE-gap over {len(kept)} kept policies")
+                    last_update = int(curves[label][-1]["update"]) if curves[label] else None
+                    res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update)
+                return res, gen
+
+            res, gen = _cached(out, label, _cache_key(label, [ckpt, *(p for _, p in kept)], opts), evaluate_run, bar)
+            keep(res, gen)
+            if res.get("gap_curve"):
                 gap_curves[label] = res["gap_curve"]
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
@@ -722,6 +774,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluation scene (0 .. --scenes - 1) that grid.png shows in every beta x alpha cell")
     p.add_argument("--grid-gifs", action="store_true",
                    help="also write frames/<run>.gif, the whole episode of that scene, per cell (default: off)")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="leave out log replay, expert, behaviour prior and world model (a process that fills "
+                        "the cache for some of the runs, beside one that does the baselines)")
     return p
 
 
@@ -733,7 +788,7 @@ def main(argv: list[str] | None = None) -> int:
                          br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
                          br_rounds=args.br_rounds,
                          br_gamma=args.br_gamma, top=args.top, device=args.device,
-                         grid_scene=args.grid_scene, grid_gifs=args.grid_gifs)
+                         grid_scene=args.grid_scene, grid_gifs=args.grid_gifs, baselines=not args.no_baselines)
     try:
         report_main(args.runs, args.out, opts)
     except (ValueError, FileNotFoundError) as e:
