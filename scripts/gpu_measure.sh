@@ -37,7 +37,9 @@ cd /tmp
 cli() { python3 -m tg_gpudrive.cli "$@"; }
 # a training run's progress bar, one line per update, without the carriage returns
 bar() { tr '\r' '\n' | grep -v '^\s*$' | grep -E 'reached|update|Error|error' | tail -${1:-3}; }
-pack() { find "$RES" -name 'checkpoint.pt*' -size +4M -delete; tar czf "$OUT/$stage.tgz" -C /tmp/res "$stage"; }
+# checkpoints over 4 MB (with the engine state) and the previous ones do not come back: the tool returns 16 MB a file
+pack() { find "$RES" \( -name 'checkpoint.pt*' -size +4M -o -name 'checkpoint.prev.pt' \) -delete
+         tar czf "$OUT/$stage.tgz" -C /tmp/res "$stage"; }
 
 slim() {
   # slim checkpoints (weights + config, a few MB) so they come back and load in evaluate / report
@@ -139,12 +141,16 @@ store10k)
   done
   ;;
 grid)
+  # GRID_FROM: run directories trained earlier (e.g. a carried folder holding the slim checkpoints an earlier
+  # session brought back) copied in first; finished cells are not trained again. GRID_REPORT=0: train only
+  [ -n "${GRID_FROM:-}" ] && cp -r "$R/$GRID_FROM"/. "$RES"/
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
     ${GRID_GPUS:+--gpus $GRID_GPUS} ${GRID_BATCH:+--batch $GRID_BATCH} ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   slim
   # the report: with GRID_GPUS one part per GPU fills its cache (policies evaluated, CCE-gaps), then one
   # pass writes it; a part stopped by its timeout keeps what it finished for the next call
   GC=${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml}
+  if [ "${GRID_REPORT:-1}" = 0 ]; then pack; exit 0; fi
   if [ -n "${GRID_GPUS:-}" ]; then
     parts=(${GRID_GPUS//,/ }); k=0
     for g in "${parts[@]}"; do
