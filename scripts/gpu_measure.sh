@@ -56,19 +56,18 @@ PY
 summarize() {
   python3 - "$RES" <<'PY'
 import csv, pathlib, sys
-from tg_gpudrive.learn.plots import time_to_quality
+from tg_gpudrive.learn.plots import RATE_WINDOW, time_to_quality, windowed_rates
 # goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
 # rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
 for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
     rows = list(csv.DictReader((d / "metrics.csv").open()))
     if not rows or "goal_rate" not in rows[0]:  # not a policy run (a world model's log)
         continue
-    done = [r for r in rows[-10:] if r["goal_rate"] not in ("", "nan")]
-    n = sum(float(r["episodes"]) for r in done) or float("nan")
-    rate = lambda k: sum(float(r[k]) * float(r["episodes"]) for r in done) / n  # noqa: E731
+    r = windowed_rates(rows) or dict.fromkeys(("goal_rate", "collision_rate", "offroad_rate"), float("nan"))
+    n = sum(float(x["episodes"] or 0) for x in rows[-RATE_WINDOW:])
     last = rows[-1]
-    print(f"{d.name}: {len(rows)} updates, goal {rate('goal_rate'):.3f} coll {rate('collision_rate'):.3f} "
-          f"off {rate('offroad_rate'):.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
+    print(f"{d.name}: {len(rows)} updates, goal {r['goal_rate']:.3f} coll {r['collision_rate']:.3f} "
+          f"off {r['offroad_rate']:.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
           f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} (max {float(last.get('lambda_max') or 0):.2f}) "
           f"cvar {float(last['cvar']):.2f} budget {float(last.get('cost_budget') or 0):.2f} wall {float(last['wall_s']):.0f}s")
     q = time_to_quality(rows)  # goal >= 0.95 with collision <= 0.05 and off-road <= 0.02, 10-update window

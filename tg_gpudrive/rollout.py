@@ -133,7 +133,7 @@ class EpisodeStats:
             if sc.metadata.get("kerb_stops"):
                 kerb[w] = np.isin(slot_agent[w], sc.metadata["kerb_stops"]) & (slot_agent[w] >= 0)
         self.kerb = torch.as_tensor(kerb, device=sim.reward.device) if kerb.any() else None
-        self.kerb_sums = {k: torch.zeros(1, dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
+        self.kerb_sums = {k: torch.zeros((), dtype=torch.float64, device=sim.reward.device) for k in self.KEYS}
         self.speed_sum = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
         self.scene_episodes = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
         self.alive_steps = torch.zeros((), dtype=torch.float64, device=sim.reward.device)
@@ -189,7 +189,7 @@ class EpisodeStats:
             out["per_type"] = {name: rates({k: float(v[i]) for k, v in self.sums.items()})
                                for i, name in enumerate(self.type_names)}
         if self.kerb is not None:
-            out["kerb_stops"] = rates({k: float(v.sum()) for k, v in self.kerb_sums.items()})
+            out["kerb_stops"] = rates({k: float(v) for k, v in self.kerb_sums.items()})
         return out
 
 

@@ -265,9 +265,10 @@ def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
     return h.hexdigest()
 
 
-def _cached(out: Path, label: str, key: str, compute, bar):
-    """`compute()` (a policy's (result, rollouts)), or what cache/<label>.pkl holds under the same key
-    (advancing `bar` by the one step compute would have); stored atomically after computing."""
+def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, compute, bar):
+    """`compute()` (a policy's (result, rollouts)), or what cache/<label>.pkl holds under the same
+    `_cache_key` (advancing `bar` by the one step compute would have); stored atomically after computing."""
+    key = _cache_key(label, files, opts)
     path = out / "cache" / (label.replace("/", "_").replace(" ", "_") + ".pkl")
     if path.exists():
         try:
@@ -669,19 +670,19 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                     return _measure("log replay", replayed, logged, opts), replayed
 
                 def baseline(name, make):  # the baselines' best responses discount with the first run's gamma
-                    return _cached(out, name, _cache_key(name, [ckpt], opts), lambda: _evaluate(
+                    return _cached(out, name, [ckpt], opts, lambda: _evaluate(
                         name, sim, make(sim), logged, opts, lambda s: ex.SimGame(gsim, make(gsim)), bar, cfg.gamma), bar)
 
-                keep(*_cached(out, "log replay", _cache_key("log replay", [ckpt], opts), replay, bar))
+                keep(*_cached(out, "log replay", [ckpt], opts, replay, bar))
                 keep(*baseline("expert (inverse dynamics)", lambda s: expert_policy))
                 if discrete:
                     keep(*baseline("behaviour prior", prior_policy))
                 if with_wm:
-                    keep(*baseline("world model", lambda s, c=cfg: world_model_policy(c, s)))
+                    keep(*baseline("world model", lambda s: world_model_policy(cfg, s)))
             curves[label] = _read_metrics(run)
             kept = kept_policies(run) if run.is_dir() else []
 
-            def evaluate_run(ckpt=ckpt, kept=kept, label=label, gsim=gsim, sim=sim, logged=logged, cfg=cfg):
+            def evaluate_run():  # called at once, in this iteration
                 gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]
                 res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
                                      lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar, cfg.gamma)
@@ -691,7 +692,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                     res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update)
                 return res, gen
 
-            res, gen = _cached(out, label, _cache_key(label, [ckpt, *(p for _, p in kept)], opts), evaluate_run, bar)
+            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
             keep(res, gen)
             if res.get("gap_curve"):
                 gap_curves[label] = res["gap_curve"]

@@ -30,6 +30,12 @@ def windowed_rates(rows: Sequence[dict], window: int = RATE_WINDOW) -> dict[str,
         return None
     return {k: sum(num(r[k]) * num(r["episodes"]) for r in recent) / n for k in RATE_KEYS}
 
+def meets_quality(rates: dict, goal: float, collision: float, offroad: float) -> bool:
+    """goal_rate >= goal with collision_rate <= collision and offroad_rate <= offroad (bounds inclusive):
+    the one quality rule of training's stop (`target_*`) and of `time_to_quality`."""
+    return rates["goal_rate"] >= goal and rates["collision_rate"] <= collision and rates["offroad_rate"] <= offroad
+
+
 def time_to_quality(rows: Sequence[dict], goal: float = 0.95, collision: float = 0.05, offroad: float = 0.02,
                     window: int = RATE_WINDOW) -> dict | None:
     """The first metrics.csv row whose windowed rates (the `window` updates up to it) meet the
@@ -39,7 +45,7 @@ def time_to_quality(rows: Sequence[dict], goal: float = 0.95, collision: float =
     time to quality; a full window is required, so a lucky first update does not count)."""
     for i in range(window, len(rows) + 1):
         r = windowed_rates(rows[:i], window)
-        if r and r["goal_rate"] >= goal and r["collision_rate"] <= collision and r["offroad_rate"] <= offroad:
+        if r and meets_quality(r, goal, collision, offroad):
             got = {"update": int(float(rows[i - 1]["update"])), "wall_s": float(rows[i - 1]["wall_s"]), **r}
             if rows[i - 1].get("elapsed_s") not in (None, ""):
                 got["elapsed_s"] = float(rows[i - 1]["elapsed_s"])

@@ -49,7 +49,7 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, plot_curves, windowed_rates
+from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves, windowed_rates
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import BehaviourPrior, PolicyHead, build_models
 from tg_gpudrive.policy import load_policy  # noqa: F401  (its old home: scripts and the README's layout name it here)
@@ -572,8 +572,10 @@ class Trainer:
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
         self._recent = (getattr(self, "_recent", []) + [now])[-RATE_WINDOW:]
         goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
-        return (len(self._recent) == RATE_WINDOW and eps > 0 and goals / eps >= cfg.target_goal_rate
-                and coll / eps <= cfg.target_max_collision and off / eps <= cfg.target_max_offroad)
+        if len(self._recent) < RATE_WINDOW or eps <= 0:
+            return False
+        rates = {"goal_rate": goals / eps, "collision_rate": coll / eps, "offroad_rate": off / eps}
+        return meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
 
     def _sync(self) -> None:
         if self.sim.is_cuda:

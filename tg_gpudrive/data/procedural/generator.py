@@ -245,10 +245,11 @@ def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int
                 dyaw = float(rng.uniform(-0.03, 0.03))
                 sway = L / 2 * abs(dyaw) + PARK_KERB_CLEAR  # a turned box reaches further sideways
                 lo, hi = W / 2 + sway - 0.15, st.width - W / 2 - sway
-                lat = float(np.clip(st.width / 2 + rng.uniform(-0.1, 0.1), lo, max(lo, hi)))
-                if reach > 0:  # the inner side `over` m past the lane edge (towards the lane centre)
-                    over = float(rng.uniform(0.0, reach))
-                    lat = min(W / 2 + sway - over, max(lo, hi))
+                jitter = float(rng.uniform(-0.1, 0.1))  # drawn either way: scenes without reach stay as they were
+                if reach > 0:  # the inner side U(0, reach) m past the lane edge (towards the lane centre)
+                    lat = min(W / 2 + sway - float(rng.uniform(0.0, reach)), max(lo, hi))
+                else:  # the middle of the strip
+                    lat = float(np.clip(st.width / 2 + jitter, lo, max(lo, hi)))
                 x, y, h = st.pose(t + L / 2, lat)
                 rows.append((math.hypot(x, y), x, y, h + dyaw, L, W))
                 t += L + float(rng.uniform(*PARK_GAP))

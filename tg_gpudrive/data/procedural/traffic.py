@@ -346,12 +346,17 @@ LANE_OFFSET_RAMP = 6.0  # m over which a lane offset fades in after a curve and 
 LANE_OFFSET_CLEAR = 0.25  # m a biased box keeps from its lane's edge
 
 
+def _offset_room(veh: Vehicles, lane_width: float) -> np.ndarray:
+    """(N,) m each vehicle may drive off its lane centre with its box LANE_OFFSET_CLEAR inside the lane."""
+    return np.maximum(lane_width / 2 - veh.width / 2 - LANE_OFFSET_CLEAR, 0.0)
+
+
 def plan_lane_offsets(veh: Vehicles, rng: np.random.Generator, sigma: float, lane_width: float) -> None:
     """Each vehicle drives off its lane centre by N(0, sigma) m (clipped so its box keeps
     LANE_OFFSET_CLEAR from the lane's edges), as logged drivers do; in place."""
     if sigma <= 0:
         return
-    room = np.maximum(lane_width / 2 - veh.width / 2 - LANE_OFFSET_CLEAR, 0.0)
+    room = _offset_room(veh, lane_width)
     veh.bias[:] = np.clip(rng.normal(0.0, sigma, len(veh)), -room, room)
 
 
@@ -360,7 +365,7 @@ def plan_park_clearance(tm: TrafficModel, veh: Vehicles, rng: np.random.Generato
     centre, away from the parked cars, by U(0.5, 1) x its room (the lane offset's bound), as drivers
     give room to cars parked over the lane edge; in place (it replaces the vehicle's lane offset)."""
     beside = {st.lane for st in tm.map.strips if st.lane >= 0}
-    room = np.maximum(lane_width / 2 - veh.width / 2 - LANE_OFFSET_CLEAR, 0.0)
+    room = _offset_room(veh, lane_width)
     for i, lanes in enumerate(veh.routes):
         if beside.intersection(lanes):
             veh.bias[i] = -room[i] * float(rng.uniform(0.5, 1.0))
