@@ -253,6 +253,25 @@ def test_cce_gap_single_agent_engine_game():
     assert bad["j_br_per_agent"][0] > good["j_pi_per_agent"][0] - 0.5
 
 
+def test_best_response_in_pieces_is_the_same_update():
+    """max_samples splits a minibatch's backward into column pieces (memory); the gradients add up to
+    the whole minibatch's, so the trained responses, their curves and returns are the same."""
+    A = np.array([[3.0, 0.0], [5.0, 1.0]])
+    prof = [np.array([0.6, 0.4]), np.array([0.3, 0.7])]
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=8)
+    sim = Simulator([_straight_scene()] * 4, cfg, "cpu")
+    games = [lambda: ex.MatrixGame([A, A.T], prof, batch=256, seed=0), lambda: ex.SimGame(sim, expert_policy)]
+    for make in games:
+        kw = dict(max_iters=3, window=1, patience=1, min_iters=0, eval_rounds=1, critic_warmup=2, lr=0.05)
+        whole = ex.train_best_response(make(), seed=3, **kw)
+        pieces = ex.train_best_response(make(), seed=3, max_samples=1, **kw)  # one column per piece
+        assert [len(c) for c in pieces["curve"]] == [len(c) for c in whole["curve"]]
+        for a, b in zip(pieces["curve"], whole["curve"]):
+            assert a == pytest.approx(b, abs=1e-4)
+        assert pieces["j_br"] == pytest.approx(whole["j_br"], abs=1e-4)
+        assert pieces["gain"] == pytest.approx(whole["gain"], abs=1e-4)
+
+
 def test_cce_gap_engine_expert_below_constant_and_random(device):
     """Procedural merge and T-junction scenes, two policy agents each, every other agent frozen at
     the profile: the expert profile is hardly exploitable, the constant (keep speed and heading)
@@ -325,7 +344,9 @@ def test_report_on_tiny_runs(tmp_path):
 
     base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
     runs = []
-    for name, kw in (("cce", dict(keep_policy_every=1)), ("mappo", dict(eta1=0.0, eta2=math.inf, constraint=False))):
+    # mappo fine-tunes the cce run's policy: its CCE-gap curve starts there (update 0)
+    for name, kw in (("cce", dict(keep_policy_every=1)),
+                     ("mappo", dict(eta1=0.0, eta2=math.inf, constraint=False, init_policy=str(tmp_path / "cce")))):
         cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1,
                                   hidden=16, quantiles=4, updates=2, checkpoint_every=2, control="nearest_conflict",
                                   control_k=2, out_dir=str(tmp_path / name), **kw)
@@ -333,7 +354,7 @@ def test_report_on_tiny_runs(tmp_path):
         runs.append(str(tmp_path / name))
     out = tmp_path / "report"
     args = ["--scenes", "2", "--seeds", "0", "1", "--br-iters", "1", "--br-window", "1", "--br-patience", "1",
-            "--br-tol", "0.05", "--br-copies", "2", "--br-rounds", "1", "--br-seeds", "0",
+            "--br-tol", "0.05", "--br-copies", "2", "--br-rounds", "1", "--br-seeds", "0", "--br-scenes", "1",
             "--top", "1", "--grid-scene", "1", "--grid-gifs"]
     assert main(["--runs", *runs, "--out", str(out), *args]) == 0
     for f in FILES:
@@ -348,18 +369,24 @@ def test_report_on_tiny_runs(tmp_path):
                                                          "world model", "cce", "mappo"}
     wm = next(r for r in summary["results"] if r["label"] == "world model")
     assert wm["cce_gap"] and math.isfinite(wm["cce_gap"]["mean_gap"])  # exploitability of the world model alone
+    # the deviation game holds the first scene's policy agents only (--br-scenes 1)
+    first = {a.split("/")[0] for a in wm["cce_gap"]["agents"]}
+    assert len(first) == 1 and summary["meta"]["best_response"]["scenes"] == 1
     assert list((out / "scenarios" / "cce").glob("*.json"))
-    # the CCE-gap over training: the cce run kept its policy after updates 1 and 2, mappo kept none
+    # the CCE-gap over training: the cce run kept its policy after updates 1 and 2 (the second is its final
+    # checkpoint, not evaluated twice); mappo kept none, but started from the cce run's final policy
     curve = {r["label"]: r.get("gap_curve") for r in summary["results"]}
-    assert [p["update"] for p in curve["cce"]] == [1, 2] and curve["mappo"] is None
-    assert all(math.isfinite(p["mean_gap"]) for p in curve["cce"])
+    assert [p["update"] for p in curve["cce"]] == [1, 2] and [p["update"] for p in curve["mappo"]] == [0, 2]
+    assert all(math.isfinite(p["mean_gap"]) for p in curve["cce"] + curve["mappo"])
     assert (out / "cce_gap_curve.png").stat().st_size > 0 and "## CCE-gap over training" in md
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
     # every policy's evaluation is cached: the same report again reads it all back, nothing is recomputed
     cache = {f.name: f.stat().st_mtime_ns for f in (out / "cache").glob("*.pkl")}
-    assert set(cache) == {"log_replay.pkl", "expert_(inverse_dynamics).pkl", "behaviour_prior.pkl",
-                          "world_model.pkl", "cce.pkl", "mappo.pkl"}
+    starts = {f for f in cache if f.startswith("start_")}  # the starting policy's gap, once
+    assert len(starts) == 1 and set(cache) - starts == {
+        "log_replay.pkl", "expert_(inverse_dynamics).pkl", "behaviour_prior.pkl", "world_model.pkl", "cce.pkl",
+        "mappo.pkl"}
     assert main(["--runs", *runs, "--out", str(out), *args]) == 0
     assert {f.name: f.stat().st_mtime_ns for f in (out / "cache").glob("*.pkl")} == cache
     again = json.loads((out / "summary.json").read_text())

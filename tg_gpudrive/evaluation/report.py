@@ -34,8 +34,9 @@ Writes into `out`:
     multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
     fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
     cce_gap.png         CCE-gap per agent, per run
-    cce_gap_curve.png   the CCE-gap of each run's kept policies over its training (runs trained with
-                        keep_policy_every > 0; the same best-response procedure at every point)
+    cce_gap_curve.png   the CCE-gap over each run's training: its starting policy (init_policy, update 0;
+                        computed once when runs share it), the policies it kept (keep_policy_every > 0)
+                        and its final checkpoint, by the same best-response procedure at every point
     summary.json        every number of the tables
     scenarios/<run>/    the most critical generated scenarios as GPUDrive JSON (risk in metadata)
     frames/<run>.png    the top-down pictures of the grid
@@ -98,6 +99,9 @@ class ReportOptions:
     br_patience: int = 10  # ... for this many iterations ...
     br_min_iters: int = 20  # ... and never before this many
     br_copies: int | None = None  # episodes per agent and PPO iteration; None: 16 on a GPU, 4 on the CPU
+    # the first br_scenes evaluation scenes play the deviation game (None: all of them); scene sources
+    # cycle over the scenario types, so a multiple of their number keeps the types balanced
+    br_scenes: int | None = None
     br_gamma: float | None = None  # discount of the returns; None: the run's gamma (baselines: the first run's)
     top: int = 3  # critical scenarios exported per run
     device: str | None = "auto"  # auto (cuda when one is visible, else cpu) | cpu | cuda:N; None: the run's config
@@ -253,11 +257,11 @@ def _evaluate(label, sim, policy, logged, opts, gap_game, bar, gamma: float) -> 
     return res, gen
 
 
-def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
+def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions, extra: str = "") -> str:
     """What a policy's evaluation depends on: its label, the checkpoint files' contents (so a run
-    directory copied to another machine keeps its cache) and every option but the progress bar and
-    the baselines switch."""
-    h = hashlib.sha256(label.encode())
+    directory copied to another machine keeps its cache), every option but the progress bar and
+    the baselines switch, and `extra` (what else defines the game, where no file holds it)."""
+    h = hashlib.sha256((label + extra).encode())
     for f in files:
         h.update(Path(f).read_bytes())
     o = {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("progress", "baselines")}
@@ -265,10 +269,10 @@ def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
     return h.hexdigest()
 
 
-def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, compute, bar):
+def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, compute, bar, extra: str = ""):
     """`compute()` (a policy's (result, rollouts)), or what cache/<label>.pkl holds under the same
     `_cache_key` (advancing `bar` by the one step compute would have); stored atomically after computing."""
-    key = _cache_key(label, files, opts)
+    key = _cache_key(label, files, opts, extra)
     path = out / "cache" / (label.replace("/", "_").replace(" ", "_") + ".pkl")
     if path.exists():
         try:
@@ -277,8 +281,9 @@ def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, c
         except Exception:  # a cache from another version or a torn file: evaluate again
             hit = None
         if isinstance(hit, dict) and hit.get("key") == key:
-            bar.set_postfix_str(f"{label}: from {path.parent.name}/")
-            bar.update(1)
+            if bar is not None:
+                bar.set_postfix_str(f"{label}: from {path.parent.name}/")
+                bar.update(1)
             return hit["value"]
     value = compute()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -396,20 +401,45 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path):
     return fig
 
 
+def policy_gap(ckpt: Path, gsim, opts: ReportOptions, gamma: float) -> dict:
+    """The CCE-gap of the policy in checkpoint `ckpt` on the deviation game of `gsim`."""
+    gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]  # once, shared by the seeds
+    return ex.cce_gap(lambda s: ex.SimGame(gsim, gpolicy, actor=actor), seeds=opts.br_seeds,
+                      config=br_config(opts, gamma))
+
+
 def gap_curve(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: float, last: dict | None,
-              last_update: int | None) -> list[dict]:
-    """The CCE-gap of every policy a run kept during training (checkpoint.kept_policies), with its
-    final checkpoint's gap `last` (at update `last_update`) as the end point: [{update, mean_gap,
-    ci95}], oldest first."""
-    points = []
+              last_update: int | None, start: dict | None = None) -> list[dict]:
+    """The CCE-gap over a run's training: `start` (the gap of the policy it started from, at update 0),
+    every policy it kept (checkpoint.kept_policies) and its final checkpoint's gap `last` (at update
+    `last_update`; a kept policy of that update is the same policy and is not evaluated again):
+    [{update, mean_gap, ci95}], oldest first."""
+    points = [] if start is None else [{"update": 0, "mean_gap": start["mean_gap"], "ci95": start["ci95"]}]
     for update, f in kept:
-        gpolicy, actor = load_policy(f, gsim), load_actor(f, gsim)[0]  # once per file, shared by the seeds
-        g = ex.cce_gap(lambda s: ex.SimGame(gsim, gpolicy, actor=actor), seeds=opts.br_seeds,
-                       config=br_config(opts, gamma))
+        if last is not None and update == last_update:
+            continue
+        g = policy_gap(f, gsim, opts, gamma)
         points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
     if points and last and last_update is not None and last_update > points[-1]["update"]:
         points.append({"update": last_update, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
-    return points
+    return points if len(points) > 1 else []
+
+
+def start_gap(run: Path, cfg: TrainConfig, gsim, opts: ReportOptions, out: Path, bar) -> dict | None:
+    """The CCE-gap of the policy run `run` started from (its `init_policy`; None without one) on the
+    run's deviation game, cached under the starting checkpoint and what defines the game (scenes,
+    control, engine and discount, not the run's own knobs), so runs that share both compute it once."""
+    if not cfg.init_policy:
+        return None
+    init = checkpoint_path(cfg.init_policy, f"{run}/config.json: init_policy")
+    env = {k: v for k, v in dataclasses.asdict(cfg.env).items() if k != "beta"}  # beta shapes the cost only
+    game = json.dumps({"scenes": cfg.scenes, "num_scenes": cfg.num_scenes, "seed": cfg.seed, "control": cfg.control,
+                       "control_k": cfg.control_k, "control_ids": cfg.control_ids, "gamma": cfg.gamma, "env": env},
+                      default=str, sort_keys=True)
+    label = f"start {hashlib.sha256((str(init) + game).encode()).hexdigest()[:12]}"
+    if bar is not None:
+        bar.set_postfix_str(f"{run.name}: CCE-gap of its starting policy ({cfg.init_policy})")
+    return _cached(out, label, [init], opts, lambda: policy_gap(init, gsim, opts, cfg.gamma), None, extra=game)
 
 
 def plot_gap_curves(curves: dict[str, list[dict]], path: Path):
@@ -504,7 +534,8 @@ def _pm(mean, half) -> str:
 
 def _br_text(meta: dict) -> str:
     b = meta["best_response"]
-    return (f"a PPO best response per agent (others frozen), {b['copies']} episodes per agent and iteration, "
+    return (f"a PPO best response per agent (others frozen) on the first {b.get('scenes', 'all')} evaluation "
+            f"scenes, {b['copies']} episodes per agent and iteration, "
             f"until its discounted return (gamma: {b['gamma']}) plateaus (no new best {b['window']}-iteration "
             f"moving mean by {b['tol']:g} x max(1, |best|) for {b['patience']} iterations, at least "
             f"{b['min_iters']}; cap {b['max_iters']}), "
@@ -545,13 +576,13 @@ def _gap_sections(results: list[dict]) -> list[str]:
     curves = [(r["label"], r["gap_curve"]) for r in results if r.get("gap_curve")]
     if curves:
         L.append("\n## CCE-gap over training\n\n![cce_gap_curve](cce_gap_curve.png)\n\nThe same best-response "
-                 "procedure on each policy the run kept (`keep_policy_every`), the last point its final "
-                 "checkpoint.\n\n")
+                 "procedure on the policy the run started from (`init_policy`, update 0), each policy it kept "
+                 "(`keep_policy_every`) and its final checkpoint.\n\n")
         L.append(_table(["run", "update", "CCE-gap ± 95% CI (agents)"],
                         [[label, p["update"], _pm(p["mean_gap"], p["ci95"])] for label, pts in curves for p in pts]))
     else:
-        L.append("\nNo CCE-gap curve over training: no run kept its policies during training (train with "
-                 "`--set keep_policy_every=N` to keep one every N updates).\n")
+        L.append("\nNo CCE-gap curve over training: no run started from a policy (`init_policy`) or kept its "
+                 "policies during training (train with `--set keep_policy_every=N` to keep one every N updates).\n")
     return L
 
 
@@ -657,7 +688,8 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
             copies = _br_copies(opts, device)
-            gsim = ex.deviation_sim(scenes, masks, cfg.env, device, copies)
+            nb = len(scenes) if opts.br_scenes is None else max(1, min(opts.br_scenes, len(scenes)))
+            gsim = ex.deviation_sim(scenes[:nb], masks[:nb], cfg.env, device, copies)
             label = run.name
             if i == 0:
                 logged_all = logged
@@ -682,17 +714,20 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             curves[label] = _read_metrics(run)
             kept = kept_policies(run) if run.is_dir() else []
 
+            start = start_gap(run, cfg, gsim, opts, out, bar) if run.is_dir() else None
+
             def evaluate_run():  # called at once, in this iteration
                 gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]
                 res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
                                      lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar, cfg.gamma)
-                if kept:
-                    bar.set_postfix_str(f"{label}: CCE-gap over {len(kept)} kept policies")
+                if kept or start is not None:
+                    bar.set_postfix_str(f"{label}: CCE-gap over training")
                     last_update = int(curves[label][-1]["update"]) if curves[label] else None
-                    res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update)
+                    res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update, start)
                 return res, gen
 
-            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
+            start_files = [checkpoint_path(cfg.init_policy, "init_policy")] if start is not None else []
+            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept), *start_files], opts, evaluate_run, bar)
             keep(res, gen)
             if res.get("gap_curve"):
                 gap_curves[label] = res["gap_curve"]
@@ -723,7 +758,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
-                              "copies": copies, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
+                              "copies": copies, "scenes": nb, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
                               "gamma": "the run's" if opts.br_gamma is None else opts.br_gamma}}
     write_markdown(out, results, meta)
     summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in results]}
@@ -764,6 +799,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--br-copies", type=int, default=d.br_copies,
                    help="episodes per agent and PPO iteration (each agent deviates in this many worlds; "
                         "default: 16 on a GPU, 4 on the CPU)")
+    p.add_argument("--br-scenes", type=int, default=d.br_scenes,
+                   help="CCE-gap: the first N evaluation scenes play the deviation game (default: all; a multiple "
+                        "of the scenario types keeps them balanced)")
     p.add_argument("--br-rounds", type=int, default=d.br_rounds,
                    help="fresh evaluation batches of J(pi) and of J(BR) each")
     p.add_argument("--br-gamma", type=float, default=None,
@@ -786,7 +824,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
                          br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, br_tol=args.br_tol, br_window=args.br_window,
-                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
+                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies, br_scenes=args.br_scenes,
                          br_rounds=args.br_rounds,
                          br_gamma=args.br_gamma, top=args.top, device=args.device,
                          grid_scene=args.grid_scene, grid_gifs=args.grid_gifs, baselines=not args.no_baselines)
