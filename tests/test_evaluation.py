@@ -253,6 +253,43 @@ def test_cce_gap_single_agent_engine_game():
     assert bad["j_br_per_agent"][0] > good["j_pi_per_agent"][0] - 0.5
 
 
+def test_best_response_corrects_the_learned_actor():
+    """With a learned actor each agent's response is a small network on the frozen actor's output: it
+    starts exactly at the actor's distribution (discrete and continuous), and against an actor that
+    mostly brakes on a free lane it learns to drive on (a positive gain)."""
+    from tg_gpudrive.policy import PolicyHead, build_actor
+
+    for space in ("discrete", "continuous"):
+        cfg = EngineConfig(max_agents=4, partner_k=2, road_k=8, action_space=space)
+        sim = Simulator([_straight_scene()] * 8, cfg, "cpu")
+        actor = build_actor(cfg, sim.num_actions, hidden=16)
+        with torch.no_grad():  # a braking bias: the hard-brake cell, or a mean near the lowest acceleration
+            actor.head_w.zero_()
+            actor.head_b.zero_()
+            actor.head_b[0, cfg.curvature_bins // 2 if cfg.discrete else 0] = 4.0 if cfg.discrete else -3.0
+        head = PolicyHead(cfg.discrete)
+
+        def policy(s, actor=actor, head=head, discrete=cfg.discrete):
+            with torch.no_grad():
+                a = head.dist(actor(s.obs)).sample()
+            if discrete:
+                s.actions_index.copy_(a.to(torch.int32))
+            else:
+                s.actions[..., : a.shape[-1]] = a
+
+        game = ex.SimGame(sim, policy, actor=actor)
+        ep = game.play(game.make_response(0))
+        with torch.no_grad():
+            own = head.dist(actor(ep.inputs["obs"], game.slot)).log_prob(ep.act)
+        m = ep.mask
+        assert m.any()
+        np.testing.assert_allclose(ep.logp[m].numpy(), own[m].numpy(), atol=1e-5)
+        if cfg.discrete:
+            res = ex.train_best_response(game, seed=0, max_iters=8, min_iters=8, window=1, patience=1,
+                                         eval_rounds=1, lr=0.1)
+            assert res["gain"][0] > 0.1, res
+
+
 def test_best_response_in_pieces_is_the_same_update():
     """max_samples splits a minibatch's backward into column pieces (memory); the gradients add up to
     the whole minibatch's, so the trained responses, their curves and returns are the same."""
