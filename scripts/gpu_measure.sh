@@ -38,8 +38,12 @@ cli() { python3 -m tg_gpudrive.cli "$@"; }
 # a training run's progress bar, one line per update, without the carriage returns
 bar() { tr '\r' '\n' | grep -v '^\s*$' | grep -E 'reached|update|Error|error' | tail -${1:-3}; }
 # checkpoints over 4 MB (with the engine state) and the previous ones do not come back: the tool returns 16 MB a file
+# nor does the report's cache (tens of MB per policy: every rollout): it stays on the machine for a resumed report
+# an archive over 15 MB comes back in parts: cat $stage.tgz.part_* | tar xz
 pack() { find "$RES" \( -name 'checkpoint.pt*' -size +4M -o -name 'checkpoint.prev.pt' \) -delete
-         tar czf "$OUT/$stage.tgz" -C /tmp/res "$stage"; }
+         tar czf "$OUT/$stage.tgz" --exclude=cache -C /tmp/res "$stage"
+         if [ "$(stat -c %s "$OUT/$stage.tgz")" -gt 15728640 ]; then
+           (cd "$OUT" && split -b 15M "$stage.tgz" "$stage.tgz.part_" && rm "$stage.tgz"); fi; }
 
 slim() {
   # slim checkpoints (weights + config, a few MB) so they come back and load in evaluate / report
