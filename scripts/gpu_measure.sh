@@ -12,7 +12,8 @@
 #   storebuild  a 10,000-scene procedural store in /tmp/store (CPU only: runs beside GPU stages)
 #   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
 #   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py); on two GPUs
-#             GRID_GPUS=0,1 GRID_BATCH=8 trains four cells on each at a time
+#             GRID_GPUS=0,1 GRID_BATCH=8 trains four cells on each at a time, and the report runs in
+#             GRID_REPORT_PER_GPU parts per GPU
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
@@ -154,12 +155,13 @@ grid)
   # pass writes it; a part stopped by its timeout keeps what it finished for the next call
   GC=${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml}
   if [ "${GRID_REPORT:-1}" = 0 ]; then pack; exit 0; fi
+  # GRID_REPORT_PER_GPU processes share each GPU (default 2: a best response's 80-step play is bound by
+  # kernel launches, so two processes keep a GPU busier than one)
   if [ -n "${GRID_GPUS:-}" ]; then
-    parts=(${GRID_GPUS//,/ }); k=0
-    for g in "${parts[@]}"; do
-      CUDA_VISIBLE_DEVICES=$g timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py --config "$GC" \
-        --out "$RES" --report-part $k/${#parts[@]} "${SETS[@]}" > "$RES/report_part$k.log" 2>&1 &
-      k=$((k + 1))
+    gpus=(${GRID_GPUS//,/ }); per=${GRID_REPORT_PER_GPU:-2}; n=$((${#gpus[@]} * per))
+    for ((k = 0; k < n; k++)); do
+      CUDA_VISIBLE_DEVICES=${gpus[$((k % ${#gpus[@]}))]} timeout ${GRID_REPORT_SECONDS:-200} python3 "$R"/scripts/run_experiments.py \
+        --config "$GC" --out "$RES" --report-part $k/$n "${SETS[@]}" > "$RES/report_part$k.log" 2>&1 &
     done
     wait
   fi

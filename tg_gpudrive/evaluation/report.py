@@ -109,7 +109,9 @@ class ReportOptions:
     grid_scene: int = 0  # which evaluation scene (0 .. scenes-1) the beta x alpha figure shows
     grid_gifs: bool = False  # also write frames/<run>.gif, the whole episode of that scene, per cell
     progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
-    baselines: bool = True  # log replay, expert, behaviour prior and world model on the first run's scenes
+    # log replay, expert, behaviour prior and world model on the first run's scenes, and the CCE-gap of
+    # the policy the runs started from (init_policy): what report parts share
+    baselines: bool = True
 
 
 # ------------------------------------------------------------------ helpers
@@ -408,18 +410,25 @@ def policy_gap(ckpt: Path, gsim, opts: ReportOptions, gamma: float) -> dict:
                       config=br_config(opts, gamma))
 
 
-def gap_curve(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: float, last: dict | None,
-              last_update: int | None, start: dict | None = None) -> list[dict]:
-    """The CCE-gap over a run's training: `start` (the gap of the policy it started from, at update 0),
-    every policy it kept (checkpoint.kept_policies) and its final checkpoint's gap `last` (at update
-    `last_update`; a kept policy of that update is the same policy and is not evaluated again):
+def kept_gaps(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: float,
+              last_update: int | None) -> list[dict]:
+    """The CCE-gap of every policy a run kept during training (checkpoint.kept_policies) but the one of
+    its final update (`last_update`: the final checkpoint's policy, evaluated as the run itself):
     [{update, mean_gap, ci95}], oldest first."""
-    points = [] if start is None else [{"update": 0, "mean_gap": start["mean_gap"], "ci95": start["ci95"]}]
+    points = []
     for update, f in kept:
-        if last is not None and update == last_update:
-            continue
-        g = policy_gap(f, gsim, opts, gamma)
-        points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
+        if update != last_update:
+            g = policy_gap(f, gsim, opts, gamma)
+            points.append({"update": update, "mean_gap": g["mean_gap"], "ci95": g["ci95"]})
+    return points
+
+
+def gap_curve(start: dict | None, kept: list[dict], last: dict | None, last_update: int | None) -> list[dict]:
+    """The CCE-gap over a run's training: `start` (the gap of the policy it started from) at update 0,
+    the kept policies' points (`kept_gaps`) and the final checkpoint's gap `last` at `last_update`;
+    empty with fewer than two points."""
+    points = [] if start is None else [{"update": 0, "mean_gap": start["mean_gap"], "ci95": start["ci95"]}]
+    points += kept
     if points and last and last_update is not None and last_update > points[-1]["update"]:
         points.append({"update": last_update, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
     return points if len(points) > 1 else []
@@ -714,22 +723,24 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             curves[label] = _read_metrics(run)
             kept = kept_policies(run) if run.is_dir() else []
 
-            start = start_gap(run, cfg, gsim, opts, out, bar) if run.is_dir() else None
+            last_update = int(curves[label][-1]["update"]) if curves[label] else None
 
             def evaluate_run():  # called at once, in this iteration
                 gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]
                 res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
                                      lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar, cfg.gamma)
-                if kept or start is not None:
-                    bar.set_postfix_str(f"{label}: CCE-gap over training")
-                    last_update = int(curves[label][-1]["update"]) if curves[label] else None
-                    res["gap_curve"] = gap_curve(kept, gsim, opts, cfg.gamma, res["cce_gap"], last_update, start)
+                if kept:
+                    bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
+                res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update)
                 return res, gen
 
-            start_files = [checkpoint_path(cfg.init_policy, "init_policy")] if start is not None else []
-            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept), *start_files], opts, evaluate_run, bar)
+            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
             keep(res, gen)
-            if res.get("gap_curve"):
+            # the starting policy's gap is shared by the runs that fine-tuned it, so the process that does
+            # the baselines does it (report parts: the first), and every run's curve reads it back
+            start = start_gap(run, cfg, gsim, opts, out, bar) if run.is_dir() and opts.baselines else None
+            res["gap_curve"] = gap_curve(start, res.get("kept_gaps", []), res["cce_gap"], last_update)
+            if res["gap_curve"]:
                 gap_curves[label] = res["gap_curve"]
             res["kind"] = run_kind(cfg)
             res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
@@ -814,8 +825,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid-gifs", action="store_true",
                    help="also write frames/<run>.gif, the whole episode of that scene, per cell (default: off)")
     p.add_argument("--no-baselines", action="store_true",
-                   help="leave out log replay, expert, behaviour prior and world model (a process that fills "
-                        "the cache for some of the runs, beside one that does the baselines)")
+                   help="leave out log replay, expert, behaviour prior and world model, and the CCE-gap of the "
+                        "policy runs started from (a process that fills the cache for some of the runs, beside "
+                        "one that does these shared parts)")
     return p
 
 
