@@ -20,7 +20,8 @@
 #             queues and kerb stops; held-out plain / urban / real rates beside the shipped policy
 #   (time to quality on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95: training stops
 #   once goal >= 0.95 with collision <= 0.05 and off-road <= 0.02 over 3 updates; summarize prints
-#   the 10-update-window time to quality of BENCHMARKS.md)
+#   the 10-update-window time to quality of BENCHMARKS.md; STORE_HELDOUT=procedural:all also asks 256 held-out
+#   scenes to meet it, config target_heldout)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);
 # TRAIN_SET adds `--set` overrides to every training run (a CPU dry run shrinks everything).
 set -u
@@ -136,7 +137,8 @@ store10k)
   CUDA_VISIBLE_DEVICES=${STORE_GPUS:-$CUDA_VISIBLE_DEVICES} timeout ${STORE_TRAIN_SECONDS:-240} python3 -m tg_gpudrive.cli \
     train --config "$CFG" --out "$RES/run" --nproc ${STORE_NPROC:-1} --set scenes=/tmp/store --set num_scenes="$N" \
     --set resample_every=5 --set checkpoint_every=5 --set target_goal_rate=${STORE_TARGET:-0} \
-    --set target_max_collision=0.05 --set target_max_offroad=0.02 --set time_limit_s=${STORE_LIMIT:-0} "${SETS[@]}" 2>&1 | bar 3
+    --set target_max_collision=0.05 --set target_max_offroad=0.02 --set time_limit_s=${STORE_LIMIT:-0} \
+    ${STORE_HELDOUT:+--set target_heldout=$STORE_HELDOUT} "${SETS[@]}" 2>&1 | bar 3
   summarize
   for mode in ignore stop remove; do
     timeout ${EVAL_SECONDS:-150} python3 -m tg_gpudrive.cli evaluate --checkpoint "$RES/run" --scenes procedural:all \

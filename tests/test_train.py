@@ -235,6 +235,44 @@ def test_target_quality_needs_collision_and_offroad_within_bounds_too():
     assert not tr._reached_target(st(96, 15, 2))  # collision (9 x 5 + 15) / 1000 = 0.06 > 0.05
 
 
+def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monkeypatch):
+    """With target_heldout, a training window that meets the quality bar stops training only once
+    held-out scenes meet it too: every check is a row of heldout.csv, the deciding one in target.json."""
+    import tg_gpudrive.learn.train as train_mod
+
+    monkeypatch.setattr(Trainer, "_reached_target", lambda self, stats: True)  # the window always meets it
+    kw = dict(updates=6, target_goal_rate=0.5, target_heldout="procedural:merge", target_heldout_worlds=2,
+              target_heldout_seed=777)
+    # the held-out evaluation itself: one episode in each held-out world, all their policy agents counted
+    a = tmp_path / "a"
+    Trainer(tiny(a, **{**kw, "updates": 1}), a, progress=False).train()
+    row = list(csv.DictReader((a / "heldout.csv").open()))
+    assert len(row) == 1 and row[0]["update"] == "1"
+    assert int(float(row[0]["episodes"])) > 0 and 0 <= float(row[0]["goal_rate"]) <= 1
+    # the decision: held-out rates below the bar twice, then above it
+    goals = iter([0.1, 0.2, 0.9])
+    seen = []
+
+    def fake_rollout(sim, policy, steps):
+        seen.append((sim.num_worlds, steps))
+        policy(sim)  # the current actor drives the held-out worlds
+        return {"goal_rate": next(goals), "collision_rate": 0.0, "offroad_rate": 0.0, "episodes": 7}
+
+    monkeypatch.setattr(train_mod, "run_rollout", fake_rollout)
+    b = tmp_path / "b"
+    tr = Trainer(tiny(b, **kw), b, progress=False)
+    tr.train()
+    assert tr.update == 3 and all(x == (2, tr.sim.episode_length) for x in seen)
+    checks = list(csv.DictReader((b / "heldout.csv").open()))
+    assert [(c["update"], c["met"]) for c in checks] == [("1", "0"), ("2", "0"), ("3", "1")]
+    target = json.loads((b / "target.json").read_text())
+    assert target["update"] == 3 and target["heldout"]["goal_rate"] == 0.9
+    from tg_gpudrive.config import ConfigError
+
+    with pytest.raises(ConfigError, match="target_heldout"):  # a check with no target to meet
+        dataclasses.replace(tiny(b), target_heldout="procedural:merge")
+
+
 def test_time_to_quality_takes_the_first_full_window_meeting_all_three_bounds():
     from tg_gpudrive.learn.plots import time_to_quality
     row = lambda u, g, c, o, n=10: {"update": u, "wall_s": 2.0 * u, "episodes": n,  # noqa: E731

@@ -195,6 +195,16 @@ class TrainConfig:
     # quality: a goal reached through a crash or off the road is not quality); 1.0: goal rate alone
     target_max_collision: float = 1.0
     target_max_offroad: float = 1.0
+    # ... and, each time the training window meets that bar, held-out scenes must too: `target_heldout`
+    # is a scene spec (procedural:all, a store, a directory) drawn with `target_heldout_seed` (a seed
+    # used neither in training nor in the evaluations reported, which use 50000 and 90000), one
+    # episode in each of `target_heldout_worlds` worlds under the current
+    # policy (sampled, as in training); every check goes to heldout.csv. "": the training window decides.
+    # (The window's episodes are those that ended during the updates, so worlds that finish early
+    # count more often there than in a held-out evaluation.)
+    target_heldout: str = ""
+    target_heldout_seed: int = 70000
+    target_heldout_worlds: int = 256
     checkpoint_every: int = 10
     keep_policy_every: int = 0  # also keep the policy every N updates (policies/update_NNNNNN.pt): the report's CCE-gap curve; 0: off
     out_dir: str = "runs/train"
@@ -213,6 +223,9 @@ class TrainConfig:
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:
             raise ConfigError("rollout_steps, updates and num_worlds must be >= 1")
+        if self.target_heldout and (self.target_heldout_worlds < 1 or self.target_goal_rate <= 0):
+            raise ConfigError("target_heldout: needs target_heldout_worlds >= 1 and a target_goal_rate > 0 "
+                              "(the check runs when the training window meets that target)")
 
 
 def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:

@@ -119,12 +119,16 @@ def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
     `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
     have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
     actor, cfg = load_actor(path, sim)
-    e = cfg.env
-    actor.eval()
-    head = PolicyHead(e.discrete)
+    return actor_policy(actor.eval(), sim, cfg.actor_history, deterministic)
+
+
+def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: bool = False):
+    """A `policy(sim)` callable that drives every slot of `sim` with `actor` (seeing `history` steps of
+    its own motion), sampling its distribution, or taking its mode with `deterministic`."""
+    head = PolicyHead(sim.cfg.discrete)
     slots = torch.arange(sim.max_agents, device=sim.device)
     # an actor with a motion history keeps its window in step with the simulator it drives
-    window = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
+    window = HistoryBuffer(history) if history else None
 
     @torch.no_grad()
     def policy(sim_: Simulator) -> None:

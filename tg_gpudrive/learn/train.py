@@ -40,7 +40,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, save_atomic
+from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_engine_config, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes
@@ -51,8 +51,9 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves, windowed_rates
 from tg_gpudrive.learn.prior import ExpertPrior
-from tg_gpudrive.policy import BehaviourPrior, PolicyHead, build_models
+from tg_gpudrive.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.policy import load_policy  # noqa: F401  (its old home: scripts and the README's layout name it here)
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
 log = logging.getLogger(__name__)
@@ -532,6 +533,8 @@ class Trainer:
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
                                 coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
             reached = self._reached_target(stats)
+            if reached and cfg.target_heldout:
+                reached = self._heldout_check(bar)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
             if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
                               or out_of_time):
@@ -548,7 +551,7 @@ class Trainer:
                     (self.out / "target.json").write_text(json.dumps(
                         {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
                          "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
-                         "agent_steps": self.agent_steps}, indent=1))
+                         "agent_steps": self.agent_steps, "heldout": getattr(self, "_heldout_rates", None)}, indent=1))
                     if bar is not None:
                         bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
                                   f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
@@ -576,6 +579,39 @@ class Trainer:
             return False
         rates = {"goal_rate": goals / eps, "collision_rate": coll / eps, "offroad_rate": off / eps}
         return meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
+
+    def _heldout_check(self, bar=None) -> bool:
+        """Whether the current policy meets the quality bar on held-out scenes (`target_heldout`): rank 0
+        plays one episode in every held-out world and tells the others; the check is appended to
+        heldout.csv (update, wall_s, rates, episodes, met)."""
+        cfg = self.cfg
+        met = torch.zeros((), device=self.device)
+        if self.lead:
+            if getattr(self, "_heldout_sim", None) is None:  # built once, on first use
+                src = resolve_scenes(cfg.target_heldout, n=cfg.target_heldout_worlds, seed=cfg.target_heldout_seed)
+                scenes = [src.get(i) for i in range(min(cfg.target_heldout_worlds, len(src)))]
+                self._heldout_sim = Simulator(scenes, policy_engine_config(cfg, scenes), self.device,
+                                              controlled=self._control(scenes))
+            hsim = self._heldout_sim
+            rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length)
+            ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
+            self._heldout_rates = {k: rates[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "episodes")}
+            row = {"update": self.update, "wall_s": self.wall, **self._heldout_rates, "met": int(ok)}
+            path = self.out / "heldout.csv"
+            new = not path.exists()
+            with path.open("a", newline="") as f:
+                w = csv.DictWriter(f, fieldnames=list(row))
+                if new:
+                    w.writeheader()
+                w.writerow(row)
+            if bar is not None:
+                bar.write(f"held-out check after update {self.update} ({cfg.target_heldout}, seed "
+                          f"{cfg.target_heldout_seed}): goal {rates['goal_rate']:.3f}, collision "
+                          f"{rates['collision_rate']:.3f}, off-road {rates['offroad_rate']:.3f}"
+                          f"{'' if ok else ': not yet'}")
+            met.fill_(float(ok))
+        dist_util.all_reduce_sum_({"met": met})  # rank 0's answer to every rank
+        return bool(met > 0)
 
     def _sync(self) -> None:
         if self.sim.is_cuda:
