@@ -25,9 +25,9 @@ configs/experiments/grid.yaml), else as CCE-MAPPO.
 Writes into `out`:
 
     report.md           tables: comparison against baselines, fidelity per feature, CCE-gap per
-                        agent and per scenario type (PPO best responses trained to a plateau,
-                        exploitability.py; --br-* flags), diversity per scenario type, most
-                        critical scenarios
+                        agent and per scenario type (PPO best responses trained to a plateau on
+                        the first --br-scenes evaluation scenes, exploitability.py; --br-* flags),
+                        diversity per scenario type, most critical scenarios
     grid.png            the paper's beta x alpha figure: one scene (--grid-scene) per CCE-MAPPO cell,
                         beta down the rows, alpha across, whole trajectories drawn
     frames/<run>.gif    with --grid-gifs: that scene's episode per cell
