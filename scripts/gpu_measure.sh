@@ -19,7 +19,7 @@
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
 #             queues and kerb stops; held-out plain / urban / real rates beside the shipped policy
 #   (time to quality on 2 GPUs: store10k with STORE_NPROC=2 STORE_GPUS=0,1 STORE_TARGET=0.95: training stops
-#   once goal >= 0.95 with collision <= 0.05 and off-road <= 0.02 over 3 updates; summarize prints
+#   once goal >= 0.95 with collision <= 0.05 and off-road <= 0.02 over the last 10 updates; summarize prints
 #   the 10-update-window time to quality of BENCHMARKS.md; STORE_HELDOUT=procedural:all also asks 256 held-out
 #   scenes to meet it, config target_heldout)
 # Sizes and time limits come from the environment (defaults: the figures in BENCHMARKS.md);

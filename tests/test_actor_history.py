@@ -70,7 +70,7 @@ def test_a_history_checkpoint_evaluates_and_warm_starts_the_best_response(tmp_pa
     assert tr.valid[tr.policy].any()
     actor = load_actor(tmp_path, sim)[0]
     assert actor.history == 3
-    res = ex.cce_gap(lambda s: ex.SimGame(sim, load_policy(tmp_path, sim), actor=actor), seeds=(0,), max_iters=1,
+    res = ex.cce_gap(lambda s: ex.SimGame(sim, actor=actor), seeds=(0,), max_iters=1,
                      min_iters=1, window=1, patience=1, eval_rounds=1)
     assert np.isfinite(res["mean_gap"])
 

@@ -268,16 +268,9 @@ def test_best_response_corrects_the_learned_actor():
             actor.head_b.zero_()
             actor.head_b[0, cfg.curvature_bins // 2 if cfg.discrete else 0] = 4.0 if cfg.discrete else -3.0
         head = PolicyHead(cfg.discrete)
-
-        def policy(s, actor=actor, head=head, discrete=cfg.discrete):
-            with torch.no_grad():
-                a = head.dist(actor(s.obs)).sample()
-            if discrete:
-                s.actions_index.copy_(a.to(torch.int32))
-            else:
-                s.actions[..., : a.shape[-1]] = a
-
-        game = ex.SimGame(sim, policy, actor=actor)
+        game = ex.SimGame(sim, actor=actor)  # the actor, sampled, is everyone's profile
+        with pytest.raises(ValueError, match="either"):  # one profile: a policy or an actor
+            ex.SimGame(sim)
         ep = game.play(game.make_response(0))
         with torch.no_grad():
             own = head.dist(actor(ep.inputs["obs"], game.slot)).log_prob(ep.act)

@@ -124,7 +124,9 @@ def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
 
 def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: bool = False):
     """A `policy(sim)` callable that drives every slot of `sim` with `actor` (seeing `history` steps of
-    its own motion), sampling its distribution, or taking its mode with `deterministic`."""
+    its own motion), sampling its distribution, or taking its mode with `deterministic`. The actor's
+    output of the latest call stays on it as `policy.last_out` (logits, or (mean, log-std)): what a
+    best response to this profile corrects (evaluation.exploitability.SimGame)."""
     head = PolicyHead(sim.cfg.discrete)
     slots = torch.arange(sim.max_agents, device=sim.device)
     # an actor with a motion history keeps its window in step with the simulator it drives
@@ -136,7 +138,7 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: 
         if window is not None:
             window.sync(sim_)
             hist = window.features(sim_)
-        out = actor(sim_.obs, slots, hist)
+        out = policy.last_out = actor(sim_.obs, slots, hist)
         if head.discrete:
             a = out.argmax(-1) if deterministic else head.dist(out).sample()
             sim_.actions_index.copy_(a.to(torch.int32))
@@ -144,4 +146,5 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: 
             a = out[0] if deterministic else head.dist(out).sample()
             sim_.actions[..., : a.shape[-1]].copy_(a)
 
+    policy.last_out = None
     return policy

@@ -259,11 +259,11 @@ def _evaluate(label, sim, policy, logged, opts, gap_game, bar, gamma: float) -> 
     return res, gen
 
 
-def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions, extra: str = "") -> str:
+def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
     """What a policy's evaluation depends on: its label, the checkpoint files' contents (so a run
-    directory copied to another machine keeps its cache), every option but the progress bar and
-    the baselines switch, and `extra` (what else defines the game, where no file holds it)."""
-    h = hashlib.sha256((label + extra).encode())
+    directory copied to another machine keeps its cache) and every option but the progress bar and
+    the baselines switch."""
+    h = hashlib.sha256(label.encode())
     for f in files:
         h.update(Path(f).read_bytes())
     o = {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("progress", "baselines")}
@@ -271,10 +271,11 @@ def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions, extra: st
     return h.hexdigest()
 
 
-def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, compute, bar, extra: str = ""):
+def _cached(out: Path, label: str, files: Sequence[Path], opts: ReportOptions, compute, bar):
     """`compute()` (a policy's (result, rollouts)), or what cache/<label>.pkl holds under the same
-    `_cache_key` (advancing `bar` by the one step compute would have); stored atomically after computing."""
-    key = _cache_key(label, files, opts, extra)
+    `_cache_key` (advancing `bar`, if any, by the one step compute would have); stored atomically after
+    computing."""
+    key = _cache_key(label, files, opts)
     path = out / "cache" / (label.replace("/", "_").replace(" ", "_") + ".pkl")
     if path.exists():
         try:
@@ -405,9 +406,8 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path):
 
 def policy_gap(ckpt: Path, gsim, opts: ReportOptions, gamma: float) -> dict:
     """The CCE-gap of the policy in checkpoint `ckpt` on the deviation game of `gsim`."""
-    gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]  # once, shared by the seeds
-    return ex.cce_gap(lambda s: ex.SimGame(gsim, gpolicy, actor=actor), seeds=opts.br_seeds,
-                      config=br_config(opts, gamma))
+    actor = load_actor(ckpt, gsim)[0]  # once, shared by the seeds
+    return ex.cce_gap(lambda s: ex.SimGame(gsim, actor=actor), seeds=opts.br_seeds, config=br_config(opts, gamma))
 
 
 def kept_gaps(kept: list[tuple[int, Path]], gsim, opts: ReportOptions, gamma: float,
@@ -436,8 +436,9 @@ def gap_curve(start: dict | None, kept: list[dict], last: dict | None, last_upda
 
 def start_gap(run: Path, cfg: TrainConfig, gsim, opts: ReportOptions, out: Path, bar) -> dict | None:
     """The CCE-gap of the policy run `run` started from (its `init_policy`; None without one) on the
-    run's deviation game, cached under the starting checkpoint and what defines the game (scenes,
-    control, engine and discount, not the run's own knobs), so runs that share both compute it once."""
+    run's deviation game, cached under the starting checkpoint and a label that hashes what defines
+    the game (scenes, control, engine and discount, not the run's own knobs), so runs that share both
+    compute it once."""
     if not cfg.init_policy:
         return None
     init = checkpoint_path(cfg.init_policy, f"{run}/config.json: init_policy")
@@ -448,7 +449,7 @@ def start_gap(run: Path, cfg: TrainConfig, gsim, opts: ReportOptions, out: Path,
     label = f"start {hashlib.sha256((str(init) + game).encode()).hexdigest()[:12]}"
     if bar is not None:
         bar.set_postfix_str(f"{run.name}: CCE-gap of its starting policy ({cfg.init_policy})")
-    return _cached(out, label, [init], opts, lambda: policy_gap(init, gsim, opts, cfg.gamma), None, extra=game)
+    return _cached(out, label, [init], opts, lambda: policy_gap(init, gsim, opts, cfg.gamma), None)
 
 
 def plot_gap_curves(curves: dict[str, list[dict]], path: Path):
@@ -726,9 +727,9 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             last_update = int(curves[label][-1]["update"]) if curves[label] else None
 
             def evaluate_run():  # called at once, in this iteration
-                gpolicy, actor = load_policy(ckpt, gsim), load_actor(ckpt, gsim)[0]
+                actor = load_actor(ckpt, gsim)[0]
                 res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
-                                     lambda s: ex.SimGame(gsim, gpolicy, actor=actor), bar, cfg.gamma)
+                                     lambda s: ex.SimGame(gsim, actor=actor), bar, cfg.gamma)
                 if kept:
                     bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
                 res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update)
@@ -836,8 +837,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
                          br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, br_tol=args.br_tol, br_window=args.br_window,
-                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies, br_scenes=args.br_scenes,
-                         br_rounds=args.br_rounds,
+                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
+                         br_scenes=args.br_scenes, br_rounds=args.br_rounds,
                          br_gamma=args.br_gamma, top=args.top, device=args.device,
                          grid_scene=args.grid_scene, grid_gifs=args.grid_gifs, baselines=not args.no_baselines)
     try:

@@ -116,6 +116,16 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
 
 
 # ------------------------------------------------------------------- trainer
+def _append_csv(path: Path, rows: list[dict]) -> None:
+    """Append `rows` (dicts with the same keys) to the CSV file `path`, with a header when it is new."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        if new:
+            w.writeheader()
+        w.writerows(rows)
+
+
 class Trainer:
     def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                  progress: bool = True):
@@ -171,6 +181,7 @@ class Trainer:
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
         self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
+        self._heldout_sim, self._heldout_rates = None, None  # target_heldout: its worlds and latest rates
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
@@ -503,7 +514,8 @@ class Trainer:
             n_ep = float(stats["episodes"])
             row.update({
                 "update": self.update, "agent_steps": self.agent_steps, "wall_s": self.wall,
-                "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt, "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
+                "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt,
+                "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
                 "episodes": n_ep,
                 "goal_rate": float(stats["goal"]) / n_ep if n_ep else float("nan"),
                 "collision_rate": float(stats["collided"]) / n_ep if n_ep else float("nan"),
@@ -525,14 +537,13 @@ class Trainer:
                 self._log(row)
                 self._log_timing(phases)
             last = row
+            reached = self._reached_target(stats)  # also moves the window of rates the bar shows
             if bar is not None:
                 bar.update(1)
-                self._recent_rows = (getattr(self, "_recent_rows", []) + [row])[-RATE_WINDOW:]
-                rates = windowed_rates(self._recent_rows)  # None until an episode has ended
+                rates = self._window_rates()  # None until an episode has ended
                 shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
                                 coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
-            reached = self._reached_target(stats)
             if reached and cfg.target_heldout:
                 reached = self._heldout_check(bar)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
@@ -551,7 +562,7 @@ class Trainer:
                     (self.out / "target.json").write_text(json.dumps(
                         {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
                          "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
-                         "agent_steps": self.agent_steps, "heldout": getattr(self, "_heldout_rates", None)}, indent=1))
+                         "agent_steps": self.agent_steps, "heldout": self._heldout_rates}, indent=1))
                     if bar is not None:
                         bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
                                   f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
@@ -566,19 +577,24 @@ class Trainer:
         return last
 
     def _reached_target(self, stats: dict) -> bool:
-        """Over the episodes of the last RATE_WINDOW updates (all ranks), the window the progress bar,
-        curves.png and `plots.time_to_quality` use: goal rate >= target_goal_rate, collision rate <=
-        target_max_collision and off-road rate <= target_max_offroad."""
-        cfg = self.cfg
-        if cfg.target_goal_rate <= 0:
-            return False
+        """Adds this update's episode outcomes (all ranks) to the window of the last RATE_WINDOW updates,
+        the one the progress bar, curves.png and `plots.time_to_quality` use; then whether the full
+        window meets goal rate >= target_goal_rate, collision rate <= target_max_collision and
+        off-road rate <= target_max_offroad."""
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
         self._recent = (getattr(self, "_recent", []) + [now])[-RATE_WINDOW:]
-        goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
-        if len(self._recent) < RATE_WINDOW or eps <= 0:
+        cfg = self.cfg
+        rates = self._window_rates()
+        if cfg.target_goal_rate <= 0 or len(self._recent) < RATE_WINDOW or rates is None:
             return False
-        rates = {"goal_rate": goals / eps, "collision_rate": coll / eps, "offroad_rate": off / eps}
         return meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
+
+    def _window_rates(self) -> dict | None:
+        """Goal, collision and off-road rates over the episodes of the window (None before one ended)."""
+        goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
+        if eps <= 0:
+            return None
+        return {"goal_rate": goals / eps, "collision_rate": coll / eps, "offroad_rate": off / eps}
 
     def _heldout_check(self, bar=None) -> bool:
         """Whether the current policy meets the quality bar on held-out scenes (`target_heldout`): rank 0
@@ -587,7 +603,7 @@ class Trainer:
         cfg = self.cfg
         met = torch.zeros((), device=self.device)
         if self.lead:
-            if getattr(self, "_heldout_sim", None) is None:  # built once, on first use
+            if self._heldout_sim is None:  # built once, on first use
                 src = resolve_scenes(cfg.target_heldout, n=cfg.target_heldout_worlds, seed=cfg.target_heldout_seed)
                 scenes = [src.get(i) for i in range(min(cfg.target_heldout_worlds, len(src)))]
                 self._heldout_sim = Simulator(scenes, policy_engine_config(cfg, scenes), self.device,
@@ -596,14 +612,8 @@ class Trainer:
             rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length)
             ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
             self._heldout_rates = {k: rates[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "episodes")}
-            row = {"update": self.update, "wall_s": self.wall, **self._heldout_rates, "met": int(ok)}
-            path = self.out / "heldout.csv"
-            new = not path.exists()
-            with path.open("a", newline="") as f:
-                w = csv.DictWriter(f, fieldnames=list(row))
-                if new:
-                    w.writeheader()
-                w.writerow(row)
+            _append_csv(self.out / "heldout.csv",
+                        [{"update": self.update, "wall_s": self.wall, **self._heldout_rates, "met": int(ok)}])
             if bar is not None:
                 bar.write(f"held-out check after update {self.update} ({cfg.target_heldout}, seed "
                           f"{cfg.target_heldout_seed}): goal {rates['goal_rate']:.3f}, collision "
@@ -619,12 +629,7 @@ class Trainer:
 
     # ------------------------------------------------------------ logging
     def _log(self, row: dict) -> None:
-        new = not self.csv_path.exists()
-        with self.csv_path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row.keys()))
-            if new:
-                w.writeheader()
-            w.writerow(row)
+        _append_csv(self.csv_path, [row])
         tb = self._tensorboard()
         if tb is not None:  # the same names as metrics.csv: reward/<term>, kl/prior, lambda, goal_rate, ...
             for k, v in row.items():
@@ -635,14 +640,9 @@ class Trainer:
     def _log_timing(self, phases: list[list[float]]) -> None:
         """timing.csv: one row per rank and update (rollout, wait for the slowest rollout, update, s),
         long format so a run resumed on another number of ranks appends cleanly."""
-        path = self.out / "timing.csv"
-        new = not path.exists()
-        with path.open("a", newline="") as f:
-            w = csv.writer(f)
-            if new:
-                w.writerow(["update", "rank", "rollout_s", "wait_s", "update_s"])
-            for r, (own, wait, upd) in enumerate(phases):
-                w.writerow([self.update, r, f"{own:.6f}", f"{wait:.6f}", f"{upd:.6f}"])
+        _append_csv(self.out / "timing.csv", [{"update": self.update, "rank": r, "rollout_s": f"{own:.6f}",
+                                                "wait_s": f"{wait:.6f}", "update_s": f"{upd:.6f}"}
+                                               for r, (own, wait, upd) in enumerate(phases)])
 
     def _tensorboard(self):
         """A SummaryWriter into the run directory when `tensorboard` is installed (the optional extra

@@ -37,8 +37,7 @@ import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
 from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_offsets,
-                                                  plan_park_clearance,
-                                                 settle, spawn)
+                                                 plan_park_clearance, settle, spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
 
