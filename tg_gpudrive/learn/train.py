@@ -49,7 +49,7 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves, windowed_rates
+from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.policy import load_policy  # noqa: F401  (its old home: scripts and the README's layout name it here)
