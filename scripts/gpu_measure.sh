@@ -177,13 +177,17 @@ wm)
   # QUALITY_VARIANTS="cont:env.action_space=continuous,prior_model=/tmp/res/wm/cont/model.pt")
   WC="$R"/configs/worldmodel/gpu.yaml
   WMS=(); for x in ${WM_SET:-}; do WMS+=(--set "$x"); done  # overrides of every world-model run
+  # a run stopped by its time limit (rc 124) still leaves its last model.pt, which the next step starts from
   wmrun() { local name=$1; shift; timeout ${WM_SECONDS:-330} python3 -m tg_gpudrive.worldmodel.cli --config "$WC" \
-    --out "$RES/$name" --json "${WMS[@]}" "$@" > "$RES/$name.json" 2> "$RES/$name.err"; echo "$name rc $?"; }
-  (wmrun disc && wmrun dagger --set init_model="$RES/disc/model.pt" --set steps=0 --set num_scenes=1000 \
+    --out "$RES/$name" --json "${WMS[@]}" "$@" > "$RES/$name.json" 2> "$RES/$name.err"; echo "$name rc $?"
+    [ -f "$RES/$name/model.pt" ]; }
+  # WM_HEADS picks the heads trained (default both: "disc cont")
+  heads=" ${WM_HEADS:-disc cont} "
+  [[ $heads == *" disc "* ]] && (wmrun disc && wmrun dagger --set init_model="$RES/disc/model.pt" --set steps=0 --set num_scenes=1000 \
     --set closed_loop_steps=2000 --set closed_loop_rounds=2) &
   # continuous: closed-loop fine-tuning made the CPU model worse; on the GPU it is tried with roll-outs
   # at the driver's temperature (0.1)
-  (wmrun cont --set env.action_space=continuous && wmrun contdagger --set env.action_space=continuous \
+  [[ $heads == *" cont "* ]] && (wmrun cont --set env.action_space=continuous && wmrun contdagger --set env.action_space=continuous \
     --set init_model="$RES/cont/model.pt" --set steps=0 --set num_scenes=1000 --set closed_loop_steps=2000 \
     --set closed_loop_rounds=2 --set closed_loop_temperature=0.1) &
   wait

@@ -128,6 +128,27 @@ def merge_sim():
     return Simulator(scenes, EngineConfig(max_agents=16, partner_k=4, road_k=8), "cpu")
 
 
+def test_episode_histograms_add_up_to_the_fidelity_histograms(merge_sim):
+    """The per-agent-episode rows the Hellinger bootstrap resamples: all rows summed give compare()'s
+    histograms and its mean Hellinger distance; one agent-episode's row is that agent's own histogram;
+    a resample's weights go straight through the sums."""
+    logged = logged_episodes(merge_sim)
+    gen = record_episodes(merge_sim, make_random_policy(0, "cpu"), label="random")
+    agents = gen.policy & gen.valid.any(-1)
+    rows = fid.episode_histograms(gen, agents)
+    assert rows.shape == (agents.sum(), sum(b.num_bins for b in fid.FEATURES.values()))
+    whole = np.concatenate(list(fid.histograms(gen, agents).values()))
+    np.testing.assert_array_equal(rows.sum(0), whole)
+    per = fid.compare(logged, gen)["per_feature"]
+    assert fid.hellinger_of_sums(fid.histograms(logged), rows.sum(0)) == pytest.approx(
+        np.mean([v["hellinger"] for v in per.values()]), rel=1e-9)
+    one = np.zeros_like(agents)
+    one[np.argwhere(agents)[3][0], np.argwhere(agents)[3][1]] = True
+    np.testing.assert_array_equal(rows[3], np.concatenate(list(fid.histograms(gen, one).values())))
+    twice = fid.hellinger_of_sums(fid.histograms(logged), np.stack([rows.sum(0), 2 * rows.sum(0)]))
+    assert twice[0] == pytest.approx(twice[1])  # a distance between distributions: counts scale away
+
+
 def test_expert_is_close_to_the_logs_and_random_is_not(merge_sim):
     logged = logged_episodes(merge_sim)
     expert = record_episodes(merge_sim, expert_policy, label="expert")
@@ -175,6 +196,40 @@ def test_risk_of_a_rear_end_scene():
     assert not rk.episode_risk(tr2)["collided"][0, slot]
     ranked = rk.rank_scenarios(tr.concat([tr2, tr]))
     assert ranked[0]["collisions"] == 1 and ranked[-1]["collisions"] == 0
+
+
+def test_collision_partners_by_hand():
+    """Who hit whom, on hand-made scenes (first contact, nearest centre, geometry in the agent's frame):
+    a policy car running into a slow log car is "ahead" with a non-policy partner; a slow policy car
+    that a log car drives into is hit "from behind"; a log car crossing its path is "crossing". (Cars
+    that start within goal_radius of their goal are not controlled, hence the slow car moves.)"""
+    T = 40
+    stopped = np.stack([30.0 + np.arange(T) * 0.2, np.zeros(T)], -1)  # 2 m/s
+    behind = np.stack([np.arange(T) * 1.5, np.zeros(T)], -1)  # 15 m/s: reaches the slow car at ~2 s
+    across = np.stack([np.full(T, 33.0), -25.0 + np.arange(T) * 1.0], -1)  # 10 m/s northwards
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
+    keep = lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2)  # 0 m/s^2, straight
+    road = [(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))]
+
+    def partners(trajs, yaws, controlled):
+        sc = make_scene(np.stack(trajs), np.stack(yaws), length=4.0, width=2.0, roads=road)
+        tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array(controlled)]), keep)
+        return rk.collision_partners(tr), rk.summarize(tr)
+
+    zeros, north = np.zeros(T), np.full(T, np.pi / 2)
+    rows, summary = partners([stopped, behind], [zeros, zeros], [False, True])
+    assert [(r["contact"], r["partner_policy"]) for r in rows] == [("ahead", False)]
+    assert rows[0]["speed"] == pytest.approx(15.0, abs=0.2) and rows[0]["partner_speed"] == pytest.approx(2.0, abs=0.2)
+    assert summary["collision_with_other_rate"] == summary["collision_ahead_rate"] == summary["collision_rate"] == 1.0
+    rows, summary = partners([stopped, behind], [zeros, zeros], [True, False])
+    assert [(r["contact"], r["partner_policy"]) for r in rows] == [("from behind", False)]
+    assert summary["collision_from_behind_rate"] == 1.0 and summary["collision_with_policy_rate"] == 0.0
+    rows, _ = partners([stopped, across], [zeros, north], [True, False])
+    assert [r["contact"] for r in rows] == ["crossing"]
+    # two policy cars: each sees the other as a policy partner, from its own side
+    rows, summary = partners([stopped, behind], [zeros, zeros], [True, True])
+    assert sorted((r["contact"], r["partner_policy"]) for r in rows) == [("ahead", True), ("from behind", True)]
+    assert summary["collision_with_policy_rate"] == 1.0
 
 
 # ----------------------------------------------------------------- CCE-gap
@@ -402,6 +457,10 @@ def test_report_on_tiny_runs(tmp_path):
     # the deviation game holds the first scene's policy agents only (--br-scenes 1)
     first = {a.split("/")[0] for a in wm["cce_gap"]["agents"]}
     assert len(first) == 1 and summary["meta"]["best_response"]["scenes"] == 1
+    # held-out scenes: procedural seeds from 90000 on, never the runs' training seeds 0 .. 1
+    played = {int(a.split("/")[-2]) for r in summary["results"] if r["cce_gap"] for a in r["cce_gap"]["agents"]}
+    assert played and min(played) >= 90000 and summary["meta"]["scene_seed"] == 90000
+    assert main(["--runs", *runs, "--out", str(tmp_path / "overlap"), "--scenes", "2", "--scene-seed", "1"]) == 2
     assert list((out / "scenarios" / "cce").glob("*.json"))
     # the CCE-gap over training: the cce run kept its policy after updates 1 and 2 (the second is its final
     # checkpoint, not evaluated twice); mappo kept none, but started from the cce run's final policy
@@ -425,6 +484,11 @@ def test_report_on_tiny_runs(tmp_path):
     assert main(["--runs", runs[1], "--out", str(out), "--no-baselines", *args[:-5], "--top", "2", "--grid-scene", "1"]) == 0
     assert [r["label"] for r in json.loads((out / "summary.json").read_text())["results"]] == ["mappo"]
     assert (out / "cache" / "mappo.pkl").stat().st_mtime_ns != cache["mappo.pkl"]
+    # rollouts only: no best response, no CCE-gap anywhere, the rest of the report as before
+    assert main(["--runs", *runs, "--out", str(tmp_path / "nogap"), "--no-cce-gap", *args]) == 0
+    nogap = json.loads((tmp_path / "nogap" / "summary.json").read_text())
+    assert not any(r["cce_gap"] or r.get("gap_curve") for r in nogap["results"]) and len(nogap["results"]) == 6
+    assert "not computed (--no-cce-gap)" in (tmp_path / "nogap" / "report.md").read_text()
 
 
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):

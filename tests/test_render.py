@@ -160,3 +160,26 @@ def test_cli_render(tmp_path, capsys):
     assert main(["render", "--policy", str(tmp_path / "missing.pt"), "--out", str(gif)]) == 2
     assert "checkpoint" in capsys.readouterr().err
     assert main(["render", "--out", str(tmp_path / "ep.avi")]) == 2
+
+
+def test_fit_controlled_zooms_on_the_controlled_cars():
+    """fit="controlled" frames the controlled car's path and goal, not a replayed car 300 m away; a bad
+    fit is a one-line error."""
+    from tg_gpudrive.render.draw import FrameRenderer
+
+    t = 20
+    near = np.stack([np.linspace(0.0, 20.0, t), np.zeros(t)], -1)
+    far = np.stack([np.linspace(300.0, 310.0, t), np.zeros(t)], -1)
+    scene = make_scene(np.stack([near, far]), np.zeros((2, t)), agent_type=AgentType.VEHICLE)
+    sim = Simulator([scene], EngineConfig(init_steps=2), "cpu", controlled=[np.array([True, False])])
+    sim.reset()
+    spans = {}
+    for fit in ("scene", "controlled"):
+        r = FrameRenderer(sim, size=(200, 200), legend=False, fit=fit)
+        (x0, x1), (y0, y1) = r.ax.get_xlim(), r.ax.get_ylim()
+        spans[fit] = (x0, x1)
+        r.close()
+    assert spans["scene"][0] < 0 and spans["scene"][1] > 310
+    assert spans["controlled"][0] < 0 < 20 < spans["controlled"][1] < 100
+    with pytest.raises(ValueError, match="fit"):
+        FrameRenderer(sim, size=(200, 200), fit="nope")

@@ -43,6 +43,25 @@ def test_interval_of_noise_contains_zero_and_is_seeded():
     assert spearman_ci([1, 2, 3, 4, 5], cells, n_boot=1000, seed=2) == r
 
 
+def test_a_statistic_of_summed_rows_is_resampled_like_a_mean():
+    """With `statistic`, each cell's figure comes from its rows' sum: a share of one column (a ratio of
+    sums, like a histogram distance) rising with the knob holds; with the share as the statistic of
+    one-hot rows it is the mean of 0/1 values, so rho equals the plain call's; noise spans 0."""
+    rng = np.random.default_rng(0)
+    knob = [2.0, 3.0, 4.0, 5.0, 6.0]
+    share = lambda sums: sums[..., 0] / sums.sum(-1)
+    onehot = [np.eye(2)[(rng.random(500) > p).astype(int)] for p in (0.1, 0.3, 0.5, 0.7, 0.9)]
+    r = spearman_ci(knob, onehot, n_boot=500, seed=1, statistic=share)
+    assert r.rho == pytest.approx(1.0) and r.lo == pytest.approx(1.0) and r.verdict(+1) == "holds"
+    plain = spearman_ci(knob, [c[:, 0] for c in onehot], n_boot=500, seed=1)
+    assert plain.rho == pytest.approx(r.rho)
+    noise = [np.eye(2)[(rng.random(80) > 0.5).astype(int)] for _ in knob]
+    r = spearman_ci(knob, noise, n_boot=1000, seed=2, statistic=share)
+    assert r.lo < 0.0 < r.hi and r == spearman_ci(knob, noise, n_boot=1000, seed=2, statistic=share)
+    with pytest.raises(ValueError, match="beta=3"):  # rows, not 1-D values, when a statistic reads them
+        spearman_ci([2, 3], [np.ones((4, 2)), np.ones(4)], statistic=share, labels=["beta=2", "beta=3"])
+
+
 def test_a_cell_without_episodes_is_an_error_naming_it():
     with pytest.raises(ValueError, match="beta=3"):
         spearman_ci([2, 3], [np.ones(5), np.array([np.nan])], labels=["beta=2", "beta=3"])
@@ -63,6 +82,24 @@ def test_flexibility_table_marks_each_claim():
                 "ttc_critical": (rng.random(n) < 0.2).astype(float), "collision": (rng.random(n) < 0.1).astype(float),
                 "hard_brakes": rng.poisson(0.3, n).astype(float)}})
     rows = {(r[0], r[1]): r for r in flexibility_directions(cells, n_boot=400)}
+    assert ("CCE-gap", "beta") not in rows and not any(k[0].startswith("Hellinger") for k in rows)  # none given
+    # per-agent CCE-gaps rising with beta; histograms drifting from the logs' with alpha: the Hellinger
+    # figure is a statistic of each cell's pooled rows, bootstrapped by reweighting them
+    from tg_gpudrive.evaluation import fidelity as fid
+
+    widths = [b.num_bins for b in fid.FEATURES.values()]
+    logged = {name: np.eye(w)[0] * 100 for name, w in zip(fid.FEATURES, widths)}  # all mass in each first bin
+    for c in cells:
+        c["figures"]["cce_gap"] = rng.normal(0.1 * c["beta"], 0.01, 240)
+        drift = 0.1 if c["alpha"] < 0.5 else 0.6
+        c["figures"]["hellinger"] = np.concatenate(
+            [np.eye(w)[np.where(rng.random(n) < drift, rng.integers(1, w, n), 0)] for w in widths], axis=1)
+    more = {(r[0], r[1]): r for r in flexibility_directions(cells, n_boot=400, logged=logged)}
+    assert more[("CCE-gap", "beta")][3] > 0.9 and more[("CCE-gap", "beta")][6] == 240  # ties in beta: < 1
+    hel = more[("Hellinger to the logs (mean of 4 features)", "alpha")]
+    lo = float(hel[4].strip("[]").split(",")[0])
+    assert hel[3] > 0.8 and lo > 0 and hel[2] == "none" and hel[5] == "-" and hel[6] == 300
+    assert abs(more[("Hellinger to the logs (mean of 4 features)", "beta")][3]) < 0.5
     assert rows[("min gap [m]", "beta")][5] == "holds"
     assert rows[("mean speed [m/s]", "alpha")][5] == "reversed"
     assert rows[("collision rate", "beta")][5] == "not shown"

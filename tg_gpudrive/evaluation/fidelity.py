@@ -76,11 +76,14 @@ REALISM_WEIGHTS = {"speed": 0.3, "accel": 0.2, "nearest": 0.3, "curvature": 0.2}
 
 
 # ------------------------------------------------------------- primitives
+def _bin_index(values: np.ndarray, binning: Binning) -> np.ndarray:
+    v = np.clip(np.asarray(values, np.float64).ravel(), binning.lo, binning.hi)
+    return np.clip(np.floor((v - binning.lo) / binning.width).astype(np.int64), 0, binning.num_bins - 1)
+
+
 def histogram(values: np.ndarray, binning: Binning) -> np.ndarray:
     """Counts per bin (float64); values clipped into [lo, hi]."""
-    v = np.clip(np.asarray(values, np.float64).ravel(), binning.lo, binning.hi)
-    idx = np.clip(np.floor((v - binning.lo) / binning.width).astype(np.int64), 0, binning.num_bins - 1)
-    return np.bincount(idx, minlength=binning.num_bins).astype(np.float64)
+    return np.bincount(_bin_index(values, binning), minlength=binning.num_bins).astype(np.float64)
 
 
 def _normalise(p: np.ndarray) -> np.ndarray:
@@ -121,18 +124,53 @@ def log_likelihood(samples: np.ndarray, q: np.ndarray, binning: Binning, eps: fl
 
 
 # ---------------------------------------------------------------- features
-def feature_samples(tr: Trajectories, agents: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """1-D samples per feature over the policy's agents (or the (E, A) mask `agents`)."""
-    who = tr.policy if agents is None else agents
+def _feature_steps(tr: Trajectories, who: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per feature: its (E, A, K) values and the (E, A, K) mask of the steps that count for the agents `who`."""
     present = tr.valid & who[..., None]
     kin = tr.kin_valid & who[..., None]
-    near = tr.nearest[present]
-    return {
-        "speed": tr.speed[present],
-        "accel": tr.accel[kin],
-        "nearest": near[np.isfinite(near)],
-        "curvature": tr.curvature[kin],
-    }
+    return {"speed": (tr.speed, present), "accel": (tr.accel, kin),
+            "nearest": (tr.nearest, present & np.isfinite(tr.nearest)), "curvature": (tr.curvature, kin)}
+
+
+def feature_samples(tr: Trajectories, agents: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """1-D samples per feature over the policy's agents (or the (E, A) mask `agents`)."""
+    steps = _feature_steps(tr, tr.policy if agents is None else agents)
+    return {name: v[m] for name, (v, m) in steps.items()}
+
+
+def episode_histograms(tr: Trajectories, agents: np.ndarray) -> np.ndarray:
+    """(U, D) counts: one row per agent-episode of the (E, A) mask `agents` (row-major order), the
+    features' histograms side by side in FEATURES order (D = their bins together): what a bootstrap
+    over agent-episodes resamples (`hellinger_of_sums`)."""
+    n = int(agents.sum())
+    width = sum(b.num_bins for b in FEATURES.values())
+    unit = np.full(agents.shape, -1, np.int64)
+    unit[agents] = np.arange(n)
+    rows = np.zeros(n * width, np.float64)
+    offset = 0
+    for name, (v, m) in _feature_steps(tr, agents).items():
+        b = FEATURES[name]
+        u = np.broadcast_to(unit[..., None], m.shape)[m]
+        rows += np.bincount(u * width + offset + _bin_index(v[m], b), minlength=n * width)
+        offset += b.num_bins
+    return rows.reshape(n, width)
+
+
+def hellinger_of_sums(logged: dict[str, np.ndarray], sums: np.ndarray) -> np.ndarray:
+    """Mean over the features of the Hellinger distance between the `logged` histograms and
+    generated counts `sums` (..., D) laid out as `episode_histograms`' rows (NaN-free features only)."""
+    out, k, offset = [], 0, 0
+    for name, b in FEATURES.items():
+        q = sums[..., offset:offset + b.num_bins]
+        offset += b.num_bins
+        if logged[name].sum() == 0:
+            continue
+        p = _normalise(logged[name])
+        tot = q.sum(-1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            bc = np.sqrt(p * q / tot).sum(-1)
+        out.append(np.where(tot[..., 0] > 0, np.sqrt(np.maximum(0.0, 1.0 - bc)), np.nan))
+    return np.nanmean(np.stack(out), axis=0)
 
 
 def histograms(tr: Trajectories, agents: np.ndarray | None = None) -> dict[str, np.ndarray]:

@@ -88,6 +88,13 @@ FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.pn
 @dataclasses.dataclass
 class ReportOptions:
     scenes: int = 4  # evaluation scenes per run (worlds)
+    # held-out evaluation scenes: the run's scene spec (or `eval_scenes`) with procedural seeds from
+    # `scene_seed` on, never trained on (a run trains on seeds seed .. seed + num_scenes - 1; `evaluate`'s
+    # held-out seed is the same 90000); None: the run's own seed, i.e. its training scenes. File and store
+    # specs have no seed: name held-out files with `eval_scenes`.
+    scene_seed: int | None = 90000
+    eval_scenes: str | None = None
+    cce_gap: bool = True  # the CCE-gaps (PPO best responses: the report's GPU time); False: rollouts only
     seeds: tuple[int, ...] = (0, 1)  # rollout seeds (diversity needs >= 2)
     # CCE-gap (exploitability.py): a PPO best response per agent, trained until its return plateaus
     br_iters: int = 100  # cap on the PPO iterations of one best response
@@ -139,8 +146,15 @@ def run_kind(cfg) -> str:
     return "MAPPO" if plain else "CCE-MAPPO"
 
 
-def _scenes(cfg, n: int):
-    src = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
+def _scenes(cfg, n: int, opts: ReportOptions):
+    """The first `n` evaluation scenes and their control masks (ReportOptions.scene_seed / eval_scenes)."""
+    spec = opts.eval_scenes or cfg.scenes
+    seed = cfg.seed if opts.scene_seed is None else opts.scene_seed
+    if opts.scene_seed is not None and spec == cfg.scenes and spec.startswith("procedural:") \
+            and seed < cfg.seed + cfg.num_scenes and cfg.seed < seed + n:
+        raise ValueError(f"scene_seed {seed}: procedural seeds {seed} .. {seed + n - 1} overlap the run's training "
+                         f"scenes (seeds {cfg.seed} .. {cfg.seed + cfg.num_scenes - 1})")
+    src = resolve_scenes(spec, n=n if opts.scene_seed is not None else cfg.num_scenes, seed=seed)
     scenes = [src.get(i) for i in range(min(n, len(src)))]
     return scenes, control_masks(scenes, cfg.env, cfg.control, cfg.control_k, cfg.control_ids)
 
@@ -176,11 +190,12 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     torch.manual_seed(0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    render_episode(sim, load_policy(ckpt, sim), world=0, out=path, size=(size, size), legend=False)
+    # the view fits the controlled cars' paths: the interaction the knobs change, not the whole map
+    kw = dict(world=0, size=(size, size), legend=False, fit="controlled")
+    render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
         torch.manual_seed(0)  # the same episode as the picture
-        render_episode(sim, load_policy(ckpt, sim), world=0, out=path.with_suffix(".gif"), size=(size, size),
-                       legend=False)
+        render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
     return np.asarray(Image.open(path).convert("RGB"))
 
 
@@ -205,7 +220,10 @@ def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
     speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
     return {"min_gap": risk["min_gap"][m], "speed": speed[m],
             "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
-            "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float)}
+            "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float),
+            "collision_other": ((risk["contact"] >= 0) & ~risk["partner_policy"])[m].astype(float),
+            "from_behind": (risk["contact"] == rk.CONTACTS.index("from behind"))[m].astype(float),
+            "hellinger": fid.episode_histograms(gen, m).astype(np.float32)}  # rows: the Hellinger figure is a statistic of their sum
 
 
 def _measure(label, gen, logged, opts) -> dict:
@@ -226,20 +244,31 @@ FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
     "ttc_critical": (f"TTC < {rk.TTC_CRITICAL:g} s rate", -1, -1),
     "collision": ("collision rate", -1, -1),
     "hard_brakes": ("hard brakes / agent", 0, 0),
+    "collision_other": ("collision with a non-policy car", 0, 0),  # the replayed logs do not react
+    "from_behind": ("hit from behind", 0, 0),
+    # per agent (the deviation game's), not per agent-episode
+    "cce_gap": ("CCE-gap", 0, 0),
+    # of the cell's pooled histograms, not a mean: bootstrapped through fidelity.episode_histograms' rows
+    "hellinger": ("Hellinger to the logs (mean of 4 features)", 0, 0),
 }
 
 
-def flexibility_directions(cells: list[dict], n_boot: int = 2000) -> list[list]:
-    """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, agent-episodes per cell) of the
-    Spearman correlation of each figure with beta and with alpha over the CCE-MAPPO cells."""
+def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict | None = None) -> list[list]:
+    """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, samples per cell) of the Spearman
+    correlation of each figure with beta and with alpha over the CCE-MAPPO cells; the Hellinger row
+    needs the `logged` histograms (fidelity.histograms of the logs the cells were compared with)."""
     rows = []
     for key, (name, *signs) in FLEX_CLAIMS.items():
+        # a cache written before the figure existed, or a report without CCE-gaps
+        if any(key not in c["figures"] for c in cells) or key == "hellinger" and logged is None:
+            continue
         samples = [c["figures"][key] for c in cells]
+        stat = (lambda sums: fid.hellinger_of_sums(logged, sums)) if key == "hellinger" else None
         for knob, sign in zip(("beta", "alpha"), signs):
             values = [c[knob] for c in cells]
             if len(set(values)) < 2:
                 continue
-            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells])
+            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells], statistic=stat)
             verdict = r.verdict(sign) if sign else "-"
             rows.append([name, knob, {1: "+", -1: "-", 0: "none"}[sign], r.rho, f"[{_fmt(r.lo)}, {_fmt(r.hi)}]",
                          verdict, min(len(x) for x in samples)])
@@ -252,21 +281,24 @@ def _evaluate(label, sim, policy, logged, opts, gap_game, bar, gamma: float) -> 
     bar.set_postfix_str(f"{label}: rollouts")
     gen = record_rollouts(sim, policy, opts.seeds, label=label)
     res = _measure(label, gen, logged, opts)
-    bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} seeds, PPO best responses to a plateau, "
-                        f"<= {opts.br_iters} iterations)")
-    res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, config=br_config(opts, gamma))
+    if opts.cce_gap:
+        bar.set_postfix_str(f"{label}: CCE-gap ({len(opts.br_seeds)} seeds, PPO best responses to a plateau, "
+                            f"<= {opts.br_iters} iterations)")
+        res["cce_gap"] = ex.cce_gap(gap_game, seeds=opts.br_seeds, config=br_config(opts, gamma))
+        res["figures"]["cce_gap"] = np.asarray(res["cce_gap"]["gap_per_agent"], np.float64)
     bar.update(1)
     return res, gen
 
 
 def _cache_key(label: str, files: Sequence[Path], opts: ReportOptions) -> str:
     """What a policy's evaluation depends on: its label, the checkpoint files' contents (so a run
-    directory copied to another machine keeps its cache) and every option but the progress bar and
-    the baselines switch."""
+    directory copied to another machine keeps its cache) and every option but the progress bar, the
+    baselines switch and the grid picture's (drawn anew on every pass)."""
     h = hashlib.sha256(label.encode())
     for f in files:
         h.update(Path(f).read_bytes())
-    o = {k: v for k, v in dataclasses.asdict(opts).items() if k not in ("progress", "baselines")}
+    o = {k: v for k, v in dataclasses.asdict(opts).items()
+         if k not in ("progress", "baselines", "grid_scene", "grid_gifs", "frame_size")}
     h.update(json.dumps(o, default=str, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -596,10 +628,11 @@ def _gap_sections(results: list[dict]) -> list[str]:
     return L
 
 
-def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
+def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict | None = None) -> None:
     L = ["# Scenario-quality report\n",
-         f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run, rollout seeds "
-         f"{meta['seeds']}; CCE-gap: {_br_text(meta)}. "
+         f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run ({meta['eval_scenes']}, "
+         f"scene seed {meta['scene_seed']}), rollout seeds {meta['seeds']}; CCE-gap: "
+         f"{_br_text(meta) if meta.get('cce_gap', True) else 'not computed (--no-cce-gap)'}. "
          "Definitions and binning: `tg_gpudrive/evaluation/` module docstrings (fidelity bins: speed 0.5 m/s on "
          "[0, 30], accel 0.25 m/s^2 on [-8, 8], nearest 0.5 m on [0, 50], curvature 0.005 1/m on [-0.3, 0.3]; "
          f"KL smoothing eps {fid.KL_EPS:g}; TTC: {rk.TTC_DISCS} discs of radius width/2 per agent, constant "
@@ -620,6 +653,15 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
     L.append(_table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI (agents)",
                      "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
                      "mean min gap [m]", "hard brakes / agent"], rows))
+    L.append("\n### Who collides\n\nEach policy agent's first collision, by its partner (the nearest other car "
+             "then: driven by the policy, or another one: a replayed log, which does not react) and by the contact in "
+             "the agent's frame (hit from behind, ran into a car ahead, crossing / side / head-on); rates per policy "
+             "agent-episode (`tg_gpudrive/evaluation/risk.py`).\n\n")
+    keys = ["collision_rate", "collision_with_policy_rate", "collision_with_other_rate",
+            *(f"collision_{c.replace(' ', '_')}_rate" for c in rk.CONTACTS)]
+    L.append(_table(["policy", "collision rate", "with a policy car", "with a non-policy car",
+                     *(f"contact: {c}" for c in rk.CONTACTS)],
+                    [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results]))
     cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
     if cce:
         L.append("\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
@@ -636,9 +678,11 @@ def write_markdown(out: Path, results: list[dict], meta: dict) -> None:
             L.append("\nDirection of each figure with each knob over the cells: Spearman's rho of the knob with "
                      "the cells' means, 95 % bootstrap interval from resampling every cell's agent-episodes "
                      "(evaluation noise only, not training seeds). **holds**: the interval lies on the paper's "
-                     "side of 0; **reversed**: on the other side; **not shown**: it contains 0.\n\n")
+                     "side of 0; **reversed**: on the other side; **not shown**: it contains 0. Samples: agent-episodes; "
+                     "for the CCE-gap the deviation game's agents; the Hellinger distance is of each cell's pooled "
+                     "histograms, its resamples reweight the agent-episodes' histograms.\n\n")
             L.append(_table(["figure", "knob", "paper's sign", "rho", "95 % interval", "verdict",
-                             "agent-episodes per cell (min)"], flexibility_directions(cce)))
+                             "samples per cell (min)"], flexibility_directions(cce, logged=logged_hist)))
     L.append("\n## Fidelity per feature (logged vs generated)\n\n![fidelity](fidelity.png)\n\n")
     rows = []
     for r in results:
@@ -693,7 +737,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             device = resolve_device(opts.device or cfg.device, flag="--device")
             if device == "cpu":
                 torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
-            scenes, masks = _scenes(cfg, opts.scenes)
+            scenes, masks = _scenes(cfg, opts.scenes, opts)
             cfg = dataclasses.replace(cfg, env=policy_engine_config(cfg, scenes))  # a slot for every agent
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
@@ -732,14 +776,15 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
                                      lambda s: ex.SimGame(gsim, actor=actor), bar, cfg.gamma)
                 if kept:
                     bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
-                res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update)
+                res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update) if opts.cce_gap else []
                 return res, gen
 
             res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
             keep(res, gen)
             # the starting policy's gap is shared by the runs that fine-tuned it, so the process that does
             # the baselines does it (report parts: the first), and every run's curve reads it back
-            start = start_gap(run, cfg, gsim, opts, out, bar) if run.is_dir() and opts.baselines else None
+            start = (start_gap(run, cfg, gsim, opts, out, bar)
+                     if run.is_dir() and opts.baselines and opts.cce_gap else None)
             res["gap_curve"] = gap_curve(start, res.get("kept_gaps", []), res["cce_gap"], last_update)
             if res["gap_curve"]:
                 gap_curves[label] = res["gap_curve"]
@@ -767,12 +812,15 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     if gap_curves:
         plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
+            "eval_scenes": opts.eval_scenes or "the runs' scene spec",
+            "scene_seed": "the runs' own (training scenes)" if opts.scene_seed is None else opts.scene_seed,
+            "cce_gap": opts.cce_gap,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
                               "copies": copies, "scenes": nb, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
                               "gamma": "the run's" if opts.br_gamma is None else opts.br_gamma}}
-    write_markdown(out, results, meta)
+    write_markdown(out, results, meta, fid.histograms(logged_all) if logged_all is not None else None)
     summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in results]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))
     return summary
@@ -793,6 +841,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="training run directories (or checkpoint files; shipped: the packaged policy) (required)")
     p.add_argument("--out", default="report", help="output directory")
     p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes (worlds) per run")
+    p.add_argument("--scene-seed", type=int, default=d.scene_seed,
+                   help="first procedural seed of the evaluation scenes: held out when the runs never trained on it "
+                        "(an overlap with a run's training seeds is an error); -1: the runs' own training scenes")
+    p.add_argument("--eval-scenes", default=None, metavar="SPEC",
+                   help="scene spec of the evaluation scenes (default: each run's own; file and store specs have "
+                        "no seed, so name held-out files here)")
+    p.add_argument("--no-cce-gap", action="store_true",
+                   help="skip the CCE-gaps (the PPO best responses that take most of a report's time)")
     p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), metavar="SEED",
                    help=f"rollout seeds; diversity needs at least two (default: {' '.join(map(str, d.seeds))})")
     p.add_argument("--br-iters", type=int, default=d.br_iters,
@@ -835,7 +891,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """`tg-gpudrive report --runs DIR [DIR ...] --out DIR`; returns the exit status."""
     args = build_parser().parse_args(argv)
-    opts = ReportOptions(scenes=args.scenes, seeds=tuple(args.seeds), br_iters=args.br_iters,
+    opts = ReportOptions(scenes=args.scenes, scene_seed=None if args.scene_seed == -1 else args.scene_seed,
+                         eval_scenes=args.eval_scenes, cce_gap=not args.no_cce_gap,
+                         seeds=tuple(args.seeds), br_iters=args.br_iters,
                          br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, br_tol=args.br_tol, br_window=args.br_window,
                          br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
                          br_scenes=args.br_scenes, br_rounds=args.br_rounds,

@@ -14,6 +14,12 @@ at the same step, policy-driven or replayed):
     hard_brakes    events with accel < HARD_BRAKE (-4 m/s^2): a run of consecutive such steps is
                    one event
 
+Who a collision involves (`collision_partners`), at the agent's first collided step: the partner
+is the other present agent with the nearest centre; "policy" when the policy drives it too, else
+"other" (a replayed log or background car, which does not react); the contact is "from behind"
+when the partner is behind the agent (in the agent's frame) and heads within CONTACT_ANGLE of it,
+"ahead" when it is in front and heads the same way, else "crossing" (side, head-on or crossing).
+
 Scenario criticality ranks episodes by (any collision, lowest min TTC, lowest
 min gap, most hard brakes), most critical first.
 """
@@ -28,6 +34,8 @@ HARD_BRAKE = -4.0  # m/s^2
 TTC_HORIZON = 10.0  # s
 TTC_DISCS = 3
 TTC_CRITICAL = 1.5  # s, "near miss" threshold reported as a rate
+CONTACT_ANGLE = np.pi / 4  # rad: headings closer than this count as "the same way" (collision_partners)
+CONTACTS = ("from behind", "ahead", "crossing")
 
 
 def disc_centres(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -87,11 +95,44 @@ def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
     return onset.sum(-1)
 
 
+def collision_partners(tr: Trajectories) -> list[dict]:
+    """One row per policy agent-episode with a collision (see the module docstring): episode, agent,
+    step k of the first contact, partner slot, `partner_policy` (bool), `contact` (one of CONTACTS),
+    and both speeds [m/s] at that step."""
+    rows = []
+    hit = tr.collided & tr.valid
+    for e, a in zip(*np.nonzero(tr.policy & hit.any(-1))):
+        k = int(np.argmax(hit[e, a]))
+        others = tr.valid[e, :, k].copy()
+        others[a] = False
+        if not others.any():
+            continue
+        d = np.linalg.norm(tr.pos[e, :, k] - tr.pos[e, a, k], axis=-1)
+        b = int(np.argmin(np.where(others, d, np.inf)))
+        rel = tr.pos[e, b, k] - tr.pos[e, a, k]
+        c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
+        along = c * rel[0] + s * rel[1]  # partner's centre ahead (+) or behind (-) the agent's
+        dyaw = np.angle(np.exp(1j * (tr.yaw[e, b, k] - tr.yaw[e, a, k])))
+        same_way = abs(dyaw) < CONTACT_ANGLE
+        contact = CONTACTS[2] if not same_way else (CONTACTS[0] if along < 0 else CONTACTS[1])
+        rows.append({"episode": int(e), "agent": int(a), "step": k, "partner": b,
+                     "partner_policy": bool(tr.policy[e, b]), "contact": contact,
+                     "speed": float(tr.speed[e, a, k]), "partner_speed": float(tr.speed[e, b, k])})
+    return rows
+
+
 def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
-    """Per (episode, agent) arrays, and `agents` (E, A): the policy agents that appear."""
+    """Per (episode, agent) arrays, and `agents` (E, A): the policy agents that appear; `contact` (index
+    into CONTACTS, -1 without a collision) and `partner_policy` describe the first collision."""
     agents = tr.policy & tr.valid.any(-1)
+    contact = np.full(agents.shape, -1, np.int64)  # index into CONTACTS of the first collision, -1: none
+    partner_policy = np.zeros(agents.shape, bool)
+    for row in collision_partners(tr):
+        contact[row["episode"], row["agent"]] = CONTACTS.index(row["contact"])
+        partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
-            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "hard_brakes": hard_brakes(tr)}
+            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "hard_brakes": hard_brakes(tr),
+            "contact": contact, "partner_policy": partner_policy}
 
 
 def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
@@ -111,6 +152,11 @@ def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
         "mean_min_gap_m": float(gap[np.isfinite(gap)].mean()) if np.isfinite(gap).any() else float("nan"),
         "hard_brakes_per_agent": float(r["hard_brakes"][m].mean()),
         "hard_brake_rate": float((r["hard_brakes"][m] > 0).mean()),
+        # collisions split by partner and by contact (they add up to the collision rate, less those
+        # with no other agent present)
+        "collision_with_policy_rate": float(((r["contact"] >= 0) & r["partner_policy"])[m].mean()),
+        "collision_with_other_rate": float(((r["contact"] >= 0) & ~r["partner_policy"])[m].mean()),
+        **{f"collision_{c.replace(' ', '_')}_rate": float((r["contact"] == i)[m].mean()) for i, c in enumerate(CONTACTS)},
     }
 
 

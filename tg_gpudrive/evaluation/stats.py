@@ -64,13 +64,20 @@ class RankCorrelation:
 
 
 def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot: int = 2000, level: float = 0.95,
-                seed: int = 0, labels: Sequence[str] | None = None) -> RankCorrelation:
+                seed: int = 0, labels: Sequence[str] | None = None, statistic=None) -> RankCorrelation:
     """Spearman's rho between `knob[c]` and the mean of `samples[c]` (one 1-D array of per-episode
     values per cell c), with a `level` percentile interval from `n_boot` resamples of every cell's
-    episodes."""
+    episodes.
+
+    With `statistic`, a cell's figure is not a mean: `samples[c]` is (n, d), one row per episode
+    (e.g. its histogram counts), and the figure is `statistic(sum of the rows)` ((..., d) -> (...));
+    a resample weights the rows by multinomial counts, so the sums of all resamples are one matrix
+    product."""
     knob = np.asarray(knob, np.float64)
     if len(knob) != len(samples):
         raise ValueError(f"{len(knob)} knob values for {len(samples)} cells")
+    if statistic is not None:
+        return _spearman_ci_of(knob, samples, statistic, n_boot, level, seed, labels)
     cells = [np.asarray(s, np.float64).ravel() for s in samples]
     cells = [s[np.isfinite(s)] for s in cells]
     for c, s in enumerate(cells):
@@ -82,8 +89,27 @@ def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot:
     means = np.empty((n_boot, len(cells)))
     for c, s in enumerate(cells):
         means[:, c] = s[rng.integers(0, s.size, (n_boot, s.size))].mean(axis=1)
-    boot = spearman(knob, means)
+    return _interval(rho, spearman(knob, means), len(cells), n_boot, level)
+
+
+def _interval(rho: float, boot: np.ndarray, n_cells: int, n_boot: int, level: float) -> RankCorrelation:
     boot = boot[np.isfinite(boot)]
     tail = 100 * (1 - level) / 2
     lo, hi = (np.percentile(boot, [tail, 100 - tail]) if boot.size else (np.nan, np.nan))
-    return RankCorrelation(rho, float(lo), float(hi), len(cells), n_boot, level)
+    return RankCorrelation(rho, float(lo), float(hi), n_cells, n_boot, level)
+
+
+def _spearman_ci_of(knob, samples, statistic, n_boot, level, seed, labels) -> RankCorrelation:
+    """spearman_ci with a figure `statistic` of each cell's summed (resampled) rows."""
+    cells = [np.asarray(s, np.float64) for s in samples]
+    for c, s in enumerate(cells):
+        if s.ndim != 2 or len(s) == 0:
+            name = labels[c] if labels is not None else f"#{c}"
+            raise ValueError(f"cell {name}: a statistic needs (episodes, d) rows, got shape {s.shape}")
+    rho = float(spearman(knob, np.array([float(statistic(s.sum(0))) for s in cells])))
+    rng = np.random.default_rng(seed)
+    figs = np.empty((n_boot, len(cells)))
+    for c, s in enumerate(cells):
+        w = rng.multinomial(len(s), np.full(len(s), 1.0 / len(s)), size=n_boot)  # (n_boot, n) resample counts
+        figs[:, c] = statistic(w @ s)
+    return _interval(rho, spearman(knob, figs), len(cells), n_boot, level)

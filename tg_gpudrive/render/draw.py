@@ -59,6 +59,7 @@ SIGNAL_COLOUR = {  # TrafficLightState -> colour; UNKNOWN signals are not drawn
 }
 
 HIGHLIGHT = ("controlled", "all", "none")  # whose collisions / off-road events get outlined
+FITS = ("scene", "controlled")  # what a fixed view fits: every slotted agent, or the controlled ones only
 DEFAULT_VIEW_RADIUS = 40.0  # m, half the shorter side of an agent-centred view
 DPI = 100
 
@@ -123,7 +124,8 @@ class FrameRenderer:
 
     def __init__(self, sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640),
                  center_agent: int | None = None, view_radius: float | None = None, show_goals: bool = True,
-                 title: str | None = None, legend: bool | None = None, highlight: str = "controlled"):
+                 title: str | None = None, legend: bool | None = None, highlight: str = "controlled",
+                 fit: str = "scene"):
         if highlight not in HIGHLIGHT:
             raise ValueError(f"highlight: expected one of {', '.join(HIGHLIGHT)}, got {highlight!r}")
         if not 0 <= int(world) < sim.num_worlds:
@@ -137,6 +139,9 @@ class FrameRenderer:
             raise ValueError(f"center_agent {center_agent} out of range [0, {sim.max_agents})")
         if view_radius is not None and not view_radius > 0:
             raise ValueError(f"view_radius must be positive, got {view_radius}")
+        if fit not in FITS:
+            raise ValueError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
+        self.fit = fit
         self.sim, self.world, self.size = sim, int(world), (w_px, h_px)
         self.center_agent = None if center_agent is None else int(center_agent)
         self.view_radius = view_radius
@@ -194,15 +199,21 @@ class FrameRenderer:
         return (cx - hx, cx + hx), (cy - hy, cy + hy)
 
     def _fit_view(self):
-        """Limits around every logged position of the slotted agents, controlled goals and current positions."""
+        """Limits around every logged position of the slotted agents, controlled goals and current positions
+        (fit "controlled": of the controlled agents only)."""
         sc, w = self.scene, self.world
         idx = self.model.slot_agent[w]
-        idx = idx[idx >= 0]
+        keep = idx >= 0
+        if self.fit == "controlled" and (self.controlled & keep).any():
+            keep &= self.controlled
+        idx = idx[keep]
         init = min(self.model.init_step, sc.num_steps - 1)
         valid = sc.log_valid[idx, init:]
         pts = [sc.log_pos[idx, init:][valid].reshape(-1, 2)]
         pts.append(self.goal[self.controlled & self.slot_valid])
         present = as_numpy(self.sim.present[w]).astype(bool)
+        if self.fit == "controlled" and self.controlled.any():
+            present &= self.controlled
         pts.append(as_numpy(self.sim.pos[w])[present])
         pts = np.concatenate([p.astype(np.float64).reshape(-1, 2) for p in pts])
         pts = pts[np.isfinite(pts).all(1)]
@@ -421,7 +432,7 @@ class FrameRenderer:
 def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640), center_agent: int | None = None,
                  view_radius: float | None = None, trails: dict | None = None, show_goals: bool = True,
                  title: str | None = None, legend: bool | None = None,
-                 highlight: str = "controlled") -> np.ndarray:
+                 highlight: str = "controlled", fit: str = "scene") -> np.ndarray:
     """Top-down picture of world `world`'s current state: (H, W, 3) uint8, `size` = (width, height) pixels.
 
     `center_agent` (a slot index of that world) centres the view on that agent
@@ -431,11 +442,12 @@ def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640
     positions. `legend` (default: when the picture is at least 400x300) adds a
     colour key below the map. `highlight` says whose collisions and off-road
     events are outlined: "controlled" (default; logged parked cars are often
-    "off-road" in WOMD), "all" or "none". Builds a figure per call;
-    `EpisodeRecorder` reuses one.
+    "off-road" in WOMD), "all" or "none". `fit` "controlled" fits the view to
+    the controlled agents' paths and goals only (a zoom on the interaction in
+    a long scene). Builds a figure per call; `EpisodeRecorder` reuses one.
     """
     r = FrameRenderer(sim, world, size=size, center_agent=center_agent, view_radius=view_radius,
-                      show_goals=show_goals, title=title, legend=legend, highlight=highlight)
+                      show_goals=show_goals, title=title, legend=legend, highlight=highlight, fit=fit)
     try:
         return r.draw(trails)
     finally:
