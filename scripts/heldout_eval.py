@@ -4,7 +4,8 @@
         --num-scenes 1024 --modes ignore stop remove --device cuda [--out heldout.jsonl]
 
 The scenes are generated (or read) once and every run is evaluated on the same worlds, one
-episode per world, with its sampled policy; a built-in policy name (expert, constant, random)
+episode per world, with its sampled policy driving the agents it was trained to drive (its
+`control`: all vehicles, or e.g. the 5 nearest each conflict point, the others replaying logs); a built-in policy name (expert, constant, random)
 works in place of a run. Rates are episode-weighted over the policy's agents, as a user counts
 them: a goal reached after leaving the road is not a goal (the engine does not count it). The
 seed of procedural training runs is 0 with at most a few thousand scenes, so seed 90000 names
@@ -26,6 +27,7 @@ from tqdm import tqdm
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.policy import load_policy
 from tg_gpudrive.rollout import builtin_policy, run_rollout
 from tg_gpudrive.engine.simulator import Simulator
@@ -65,9 +67,11 @@ def main(argv=None) -> int:
         trained = train_config(run, base)
         base = base or trained
         cfg = policy_engine_config(trained, scenes)  # a slot for every agent of the scenes
+        # the agents the run was trained to drive (e.g. the 5 nearest each conflict point), the rest replayed
+        masks = control_masks(scenes, cfg, trained.control, trained.control_k, trained.control_ids)
         for mode in args.modes:
             c = dataclasses.replace(cfg, collision_mode=mode)
-            sim = Simulator(scenes, c, args.device)
+            sim = Simulator(scenes, c, args.device, controlled=masks)
             policy = builtin_policy(run, args.seed, sim.device) if run in BUILTIN else load_policy(run, sim)
             out = run_rollout(sim, policy, sim.episode_length)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),

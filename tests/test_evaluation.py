@@ -491,6 +491,28 @@ def test_report_on_tiny_runs(tmp_path):
     assert "not computed (--no-cce-gap)" in (tmp_path / "nogap" / "report.md").read_text()
 
 
+def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, capsys):
+    """scripts/heldout_eval.py evaluates a run trained on the 2 vehicles nearest each conflict point
+    with those 2 only (the rest replay their logs), and a built-in policy after it likewise."""
+    import importlib.util
+
+    from tg_gpudrive.learn.train import Trainer
+
+    spec = importlib.util.spec_from_file_location("heldout_eval", REPO / "scripts" / "heldout_eval.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
+    cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1, hidden=16,
+                              quantiles=4, updates=1, checkpoint_every=1, control="nearest_conflict", control_k=2,
+                              out_dir=str(tmp_path / "run"))
+    Trainer(cfg, tmp_path / "run", progress=False).train()
+    out = tmp_path / "h.jsonl"
+    assert mod.main(["--runs", str(tmp_path / "run"), "expert", "--scenes", "procedural:merge", "--num-scenes", "3",
+                     "--seed", "90000", "--modes", "ignore", "--device", "cpu", "--out", str(out)]) in (0, None)
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["episodes"] for r in rows] == [6, 6]  # 3 worlds x the 2 nearest the conflict point
+
+
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
     import importlib.util
 
