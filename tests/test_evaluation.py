@@ -459,7 +459,7 @@ def test_report_on_tiny_runs(tmp_path):
     assert len(first) == 1 and summary["meta"]["best_response"]["scenes"] == 1
     # held-out scenes: procedural seeds from 90000 on, never the runs' training seeds 0 .. 1
     played = {int(a.split("/")[-2]) for r in summary["results"] if r["cce_gap"] for a in r["cce_gap"]["agents"]}
-    assert played and min(played) >= 90000 and summary["meta"]["scene_seed"] == 90000
+    assert played and min(played) >= 90000 and summary["meta"]["eval_scenes"].startswith("held out:")
     assert main(["--runs", *runs, "--out", str(tmp_path / "overlap"), "--scenes", "2", "--scene-seed", "1"]) == 2
     assert list((out / "scenarios" / "cce").glob("*.json"))
     # the CCE-gap over training: the cce run kept its policy after updates 1 and 2 (the second is its final
@@ -489,6 +489,19 @@ def test_report_on_tiny_runs(tmp_path):
     nogap = json.loads((tmp_path / "nogap" / "summary.json").read_text())
     assert not any(r["cce_gap"] or r.get("gap_curve") for r in nogap["results"]) and len(nogap["results"]) == 6
     assert "not computed (--no-cce-gap)" in (tmp_path / "nogap" / "report.md").read_text()
+
+
+def test_the_report_says_whether_its_scenes_are_held_out():
+    """Procedural runs are evaluated on other seeds; a directory of files has no seed, so the report
+    says its scenes are the training ones unless --eval-scenes names others."""
+    from tg_gpudrive.evaluation.report import ReportOptions, eval_scenes_text
+
+    proc, files = TrainConfig(scenes="procedural:all"), TrainConfig(scenes="tests/data")
+    assert eval_scenes_text(proc, ReportOptions()).startswith("held out: procedural:all, procedural seeds from 90000")
+    assert "not held out" in eval_scenes_text(proc, ReportOptions(scene_seed=None))
+    assert "not held out" in eval_scenes_text(files, ReportOptions()) and "--eval-scenes" in eval_scenes_text(
+        files, ReportOptions())
+    assert eval_scenes_text(files, ReportOptions(eval_scenes="womd/validation")) == "womd/validation"
 
 
 def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, capsys):

@@ -159,6 +159,18 @@ def _scenes(cfg, n: int, opts: ReportOptions):
     return scenes, control_masks(scenes, cfg.env, cfg.control, cfg.control_k, cfg.control_ids)
 
 
+def eval_scenes_text(cfg, opts: ReportOptions) -> str:
+    """Which scenes `_scenes` evaluates, and whether they are held out, for the report's readers."""
+    spec = opts.eval_scenes or cfg.scenes
+    procedural = spec.startswith("procedural:")
+    if opts.eval_scenes:
+        return f"{spec}" + (f" from seed {opts.scene_seed}" if procedural and opts.scene_seed is not None else "")
+    if procedural and opts.scene_seed is not None:
+        return f"held out: {spec}, procedural seeds from {opts.scene_seed} (training: from {cfg.seed})"
+    why = "--scene-seed -1" if procedural else "file and store specs have no seed: name held-out ones with --eval-scenes"
+    return f"{spec}: the runs' training scenes, not held out ({why})"
+
+
 def prior_policy(sim):
     """Sample every slot's action from the expert prior (learn/prior.py): "the behaviour prior alone"."""
     prior = ExpertPrior(sim)
@@ -223,7 +235,8 @@ def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
             "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float),
             "collision_other": ((risk["contact"] >= 0) & ~risk["partner_policy"])[m].astype(float),
             "from_behind": (risk["contact"] == rk.CONTACTS.index("from behind"))[m].astype(float),
-            "hellinger": fid.episode_histograms(gen, m).astype(np.float32)}  # rows: the Hellinger figure is a statistic of their sum
+            # rows, not values: the Hellinger figure is a statistic of their sum (flexibility_directions)
+            "hellinger": fid.episode_histograms(gen, m).astype(np.float32)}
 
 
 def _measure(label, gen, logged, opts) -> dict:
@@ -630,8 +643,8 @@ def _gap_sections(results: list[dict]) -> list[str]:
 
 def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict | None = None) -> None:
     L = ["# Scenario-quality report\n",
-         f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run ({meta['eval_scenes']}, "
-         f"scene seed {meta['scene_seed']}), rollout seeds {meta['seeds']}; CCE-gap: "
+         f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run ({meta['eval_scenes']}), "
+         f"rollout seeds {meta['seeds']}; CCE-gap: "
          f"{_br_text(meta) if meta.get('cce_gap', True) else 'not computed (--no-cce-gap)'}. "
          "Definitions and binning: `tg_gpudrive/evaluation/` module docstrings (fidelity bins: speed 0.5 m/s on "
          "[0, 30], accel 0.25 m/s^2 on [-8, 8], nearest 0.5 m on [0, 50], curvature 0.005 1/m on [-0.3, 0.3]; "
@@ -812,9 +825,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     if gap_curves:
         plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "eval_scenes": opts.eval_scenes or "the runs' scene spec",
-            "scene_seed": "the runs' own (training scenes)" if opts.scene_seed is None else opts.scene_seed,
-            "cce_gap": opts.cce_gap,
+            "eval_scenes": eval_scenes_text(_run_files(runs[0])[0], opts), "cce_gap": opts.cce_gap,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
