@@ -185,11 +185,12 @@ wm)
   heads=" ${WM_HEADS:-disc cont} "
   [[ $heads == *" disc "* ]] && (wmrun disc && wmrun dagger --set init_model="$RES/disc/model.pt" --set steps=0 --set num_scenes=1000 \
     --set closed_loop_steps=2000 --set closed_loop_rounds=2) &
-  # continuous: closed-loop fine-tuning made the CPU model worse; on the GPU it is tried with roll-outs
-  # at the driver's temperature (0.1)
+  # continuous: closed-loop fine-tuning made the CPU model worse; on the GPU, with roll-outs at the driver's
+  # temperature (0.1), two rounds took a 3,000-step model from 0.62 / 0.20 to 0.07 / 0.11 held out
+  # (BENCHMARKS.md); WM_CONT_ROUNDS sets the rounds (each ~90 s on an H100: raise WM_SECONDS with them)
   [[ $heads == *" cont "* ]] && (wmrun cont --set env.action_space=continuous && wmrun contdagger --set env.action_space=continuous \
     --set init_model="$RES/cont/model.pt" --set steps=0 --set num_scenes=1000 --set closed_loop_steps=2000 \
-    --set closed_loop_rounds=2 --set closed_loop_temperature=0.1) &
+    --set closed_loop_rounds=${WM_CONT_ROUNDS:-2} --set closed_loop_temperature=0.1) &
   wait
   M=""; for n in disc dagger; do [ -f "$RES/$n/model.pt" ] && M="$M $RES/$n/model.pt"; done
   for n in cont contdagger; do [ -f "$RES/$n/model.pt" ] && M="$M $RES/$n/model.pt $RES/$n/model.pt:0"; done
