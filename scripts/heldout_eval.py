@@ -24,10 +24,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_worlds
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.policy import load_policy
 from tg_gpudrive.rollout import builtin_policy, run_rollout
 from tg_gpudrive.engine.simulator import Simulator
@@ -66,9 +65,9 @@ def main(argv=None) -> int:
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
         trained = train_config(run, base)
         base = base or trained
-        cfg = policy_engine_config(trained, scenes)  # a slot for every agent of the scenes
-        # the agents the run was trained to drive (e.g. the 5 nearest each conflict point), the rest replayed
-        masks = control_masks(scenes, cfg, trained.control, trained.control_k, trained.control_ids)
+        # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5 nearest
+        # each conflict point), the rest replayed
+        cfg, masks = policy_worlds(trained, scenes)
         for mode in args.modes:
             c = dataclasses.replace(cfg, collision_mode=mode)
             sim = Simulator(scenes, c, args.device, controlled=masks)

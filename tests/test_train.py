@@ -206,7 +206,7 @@ def test_nan_in_the_loss_itself_is_caught(tmp_path):
 def test_target_goal_rate_counts_the_last_window_of_updates_episodes():
     from tg_gpudrive.learn.plots import RATE_WINDOW
     tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
-    tr.cfg = TrainConfig(target_goal_rate=0.95)
+    tr.cfg, tr._recent = TrainConfig(target_goal_rate=0.95), []  # what __init__ sets for it
     st = lambda g, n, c=0, o=0: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n)),  # noqa: E731
                                  "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
     assert RATE_WINDOW == 10  # the hand-computed sums below
@@ -221,7 +221,7 @@ def test_target_goal_rate_counts_the_last_window_of_updates_episodes():
 
 def test_target_quality_needs_collision_and_offroad_within_bounds_too():
     tr = Trainer.__new__(Trainer)
-    tr.cfg = TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02)
+    tr.cfg, tr._recent = TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02), []
     st = lambda g, c, o: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(100.0),  # noqa: E731
                           "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
     for _ in range(10):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import agents_needed
 
 if TYPE_CHECKING:
@@ -136,3 +137,11 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
                     "are dropped (scenes need up to %d slots)", cfg.heads, env.max_agents, need)
         return env
     return dataclasses.replace(env, max_agents=need)
+
+
+def policy_worlds(cfg: TrainConfig, scenes) -> tuple[EngineConfig, list]:
+    """The engine config (`policy_engine_config`) and, per scene, the (N,) mask of the agents a policy
+    trained with `cfg` drives there (its `control`: every vehicle, the k nearest each conflict point,
+    given ids; the rest replay their logs): how evaluation sets up worlds for a trained policy."""
+    env = policy_engine_config(cfg, scenes)
+    return env, control_masks(scenes, env, cfg.control, cfg.control_k, cfg.control_ids)

@@ -94,9 +94,13 @@ def _normalise(p: np.ndarray) -> np.ndarray:
     return p / s
 
 
+def _hellinger(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hellinger distance of the probability vector p (B,) and q (..., B), one per leading index of q."""
+    return np.sqrt(np.maximum(0.0, 1.0 - np.sqrt(p * q).sum(-1)))
+
+
 def hellinger(p: np.ndarray, q: np.ndarray) -> float:
-    p, q = _normalise(p), _normalise(q)
-    return float(np.sqrt(max(0.0, 1.0 - np.sqrt(p * q).sum())))
+    return float(_hellinger(_normalise(p), _normalise(q)))
 
 
 def kl_divergence(p: np.ndarray, q: np.ndarray, eps: float = KL_EPS) -> float:
@@ -165,11 +169,10 @@ def hellinger_of_sums(logged: dict[str, np.ndarray], sums: np.ndarray) -> np.nda
         offset += b.num_bins
         if logged[name].sum() == 0:
             continue
-        p = _normalise(logged[name])
         tot = q.sum(-1, keepdims=True)
         with np.errstate(invalid="ignore", divide="ignore"):
-            bc = np.sqrt(p * q / tot).sum(-1)
-        out.append(np.where(tot[..., 0] > 0, np.sqrt(np.maximum(0.0, 1.0 - bc)), np.nan))
+            h = _hellinger(_normalise(logged[name]), q / tot)
+        out.append(np.where(tot[..., 0] > 0, h, np.nan))
     return np.nanmean(np.stack(out), axis=0)
 
 

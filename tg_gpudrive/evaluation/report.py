@@ -64,11 +64,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, kept_policies, load_checkpoint, policy_engine_config
+from tg_gpudrive.checkpoint import checkpoint_path, kept_policies, load_checkpoint, policy_worlds
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import exploitability as ex
@@ -146,23 +145,28 @@ def run_kind(cfg) -> str:
     return "MAPPO" if plain else "CCE-MAPPO"
 
 
-def _scenes(cfg, n: int, opts: ReportOptions):
-    """The first `n` evaluation scenes and their control masks (ReportOptions.scene_seed / eval_scenes)."""
+def _eval_spec(cfg, opts: ReportOptions) -> tuple[str, int, bool]:
+    """(scene spec, seed, procedural) of the evaluation scenes of a run trained with `cfg`."""
     spec = opts.eval_scenes or cfg.scenes
-    seed = cfg.seed if opts.scene_seed is None else opts.scene_seed
-    if opts.scene_seed is not None and spec == cfg.scenes and spec.startswith("procedural:") \
+    return spec, cfg.seed if opts.scene_seed is None else opts.scene_seed, spec.startswith("procedural:")
+
+
+def _scenes(cfg, n: int, opts: ReportOptions):
+    """The first `n` evaluation scenes (ReportOptions.scene_seed / eval_scenes), the engine config of the
+    run's policy on them and their control masks (checkpoint.policy_worlds)."""
+    spec, seed, procedural = _eval_spec(cfg, opts)
+    if opts.scene_seed is not None and spec == cfg.scenes and procedural \
             and seed < cfg.seed + cfg.num_scenes and cfg.seed < seed + n:
         raise ValueError(f"scene_seed {seed}: procedural seeds {seed} .. {seed + n - 1} overlap the run's training "
                          f"scenes (seeds {cfg.seed} .. {cfg.seed + cfg.num_scenes - 1})")
     src = resolve_scenes(spec, n=n if opts.scene_seed is not None else cfg.num_scenes, seed=seed)
     scenes = [src.get(i) for i in range(min(n, len(src)))]
-    return scenes, control_masks(scenes, cfg.env, cfg.control, cfg.control_k, cfg.control_ids)
+    return (scenes, *policy_worlds(cfg, scenes))
 
 
 def eval_scenes_text(cfg, opts: ReportOptions) -> str:
     """Which scenes `_scenes` evaluates, and whether they are held out, for the report's readers."""
-    spec = opts.eval_scenes or cfg.scenes
-    procedural = spec.startswith("procedural:")
+    spec, _, procedural = _eval_spec(cfg, opts)
     if opts.eval_scenes:
         return f"{spec}" + (f" from seed {opts.scene_seed}" if procedural and opts.scene_seed is not None else "")
     if procedural and opts.scene_seed is not None:
@@ -481,14 +485,14 @@ def gap_curve(start: dict | None, kept: list[dict], last: dict | None, last_upda
 
 def start_gap(run: Path, cfg: TrainConfig, gsim, opts: ReportOptions, out: Path, bar) -> dict | None:
     """The CCE-gap of the policy run `run` started from (its `init_policy`; None without one) on the
-    run's deviation game, cached under the starting checkpoint and a label that hashes what defines
-    the game (scenes, control, engine and discount, not the run's own knobs), so runs that share both
-    compute it once."""
+    run's deviation game `gsim`, cached under the starting checkpoint and a label that hashes what
+    defines the game (its scenes, who is controlled, engine and discount, not the run's own knobs), so
+    runs that share both compute it once."""
     if not cfg.init_policy:
         return None
     init = checkpoint_path(cfg.init_policy, f"{run}/config.json: init_policy")
     env = {k: v for k, v in dataclasses.asdict(cfg.env).items() if k != "beta"}  # beta shapes the cost only
-    game = json.dumps({"scenes": cfg.scenes, "num_scenes": cfg.num_scenes, "seed": cfg.seed, "control": cfg.control,
+    game = json.dumps({"scenes": [s.scene_id for s in gsim.model.scenes], "control": cfg.control,
                        "control_k": cfg.control_k, "control_ids": cfg.control_ids, "gamma": cfg.gamma, "env": env},
                       default=str, sort_keys=True)
     label = f"start {hashlib.sha256((str(init) + game).encode()).hexdigest()[:12]}"
@@ -750,8 +754,8 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             device = resolve_device(opts.device or cfg.device, flag="--device")
             if device == "cpu":
                 torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
-            scenes, masks = _scenes(cfg, opts.scenes, opts)
-            cfg = dataclasses.replace(cfg, env=policy_engine_config(cfg, scenes))  # a slot for every agent
+            scenes, env, masks = _scenes(cfg, opts.scenes, opts)
+            cfg = dataclasses.replace(cfg, env=env)  # a slot for every agent
             sim = Simulator(scenes, cfg.env, device, controlled=masks)
             logged = logged_episodes(sim)
             copies = _br_copies(opts, device)
@@ -825,7 +829,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     if gap_curves:
         plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "eval_scenes": eval_scenes_text(_run_files(runs[0])[0], opts), "cce_gap": opts.cce_gap,
+            "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,

@@ -30,6 +30,7 @@ def windowed_rates(rows: Sequence[dict], window: int = RATE_WINDOW) -> dict[str,
         return None
     return {k: sum(num(r[k]) * num(r["episodes"]) for r in recent) / n for k in RATE_KEYS}
 
+
 def meets_quality(rates: dict, goal: float, collision: float, offroad: float) -> bool:
     """goal_rate >= goal with collision_rate <= collision and offroad_rate <= offroad (bounds inclusive):
     the one quality rule of training's stop (`target_*`) and of `time_to_quality`."""

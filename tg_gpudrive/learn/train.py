@@ -40,7 +40,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_engine_config, save_atomic
+from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes
@@ -182,6 +182,7 @@ class Trainer:
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
         self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
         self._heldout_sim, self._heldout_rates = None, None  # target_heldout: its worlds and latest rates
+        self._recent: list[tuple[float, ...]] = []  # (goal, collided, off-road, episodes) of the last RATE_WINDOW updates
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
@@ -582,7 +583,7 @@ class Trainer:
         window meets goal rate >= target_goal_rate, collision rate <= target_max_collision and
         off-road rate <= target_max_offroad."""
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
-        self._recent = (getattr(self, "_recent", []) + [now])[-RATE_WINDOW:]
+        self._recent = (self._recent + [now])[-RATE_WINDOW:]
         cfg = self.cfg
         rates = self._window_rates()
         if cfg.target_goal_rate <= 0 or len(self._recent) < RATE_WINDOW or rates is None:
@@ -606,8 +607,8 @@ class Trainer:
             if self._heldout_sim is None:  # built once, on first use
                 src = resolve_scenes(cfg.target_heldout, n=cfg.target_heldout_worlds, seed=cfg.target_heldout_seed)
                 scenes = [src.get(i) for i in range(min(cfg.target_heldout_worlds, len(src)))]
-                self._heldout_sim = Simulator(scenes, policy_engine_config(cfg, scenes), self.device,
-                                              controlled=self._control(scenes))
+                env, masks = policy_worlds(cfg, scenes)
+                self._heldout_sim = Simulator(scenes, env, self.device, controlled=masks)
             hsim = self._heldout_sim
             rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length)
             ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
