@@ -616,3 +616,29 @@ def test_closed_loop_finetuning_runs_and_logs(shipped, wm_cfg, tmp_path):
     # a resumed, finished run does not repeat the phase
     again = train_world_model(cfg, resume=tmp_path, progress=False)
     assert again["closed_loop"] == "done before the resume"
+
+
+def test_closed_loop_keeps_each_finished_round(shipped, wm_cfg, tmp_path, monkeypatch):
+    """A run stopped in its second round (a time limit) leaves model.pt with the first round's weights."""
+    import tg_gpudrive.worldmodel.train as wm_train
+
+    arch = {k: shipped.hparams[k] for k in ("hidden", "heads", "history", "max_partners", "max_roads")}
+    cfg = dataclasses.replace(wm_cfg, num_scenes=2, val_scenes=0, num_worlds=2, steps=0, init_model=str(SHIPPED),
+                              batch_size=64, **arch, closed_loop_steps=4, closed_loop_rounds=2, closed_loop_horizon=12,
+                              out_dir=str(tmp_path))
+    calls = []
+    real = wm_train.closed_loop_samples
+
+    def stop_in_round_two(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # what a timeout's signal does between rounds
+        return real(*a, **k)
+
+    monkeypatch.setattr(wm_train, "closed_loop_samples", stop_in_round_two)
+    with pytest.raises(KeyboardInterrupt):
+        train_world_model(cfg, progress=False)
+    saved = torch.load(tmp_path / "model.pt", weights_only=False)
+    assert saved["closed_loop_round"] == 1 and saved["step"] == 2
+    tuned = load_world_model(tmp_path / "model.pt")
+    assert any(not torch.equal(v, shipped.state_dict()[k]) for k, v in tuned.state_dict().items())

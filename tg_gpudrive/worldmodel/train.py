@@ -289,6 +289,9 @@ def closed_loop_finetune(model: WorldModel, cfg: WorldModelConfig, data: dict, t
                "visited_nll_before": visited_before, "visited_nll": visited["nll"],
                "dataset_samples": int(merged["target"].shape[0]), **roll, "wall_s": time.perf_counter() - t0}
         _append_csv(csv_path, row)
+        # each round's model, so that a run stopped by a time limit keeps the rounds it finished
+        save_world_model(model, out / "model.pt", cfg.env,
+                         {"config": to_dict(cfg), "step": cfg.steps + done, "closed_loop_round": r + 1})
     if bar is not None:
         bar.close()
     model.set_layout(*data["layout"])
