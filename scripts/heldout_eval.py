@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import torch
 from tqdm import tqdm
 
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_worlds
@@ -72,7 +73,8 @@ def main(argv=None) -> int:
             c = dataclasses.replace(cfg, collision_mode=mode)
             sim = Simulator(scenes, c, args.device, controlled=masks)
             policy = builtin_policy(run, args.seed, sim.device) if run in BUILTIN else load_policy(run, sim)
-            out = run_rollout(sim, policy, sim.episode_length)
+            torch.manual_seed(args.seed)  # the policy's sampling: every run and mode sees the same draws
+            out = run_rollout(sim, policy, sim.episode_length, episodes_per_world=1)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",

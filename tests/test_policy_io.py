@@ -123,3 +123,15 @@ def test_report_runs_the_shipped_policy(tiny_run, monkeypatch, tmp_path, caplog)
     summary = json.loads((out / "summary.json").read_text())
     assert "shipped" in {r["label"] for r in summary["results"]}
     assert "dropped" not in caplog.text
+
+
+def test_evaluate_repeats_with_its_seed(capsys):
+    """A trained policy samples its actions: `--seed` fixes the draws, so the same command gives the
+    same rates."""
+    def rates(seed):
+        assert cli.main(["evaluate", "--checkpoint", "shipped", "--scenes", "procedural:all", "--seed", str(seed),
+                         "--num-scenes", "12", "--episodes", "12", "--device", "cpu", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        return [out[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "mean_return")]
+
+    assert rates(90000) == rates(90000)

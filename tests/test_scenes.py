@@ -42,6 +42,34 @@ def test_random_policy_crashes_or_leaves_the_road(procedural_sims, scenario):
     assert out["goal_rate"] <= 0.5, out
 
 
+def test_rates_count_each_worlds_first_episodes_only(procedural_sims):
+    """With `episodes_per_world` a world whose episodes end early (random driving crashes at once) adds no
+    extra episodes: the rates are those of each world's first N episodes, counted here by hand."""
+    sim = procedural_sims["merge"]
+    steps, cap = 3 * sim.episode_length, 2
+    free = run_rollout(sim, builtin_policy("random", 0, "cpu"), steps)
+    capped = run_rollout(sim, builtin_policy("random", 0, "cpu"), steps, episodes_per_world=cap)
+    sim.reset()
+    policy, seen = builtin_policy("random", 0, "cpu"), np.zeros(sim.num_worlds, int)
+    n = goal = collided = offroad = 0
+    for _ in range(steps):
+        policy(sim)
+        sim.step()
+        for w in np.flatnonzero(sim.world_ended.cpu().numpy()):
+            seen[w] += 1
+            if seen[w] <= cap:
+                rows = sim.policy_agents[w].cpu().numpy()
+                n += int(rows.sum())
+                goal += int(sim.final_goal[w].cpu().numpy()[rows].sum())
+                collided += int(sim.final_collided[w].cpu().numpy()[rows].sum())
+                offroad += int(sim.final_offroad[w].cpu().numpy()[rows].sum())
+    assert (seen >= cap).all() and seen.max() > cap  # every world finished its quota; some ended more often
+    assert free["episodes"] > capped["episodes"] == n == cap * int(sim.policy_agents.sum())
+    assert capped["goal_rate"] == pytest.approx(goal / n)
+    assert capped["collision_rate"] == pytest.approx(collided / n)
+    assert capped["offroad_rate"] == pytest.approx(offroad / n)
+
+
 def test_expert_replay_on_real_womd_scenes():
     """All 13 controlled vehicles of the two real scenes (valid at step 10 and not parked at their
     goal; 2 + 11) reach their goal with no collision and no off-road. The scenes' other agents are

@@ -31,6 +31,7 @@ import sys
 import time
 from pathlib import Path
 
+import torch
 import torch.multiprocessing as mp
 
 from tg_gpudrive.benchmark import main as benchmark_main
@@ -369,8 +370,9 @@ def cmd_evaluate(args) -> int:
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
+    torch.manual_seed(args.seed)  # a trained policy samples from torch's generator: --seed makes a run repeatable
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=True, background=background,
-                      desc="evaluate")
+                      desc="evaluate", episodes_per_world=rounds)
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, "scene_files_skipped": skipped,
                 **sim.report(), **_background_report(args, cfg)})
@@ -426,6 +428,7 @@ def cmd_render(args) -> int:
     policy = (load_policy(checkpoint, sim, args.deterministic) if checkpoint is not None
               else builtin_policy(args.policy, args.seed, sim.device))
     t0 = time.perf_counter()
+    torch.manual_seed(args.seed)
     frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
                             size=size, center_agent=args.center_agent, view_radius=args.view_radius,
                             highlight=args.highlight)

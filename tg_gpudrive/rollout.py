@@ -120,8 +120,13 @@ class EpisodeStats:
 
     KEYS = ("episodes", "goal", "collided", "offroad", "cost", "min_dist", "return", "steps")
 
-    def __init__(self, sim: Simulator):
+    def __init__(self, sim: Simulator, episodes_per_world: int | None = None):
+        """`episodes_per_world`: count only each world's first N episodes. Without it a world whose
+        episodes end early (fast drivers, early collisions) adds more of them within the same steps, and
+        the rates lean towards short episodes; with it every world that finished N weighs the same."""
         self.sim = sim
+        self.episodes_per_world = episodes_per_world
+        self.world_episodes = torch.zeros(sim.num_worlds, dtype=torch.int64, device=sim.reward.device)
         types = [s.metadata.get("scenario_type", "unknown") for s in sim.model.scenes]
         self.type_names = sorted(set(types))
         self.world_type = torch.tensor([self.type_names.index(t) for t in types], device=sim.reward.device)
@@ -153,7 +158,11 @@ class EpisodeStats:
         alive = s.alive * s.policy_agents  # background vehicles are alive too, but not the policy's
         self.speed_sum += (s.speed * alive).sum()
         self.alive_steps += alive.sum()
-        rows = (s.world_ended[:, None] != 0) & s.policy_agents
+        ended = s.world_ended != 0
+        if self.episodes_per_world is not None:
+            ended = ended & (self.world_episodes < self.episodes_per_world)
+            self.world_episodes += s.world_ended != 0
+        rows = ended[:, None] & s.policy_agents
         self.scene_episodes += rows.any(1).sum()
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
                   s.final_return, s.final_steps)
@@ -194,12 +203,15 @@ class EpisodeStats:
 
 
 def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False,
-                background: Policy | None = None, desc: str = "simulate") -> dict:
+                background: Policy | None = None, desc: str = "simulate",
+                episodes_per_world: int | None = None) -> dict:
     """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed.
 
-    `background`: a driver of the background rows (`make_background_driver`), run after the policy."""
+    `background`: a driver of the background rows (`make_background_driver`), run after the policy.
+    `episodes_per_world`: count each world's first N episodes only (`EpisodeStats`); with `steps` = N
+    episode lengths every world finishes exactly N, so every scene weighs the same."""
     sim.reset()
-    stats = EpisodeStats(sim)
+    stats = EpisodeStats(sim, episodes_per_world)
     bar = None
     if progress:
         bar = tqdm(total=steps, desc=desc, unit="step", leave=False)

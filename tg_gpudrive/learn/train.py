@@ -610,7 +610,8 @@ class Trainer:
                 env, masks = policy_worlds(cfg, scenes)
                 self._heldout_sim = Simulator(scenes, env, self.device, controlled=masks)
             hsim = self._heldout_sim
-            rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length)
+            rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length,
+                                episodes_per_world=1)
             ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
             self._heldout_rates = {k: rates[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "episodes")}
             _append_csv(self.out / "heldout.csv",
