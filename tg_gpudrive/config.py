@@ -177,7 +177,7 @@ class TrainConfig:
     cost_nstep: int = 8  # steps of the cost critic's distributional Bellman target (1: the one-step target)
     prior: str = "world_model"  # world_model | expert: the magnet
     prior_top_component: bool = True  # world_model, continuous: the magnet is the most probable mixture component
-    prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir) or a packaged name (small_cpu); "" = the shipped model
+    prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir) or a packaged name (small_cpu); "" = the shipped model of the action space (shipped, shipped_continuous)
     # the continuous magnet's spread: the expert prior's sigma, and the least std of the world-model
     # prior's Laplace components (a sharper one would make its KL dominate the advantage)
     prior_sigma_accel: float = 0.7  # m/s^2 (one grid bin is 2)

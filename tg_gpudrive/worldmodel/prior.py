@@ -20,9 +20,10 @@ Gaussian-only KL still gets a defined (unimodal) magnet.
 Checkpoints (`save_world_model` / `load_world_model`) hold the weights, the
 model's hyper-parameters and the action grid (discrete) or box (continuous) it
 was trained on; loading onto a simulator whose action space, grid or box
-differs is an error. `load_shipped(sim)` loads the discrete model that ships in
-the package (shipped.pt): trained on procedural scenes on one GPU, teacher forcing
-then closed-loop fine-tuning (configs/worldmodel/gpu.yaml).
+differs is an error. `load_shipped(sim)` loads the model that ships in the package
+for the simulator's action space (shipped.pt, discrete; shipped_continuous.pt):
+trained on procedural scenes on one GPU, teacher forcing then closed-loop
+fine-tuning (configs/worldmodel/gpu.yaml).
 """
 
 from __future__ import annotations
@@ -44,7 +45,10 @@ SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
 # small_cpu  configs/worldmodel/small_cpu.yaml on a laptop CPU (the shipped model until 2026-11-25): the
 #            magnet of configs/train/small_cpu.yaml, whose 30-update, 8-world run with a small
 #            observation learns from this softer model and not from the sharper GPU one (BENCHMARKS.md)
-PACKAGED = {"shipped": SHIPPED, "small_cpu": SHIPPED.with_name("small_cpu.pt")}
+# shipped_continuous  the same recipe with env.action_space continuous, then 9 closed-loop rounds at the
+#            driver's temperature 0.1 (BENCHMARKS.md): the default of a continuous simulator
+PACKAGED = {"shipped": SHIPPED, "small_cpu": SHIPPED.with_name("small_cpu.pt"),
+            "shipped_continuous": SHIPPED.with_name("shipped_continuous.pt")}
 
 
 def grid_of(cfg) -> dict:
@@ -96,10 +100,14 @@ def load_world_model(path: str | Path, sim=None, device: str | None = None) -> W
 
 
 def load_shipped(sim=None, device: str | None = None) -> WorldModel:
-    if not SHIPPED.exists():
-        raise FileNotFoundError(f"{SHIPPED}: the shipped world model is missing from the package "
-                                "(pyproject package-data must include tg_gpudrive/worldmodel/shipped.pt)")
-    return load_world_model(SHIPPED, sim, device)
+    """The packaged world model for `sim`'s action space: `shipped` (discrete, also without a sim) or
+    `shipped_continuous`."""
+    name = "shipped_continuous" if sim is not None and not sim.cfg.discrete else "shipped"
+    path = PACKAGED[name]
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: the packaged world model {name} is missing from the package "
+                                f"(pyproject package-data must include tg_gpudrive/worldmodel/{path.name})")
+    return load_world_model(path, sim, device)
 
 
 class WorldModelPrior(BehaviourPrior):
