@@ -488,7 +488,9 @@ def test_report_on_tiny_runs(tmp_path):
     assert main(["--runs", *runs, "--out", str(tmp_path / "nogap"), "--no-cce-gap", *args]) == 0
     nogap = json.loads((tmp_path / "nogap" / "summary.json").read_text())
     assert not any(r["cce_gap"] or r.get("gap_curve") for r in nogap["results"]) and len(nogap["results"]) == 6
-    assert "not computed (--no-cce-gap)" in (tmp_path / "nogap" / "report.md").read_text()
+    md = (tmp_path / "nogap" / "report.md").read_text()
+    assert "not computed (--no-cce-gap)" in md and "Not computed (--no-cce-gap)" in md
+    assert "## CCE-gap per agent" not in md and not (tmp_path / "nogap" / "cce_gap.png").exists()
 
 
 def test_the_report_says_whether_its_scenes_are_held_out():

@@ -33,7 +33,7 @@ Writes into `out`:
     frames/<run>.gif    with --grid-gifs: that scene's episode per cell
     multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
     fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
-    cce_gap.png         CCE-gap per agent, per run
+    cce_gap.png         CCE-gap per agent, per run (not with --no-cce-gap)
     cce_gap_curve.png   the CCE-gap over each run's training: its starting policy (init_policy, update 0;
                         computed once when runs share it), the policies it kept (keep_policy_every > 0)
                         and its final checkpoint, by the same best-response procedure at every point
@@ -601,8 +601,12 @@ def _br_text(meta: dict) -> str:
             f"seeds {meta['br_seeds']}")
 
 
-def _gap_sections(results: list[dict]) -> list[str]:
-    """The CCE-gap sections of report.md: per agent, per scenario type, PPO iterations."""
+def _gap_sections(results: list[dict], computed: bool = True) -> list[str]:
+    """The CCE-gap sections of report.md: per agent, per scenario type, PPO iterations; one line where the
+    report was asked for none (`computed` False: --no-cce-gap)."""
+    if not computed:
+        return ["\n## CCE-gap\n\nNot computed (--no-cce-gap): this report has rollouts only. The same command "
+                "without the flag adds a PPO best response per agent (GPU time).\n"]
     gapped = [(r["label"], r["cce_gap"]) for r in results if r.get("cce_gap")]
     L = ["\n## CCE-gap per agent\n\n![cce_gap](cce_gap.png)\n\n",
          "gain = J(BR) - J(pi), each agent's discounted return on fresh rollouts with its PPO best response "
@@ -709,7 +713,7 @@ def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict
     L.append(_table(["policy", "feature", "Hellinger", "KL(log || gen)", "W1", "likelihood", "mean logged",
                      "mean generated"], rows))
     L.append("\n## Multipliers during training\n\n![multipliers](multipliers.png)\n")
-    L.extend(_gap_sections(results))
+    L.extend(_gap_sections(results, meta.get("cce_gap", True)))
     L.append("\n## Diversity per scenario type [m]\n\n")
     rows = [[r["label"], t, v] for r in results for t, v in r["diversity"]["per_type"].items()]
     L.append(_table(["policy", "scenario type", "mean pairwise displacement"], rows))
@@ -825,7 +829,10 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     plot_grid(cells, out / "grid.png", scene=grid_scene)
     plot_multipliers(curves, out / "multipliers.png")
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
-    plot_gaps(gaps, out / "cce_gap.png")
+    if opts.cce_gap:
+        plot_gaps(gaps, out / "cce_gap.png")
+    else:  # not an earlier report's picture beside this one's text
+        (out / "cce_gap.png").unlink(missing_ok=True)
     if gap_curves:
         plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
