@@ -253,8 +253,8 @@ def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monke
     goals = iter([0.1, 0.2, 0.9])
     seen = []
 
-    def fake_rollout(sim, policy, steps):
-        seen.append((sim.num_worlds, steps))
+    def fake_rollout(sim, policy, steps, episodes_per_world=None):
+        seen.append((sim.num_worlds, steps, episodes_per_world))
         policy(sim)  # the current actor drives the held-out worlds
         return {"goal_rate": next(goals), "collision_rate": 0.0, "offroad_rate": 0.0, "episodes": 7}
 
@@ -262,7 +262,7 @@ def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monke
     b = tmp_path / "b"
     tr = Trainer(tiny(b, **kw), b, progress=False)
     tr.train()
-    assert tr.update == 3 and all(x == (2, tr.sim.episode_length) for x in seen)
+    assert tr.update == 3 and all(x == (2, tr.sim.episode_length, 1) for x in seen)  # each world's first episode
     checks = list(csv.DictReader((b / "heldout.csv").open()))
     assert [(c["update"], c["met"]) for c in checks] == [("1", "0"), ("2", "0"), ("3", "1")]
     target = json.loads((b / "target.json").read_text())

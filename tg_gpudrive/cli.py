@@ -101,7 +101,8 @@ def _background_args(p: argparse.ArgumentParser) -> None:
                         "reacting to the policy's vehicles")
     p.add_argument("--background-model", default=None, metavar="PATH",
                    help="--background world_model: a world-model checkpoint (model.pt or a train-world-model "
-                        "run directory, or small_cpu: the packaged CPU model; default: the shipped model)")
+                        "run directory, or small_cpu: the packaged CPU model; default: the shipped model of the "
+                        "action space, shipped or shipped_continuous)")
 
 
 def positive_int(text: str) -> int:
