@@ -6,6 +6,7 @@
 #   a         CUDA tests + engine / env / store benchmarks
 #   perf      training throughput per config (scripts/bench_train.py), then the world-model bench
 #   quality   CCE-MAPPO and plain PPO (QUALITY_VARIANTS) trained for QUALITY_SECONDS each, held-out rates
+#             (QUALITY_TRANSFER=1: also urban and real-scene rates, as the urban stage)
 #   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
 #             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
@@ -82,6 +83,22 @@ for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.
 PY
 }
 
+# held-out rates per collision mode of trained runs beside the shipped policy: plain procedural scenes and
+# urban ones (parked cars, stop-line queues, kerb stops; URBAN_EVAL), then the two real WOMD scenes
+URB=${URBAN_EVAL:-"procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]"}
+transfer_eval() {
+  for spec in procedural:all "$URB"; do
+    timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs "$@" shipped --scenes "$spec" \
+      --modes ignore stop remove --num-scenes ${EVAL_N:-1024} --device ${EVAL_DEVICE:-cuda} --out "$RES/heldout.jsonl" 2>>"$RES/heldout.err" | tail -7
+  done
+  for mode in ignore stop remove; do
+    for run in "$@" shipped; do
+      timeout 120 python3 -m tg_gpudrive.cli evaluate --checkpoint "$run" --scenes "$R"/tests/data --num-scenes 2 \
+        --worlds 64 --episodes 64 --collision-mode $mode --json 2>>"$RES/real.err" | tee -a "$RES/real.jsonl" | head -c 300; echo
+    done
+  done
+}
+
 case "$stage" in
 a)
   python3 -m pytest -q -p no:cacheprovider "$R"/tests/test_kernels.py "$R"/tests/test_engine.py \
@@ -121,6 +138,8 @@ quality)
   slim
   [ "${QUALITY_EVAL:-1}" = 0 ] || timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs $(ls -d "$RES"/*/) ${QUALITY_BASELINES:-constant random} \
     --modes ${QUALITY_MODES:-ignore} --num-scenes ${EVAL_N:-1024} --out "$RES/heldout.jsonl" 2>"$RES/heldout.err" | tail -30
+  # QUALITY_TRANSFER=1: also urban and real-scene rates per collision mode, beside the shipped policy
+  [ "${QUALITY_TRANSFER:-0}" = 1 ] && transfer_eval $(ls -d "$RES"/*/)
   ;;
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
@@ -226,7 +245,6 @@ urban)
   # urban ones (kerb stops apart) and the two real WOMD scenes, beside the shipped policy
   # park_reach 1.5: parked cars as close to the lane centre as in the real scenes (BENCHMARKS.md)
   MIX=${URBAN_MIX:-"mix:procedural:all=0.5,procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]=0.5"}
-  URB=${URBAN_EVAL:-"procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]"}
   WC="$R"/configs/worldmodel/gpu.yaml
   cli simulate --scenes procedural:merge --worlds 4 --device cuda --json > /dev/null 2>&1  # compile once
   timeout ${URBAN_WM_SECONDS:-200} python3 -m tg_gpudrive.worldmodel.cli --config "$WC" --out "$RES/wm" --json \
@@ -243,16 +261,7 @@ urban)
     --set checkpoint_every=50 "${SETS[@]}" 2>&1 | bar 3
   summarize
   slim
-  for spec in procedural:all "$URB"; do
-    timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs "$RES/cce" shipped --scenes "$spec" \
-      --modes ignore stop remove --num-scenes ${EVAL_N:-1024} --device ${EVAL_DEVICE:-cuda} --out "$RES/heldout.jsonl" 2>>"$RES/heldout.err" | tail -7
-  done
-  for mode in ignore stop remove; do
-    for run in "$RES/cce" shipped; do
-      timeout 120 python3 -m tg_gpudrive.cli evaluate --checkpoint "$run" --scenes "$R"/tests/data --num-scenes 2 \
-        --worlds 64 --episodes 64 --collision-mode $mode --json 2>>"$RES/real.err" | tee -a "$RES/real.jsonl" | head -c 300; echo
-    done
-  done
+  transfer_eval "$RES/cce"
   ;;
 *) echo "unknown stage $stage"; exit 2 ;;
 esac
