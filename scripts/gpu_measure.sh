@@ -84,17 +84,19 @@ PY
 }
 
 # held-out rates per collision mode of trained runs beside the shipped policy: plain procedural scenes and
-# urban ones (parked cars, stop-line queues, kerb stops; URBAN_EVAL), then the two real WOMD scenes
+# urban ones (parked cars, stop-line queues, kerb stops; URBAN_EVAL), then the two real WOMD scenes;
+# HELDOUT_CONTROL=vehicles drives every vehicle whatever control a run was trained with (evaluate does)
 URB=${URBAN_EVAL:-"procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]"}
 transfer_eval() {
   for spec in procedural:all "$URB"; do
     timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs "$@" shipped --scenes "$spec" \
-      --modes ignore stop remove --num-scenes ${EVAL_N:-1024} --device ${EVAL_DEVICE:-cuda} --out "$RES/heldout.jsonl" 2>>"$RES/heldout.err" | tail -7
+      --modes ignore stop remove --num-scenes ${EVAL_N:-1024} --device ${EVAL_DEVICE:-cuda} --out "$RES/heldout.jsonl" \
+      ${HELDOUT_CONTROL:+--control $HELDOUT_CONTROL} 2>>"$RES/heldout.err" | tail -7
   done
   for mode in ignore stop remove; do
     for run in "$@" shipped; do
       timeout 120 python3 -m tg_gpudrive.cli evaluate --checkpoint "$run" --scenes "$R"/tests/data --num-scenes 2 \
-        --worlds 64 --episodes 64 --collision-mode $mode --json 2>>"$RES/real.err" | tee -a "$RES/real.jsonl" | head -c 300; echo
+        --worlds ${REAL_WORLDS:-64} --episodes ${REAL_WORLDS:-64} --collision-mode $mode --json 2>>"$RES/real.err" | tee -a "$RES/real.jsonl" | head -c 300; echo
     done
   done
 }
@@ -139,7 +141,7 @@ quality)
   [ "${QUALITY_EVAL:-1}" = 0 ] || timeout ${EVAL_SECONDS:-200} python3 "$R"/scripts/heldout_eval.py --runs $(ls -d "$RES"/*/) ${QUALITY_BASELINES:-constant random} \
     --modes ${QUALITY_MODES:-ignore} --num-scenes ${EVAL_N:-1024} --out "$RES/heldout.jsonl" 2>"$RES/heldout.err" | tail -30
   # QUALITY_TRANSFER=1: also urban and real-scene rates per collision mode, beside the shipped policy
-  [ "${QUALITY_TRANSFER:-0}" = 1 ] && transfer_eval $(ls -d "$RES"/*/)
+  [ "${QUALITY_TRANSFER:-0}" = 1 ] && HELDOUT_CONTROL=vehicles transfer_eval $(ls -d "$RES"/*/)
   ;;
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \

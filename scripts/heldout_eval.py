@@ -54,6 +54,9 @@ def main(argv=None) -> int:
     p.add_argument("--modes", nargs="+", default=["ignore", "stop", "remove"])
     p.add_argument("--device", default="cuda")
     p.add_argument("--out", default=None, help="also append the JSON lines here")
+    p.add_argument("--control", default=None, choices=("vehicles", "nearest_conflict"),
+                   help="the agents the policies drive (default: each run's own training control; the rest "
+                        "replay their logs); vehicles compares runs trained on different controls")
     args = p.parse_args(argv)
 
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
@@ -68,6 +71,8 @@ def main(argv=None) -> int:
         base = base or trained
         # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5 nearest
         # each conflict point), the rest replayed
+        if args.control:
+            trained = dataclasses.replace(trained, control=args.control)
         cfg, masks = policy_worlds(trained, scenes)
         for mode in args.modes:
             c = dataclasses.replace(cfg, collision_mode=mode)

@@ -526,6 +526,14 @@ def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, c
                      "--seed", "90000", "--modes", "ignore", "--device", "cpu", "--out", str(out)]) in (0, None)
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert [r["episodes"] for r in rows] == [6, 6]  # 3 worlds x the 2 nearest the conflict point
+    # --control vehicles: the same run driving every vehicle, as a policy trained on all of them is evaluated
+    every = tmp_path / "all.jsonl"
+    assert mod.main(["--runs", str(tmp_path / "run"), "--scenes", "procedural:merge", "--num-scenes", "3", "--seed",
+                     "90000", "--modes", "ignore", "--device", "cpu", "--out", str(every), "--control", "vehicles"]) in (0, None)
+    from tg_gpudrive.data.sources import resolve_scenes
+    src = resolve_scenes("procedural:merge", n=3, seed=90000)
+    vehicles = sum(int(m.sum()) for m in control_masks([src.get(i) for i in range(3)], cfg.env, "vehicles"))
+    assert json.loads(every.read_text())["episodes"] == vehicles > 6
 
 
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
