@@ -69,10 +69,10 @@ def main(argv=None) -> int:
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
         trained = train_config(run, base)
         base = base or trained
-        # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5 nearest
-        # each conflict point), the rest replayed
         if args.control:
             trained = dataclasses.replace(trained, control=args.control)
+        # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5 nearest
+        # each conflict point) or --control's, the rest replayed
         cfg, masks = policy_worlds(trained, scenes)
         for mode in args.modes:
             c = dataclasses.replace(cfg, collision_mode=mode)
