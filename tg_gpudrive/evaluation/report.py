@@ -644,8 +644,9 @@ def _gap_sections(results: list[dict], computed: bool = True) -> list[str]:
         L.append(_table(["run", "update", "CCE-gap ± 95% CI (agents)"],
                         [[label, p["update"], _pm(p["mean_gap"], p["ci95"])] for label, pts in curves for p in pts]))
     else:
-        L.append("\nNo CCE-gap curve over training: no run started from a policy (`init_policy`) or kept its "
-                 "policies during training (train with `--set keep_policy_every=N` to keep one every N updates).\n")
+        L.append("\nNo CCE-gap curve over training: it needs a run that started from a policy (`init_policy`; the "
+                 "starting policy's gap is computed by the report process that also does the baselines, not "
+                 "with --no-baselines) or kept policies during training (`--set keep_policy_every=N`).\n")
     return L
 
 
