@@ -5,8 +5,8 @@
 
 The scenes are generated (or read) once and every run is evaluated on the same worlds, one
 episode per world, with its sampled policy driving the agents it was trained to drive (its
-`control`: all vehicles, or e.g. the 5 nearest each conflict point, the others replaying logs); a built-in policy name (expert, constant, random)
-works in place of a run. Rates are episode-weighted over the policy's agents, as a user counts
+`control`: all vehicles, or e.g. the 5 nearest each conflict point, the others replaying logs;
+`--control` overrides it); a built-in policy name (expert, constant, random) works in place of a run. Rates are episode-weighted over the policy's agents, as a user counts
 them: a goal reached after leaving the road is not a goal (the engine does not count it). The
 seed of procedural training runs is 0 with at most a few thousand scenes, so seed 90000 names
 scenes no run has seen. Prints one JSON line per (run, mode) and a table; never fails on the
@@ -22,7 +22,6 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 from tqdm import tqdm
 
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_worlds
@@ -78,8 +77,8 @@ def main(argv=None) -> int:
             c = dataclasses.replace(cfg, collision_mode=mode)
             sim = Simulator(scenes, c, args.device, controlled=masks)
             policy = builtin_policy(run, args.seed, sim.device) if run in BUILTIN else load_policy(run, sim)
-            torch.manual_seed(args.seed)  # the policy's sampling: every run and mode sees the same draws
-            out = run_rollout(sim, policy, sim.episode_length, episodes_per_world=1)
+            # the same sampling draws for every run and mode
+            out = run_rollout(sim, policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",

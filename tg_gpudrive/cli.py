@@ -371,9 +371,8 @@ def cmd_evaluate(args) -> int:
     policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
               else builtin_policy(args.policy, args.seed, sim.device))
     rounds = -(-args.episodes // worlds)
-    torch.manual_seed(args.seed)  # a trained policy samples from torch's generator: --seed makes a run repeatable
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=True, background=background,
-                      desc="evaluate", episodes_per_world=rounds)
+                      desc="evaluate", episodes_per_world=rounds, seed=args.seed)
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, "scene_files_skipped": skipped,
                 **sim.report(), **_background_report(args, cfg)})

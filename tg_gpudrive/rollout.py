@@ -160,8 +160,9 @@ class EpisodeStats:
         self.alive_steps += alive.sum()
         ended = s.world_ended != 0
         if self.episodes_per_world is not None:
-            ended = ended & (self.world_episodes < self.episodes_per_world)
-            self.world_episodes += s.world_ended != 0
+            counted = ended & (self.world_episodes < self.episodes_per_world)
+            self.world_episodes += ended
+            ended = counted
         rows = ended[:, None] & s.policy_agents
         self.scene_episodes += rows.any(1).sum()
         self._add(rows, s.final_goal, s.final_collided, s.final_offroad, s.final_cost, s.final_min_dist,
@@ -204,12 +205,15 @@ class EpisodeStats:
 
 def run_rollout(sim: Simulator, policy: Policy, steps: int, progress: bool = False,
                 background: Policy | None = None, desc: str = "simulate",
-                episodes_per_world: int | None = None) -> dict:
+                episodes_per_world: int | None = None, seed: int | None = None) -> dict:
     """Reset, run `steps` steps under `policy`, return rates over the finished episodes and speed.
 
     `background`: a driver of the background rows (`make_background_driver`), run after the policy.
     `episodes_per_world`: count each world's first N episodes only (`EpisodeStats`); with `steps` = N
-    episode lengths every world finishes exactly N, so every scene weighs the same."""
+    episode lengths every world finishes exactly N, so every scene weighs the same. `seed` seeds torch's
+    generator first, which trained policies (`policy.load_policy`) sample from: a repeatable evaluation."""
+    if seed is not None:
+        torch.manual_seed(seed)
     sim.reset()
     stats = EpisodeStats(sim, episodes_per_world)
     bar = None

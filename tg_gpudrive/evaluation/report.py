@@ -830,12 +830,13 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     plot_grid(cells, out / "grid.png", scene=grid_scene)
     plot_multipliers(curves, out / "multipliers.png")
     fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
-    if opts.cce_gap:
-        plot_gaps(gaps, out / "cce_gap.png")
-    else:  # not an earlier report's picture beside this one's text
-        (out / "cce_gap.png").unlink(missing_ok=True)
-    if gap_curves:
-        plot_gap_curves(gap_curves, out / "cce_gap_curve.png")
+    # the CCE-gap pictures this pass has, and no earlier report's beside this one's text
+    for name, plot, data in (("cce_gap.png", plot_gaps, gaps if opts.cce_gap else None),
+                             ("cce_gap_curve.png", plot_gap_curves, gap_curves or None)):
+        if data is None:
+            (out / name).unlink(missing_ok=True)
+        else:
+            plot(data, out / name)
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
             "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap,
             "br_seeds": list(opts.br_seeds),

@@ -204,7 +204,8 @@ class FrameRenderer:
         sc, w = self.scene, self.world
         idx = self.model.slot_agent[w]
         keep = idx >= 0
-        if self.fit == "controlled" and (self.controlled & keep).any():
+        only = self.fit == "controlled" and bool((self.controlled & keep).any())  # else the whole scene
+        if only:
             keep &= self.controlled
         idx = idx[keep]
         init = min(self.model.init_step, sc.num_steps - 1)
@@ -212,7 +213,7 @@ class FrameRenderer:
         pts = [sc.log_pos[idx, init:][valid].reshape(-1, 2)]
         pts.append(self.goal[self.controlled & self.slot_valid])
         present = as_numpy(self.sim.present[w]).astype(bool)
-        if self.fit == "controlled" and self.controlled.any():
+        if only:
             present &= self.controlled
         pts.append(as_numpy(self.sim.pos[w])[present])
         pts = np.concatenate([p.astype(np.float64).reshape(-1, 2) for p in pts])
