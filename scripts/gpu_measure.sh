@@ -130,10 +130,11 @@ quality)
   # wall-clock (they share the GPU: a run alone gets more updates in the same time), then
   # held-out rates (procedural seed 90000, never used in training) per collision mode
   cli simulate --scenes procedural:merge --worlds 4 --device cuda --json > /dev/null 2>&1  # compile once
+  # QSET_<name>: whitespace-separated overrides of one variant whose values hold commas (a scene mix)
   for v in ${QUALITY_VARIANTS:-cce: ppo:eta1=0,constraint=false}; do
-    name=${v%%:*}; kv=${v#*:}
+    name=${v%%:*}; kv=${v#*:}; own=QSET_$name
     python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/$name" --set time_limit_s=${QUALITY_SECONDS:-300} \
-      --set checkpoint_every=50 "${SETS[@]}" $(for x in ${kv//,/ }; do echo --set $x; done) > "$RES/$name.log" 2>&1 &
+      --set checkpoint_every=50 "${SETS[@]}" $(for x in ${kv//,/ } ${!own:-}; do echo --set $x; done) > "$RES/$name.log" 2>&1 &
   done
   wait
   summarize
