@@ -85,6 +85,29 @@ def test_shipped_resolves_to_the_packaged_file(tmp_path, monkeypatch):
         checkpoint_path("./shipped", "--checkpoint")
 
 
+def test_earlier_shipped_policy_stays_loadable_by_name():
+    """The policy shipped before the current one stays packaged as "shipped-v1": the current one was
+    fine-tuned from it (its config says so), and runs fine-tuned from "shipped" until 2026-11-25 name it,
+    so a report's CCE-gap over their training starts from the policy they really started from."""
+    v1 = checkpoint_path("shipped-v1", "--checkpoint")
+    assert v1 == ckpt_mod.SHIPPED_EARLIER["shipped-v1"] and v1.is_file()
+    assert v1.read_bytes() != ckpt_mod.SHIPPED_POLICY.read_bytes()
+    current = ckpt_mod.load_checkpoint("shipped", "--checkpoint")
+    assert current["config"]["init_policy"] == "shipped-v1"
+    assert ckpt_mod.load_checkpoint(current["config"]["init_policy"], "--checkpoint")["update"] == 400
+
+
+def test_shipped_policy_drives_held_out_scenes(capsys):
+    """The packaged policy on 32 procedural scenes never trained on (seed 90000), every vehicle, sampled:
+    the issue's bar (goal >= 0.95, collision <= 0.05, off-road <= 0.02; measured 2026-11-25 on 64 scenes:
+    0.976 / 0.008 / 0.001) with room for the smaller sample, and no agent dropped."""
+    assert cli.main(["evaluate", "--checkpoint", "shipped", "--scenes", "procedural:all", "--seed", "90000",
+                     "--num-scenes", "32", "--episodes", "32", "--device", "cpu", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["agent_episodes"] >= 400
+    assert out["goal_rate"] >= 0.93 and out["collision_rate"] <= 0.05 and out["offroad_rate"] <= 0.02, out
+
+
 def test_missing_shipped_policy_names_the_option(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(ckpt_mod, "SHIPPED_POLICY", tmp_path / "nope" / "shipped.pt")
     with pytest.raises(FileNotFoundError, match=r"--policy shipped: the packaged policy .*nope.* is missing"):
