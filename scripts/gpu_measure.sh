@@ -247,7 +247,7 @@ urban)
   # for the shipped policy's time, then held-out rates per collision mode on plain procedural scenes,
   # urban ones (kerb stops apart) and the two real WOMD scenes, beside the shipped policy
   # park_reach 1.5: parked cars as close to the lane centre as in the real scenes (BENCHMARKS.md)
-  MIX=${URBAN_MIX:-"mix:procedural:all=0.5,procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]=0.5"}
+  MIX=${URBAN_MIX:-"mix:procedural:all=0.5,$URB=0.5"}  # half plain, half the urban evaluation spec
   WC="$R"/configs/worldmodel/gpu.yaml
   cli simulate --scenes procedural:merge --worlds 4 --device cuda --json > /dev/null 2>&1  # compile once
   timeout ${URBAN_WM_SECONDS:-200} python3 -m tg_gpudrive.worldmodel.cli --config "$WC" --out "$RES/wm" --json \

@@ -25,6 +25,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_worlds
+from tg_gpudrive.cli import CONTROL_CHOICES
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.policy import load_policy
@@ -53,7 +54,7 @@ def main(argv=None) -> int:
     p.add_argument("--modes", nargs="+", default=["ignore", "stop", "remove"])
     p.add_argument("--device", default="cuda")
     p.add_argument("--out", default=None, help="also append the JSON lines here")
-    p.add_argument("--control", default=None, choices=("vehicles", "nearest_conflict"),
+    p.add_argument("--control", default=None, choices=CONTROL_CHOICES,
                    help="the agents the policies drive (default: each run's own training control; the rest "
                         "replay their logs); vehicles compares runs trained on different controls")
     args = p.parse_args(argv)

@@ -86,14 +86,14 @@ def test_shipped_resolves_to_the_packaged_file(tmp_path, monkeypatch):
 
 
 def test_earlier_shipped_policy_stays_loadable_by_name():
-    """The policy shipped before the current one stays packaged as "shipped-v1": the current one was
+    """The policy shipped before the current one stays packaged as "shipped_v1": the current one was
     fine-tuned from it (its config says so), and runs fine-tuned from "shipped" until 2026-11-25 name it,
     so a report's CCE-gap over their training starts from the policy they really started from."""
-    v1 = checkpoint_path("shipped-v1", "--checkpoint")
-    assert v1 == ckpt_mod.SHIPPED_EARLIER["shipped-v1"] and v1.is_file()
+    v1 = checkpoint_path("shipped_v1", "--checkpoint")
+    assert v1 == ckpt_mod.SHIPPED_EARLIER["shipped_v1"] and v1.is_file()
     assert v1.read_bytes() != ckpt_mod.SHIPPED_POLICY.read_bytes()
     current = ckpt_mod.load_checkpoint("shipped", "--checkpoint")
-    assert current["config"]["init_policy"] == "shipped-v1"
+    assert current["config"]["init_policy"] == "shipped_v1"
     assert ckpt_mod.load_checkpoint(current["config"]["init_policy"], "--checkpoint")["update"] == 400
 
 

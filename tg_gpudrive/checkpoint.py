@@ -3,7 +3,7 @@
 `save_atomic` writes beside the target and renames, so a run killed mid-write
 leaves the previous checkpoint whole; `load_checkpoint` accepts a file, a run
 directory (its checkpoint.pt) or the name "shipped" (the policy packaged at
-tg_gpudrive/policies/shipped.pt; "shipped-v1" the one shipped before it, which runs fine-tuned
+tg_gpudrive/policies/shipped.pt; "shipped_v1" the one shipped before it, which runs fine-tuned
 until 2026-11-25 started from) and names the command-line option in its error.
 `policy_engine_config` gives a policy checkpoint's engine config with slots for
 every agent of the scenes it is evaluated or rendered on.
@@ -31,7 +31,7 @@ SHIPPED = "shipped"  # the name that stands for the packaged policy
 SHIPPED_POLICY = Path(__file__).resolve().parent / "policies" / "shipped.pt"
 # earlier shipped policies by name: a run that fine-tuned from "shipped" before the policy changed names
 # its start this way (its config.json), so a report's CCE-gap over training starts from the right policy
-SHIPPED_EARLIER = {"shipped-v1": SHIPPED_POLICY.with_name("shipped_v1.pt")}
+SHIPPED_EARLIER = {"shipped_v1": SHIPPED_POLICY.with_name("shipped_v1.pt")}  # named as their files, like worldmodel.prior.PACKAGED
 
 
 class CheckpointError(ValueError):
@@ -72,8 +72,8 @@ def checkpoint_path(path: str | Path, option: str = "--resume") -> Path:
     """`path` itself, `path/checkpoint.pt` for a run directory, SHIPPED_POLICY for the name "shipped" or an
     earlier packaged policy for its name in SHIPPED_EARLIER (a local file or directory of such a name:
     ./shipped); FileNotFoundError naming `option`."""
-    if isinstance(path, str) and (path == SHIPPED or path in SHIPPED_EARLIER):
-        packaged = SHIPPED_POLICY if path == SHIPPED else SHIPPED_EARLIER[path]
+    packaged = {SHIPPED: SHIPPED_POLICY, **SHIPPED_EARLIER}.get(path) if isinstance(path, str) else None
+    if packaged is not None:
         if not packaged.is_file():
             raise FileNotFoundError(f"{option} {path}: the packaged policy {packaged} is missing "
                                     "(this install ships none); give a checkpoint file or run directory")

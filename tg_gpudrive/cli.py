@@ -31,7 +31,6 @@ import sys
 import time
 from pathlib import Path
 
-import torch
 import torch.multiprocessing as mp
 
 from tg_gpudrive.benchmark import main as benchmark_main
@@ -169,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
-                                          "(the policy packaged with tg_gpudrive; shipped-v1: the one before it); this or --policy is required")
+                                          "(the policy packaged with tg_gpudrive; shipped_v1: the one before it); this or --policy is required")
     who.add_argument("--policy", choices=["expert", "random", "constant"],
                      help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
@@ -185,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--policy", default="expert",
-                   help="expert | random | constant | shipped (the packaged policy; shipped-v1 the one before) | a training checkpoint "
+                   help="expert | random | constant | shipped (the packaged policy; shipped_v1 the one before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
@@ -428,9 +427,8 @@ def cmd_render(args) -> int:
     policy = (load_policy(checkpoint, sim, args.deterministic) if checkpoint is not None
               else builtin_policy(args.policy, args.seed, sim.device))
     t0 = time.perf_counter()
-    torch.manual_seed(args.seed)
     frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
-                            size=size, center_agent=args.center_agent, view_radius=args.view_radius,
+                            seed=args.seed, size=size, center_agent=args.center_agent, view_radius=args.view_radius,
                             highlight=args.highlight)
     seconds = time.perf_counter() - t0
     scene = sim.model.scenes[args.world]

@@ -204,13 +204,12 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     from tg_gpudrive.render import render_episode
 
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
-    torch.manual_seed(0)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # the view fits the controlled cars' paths: the interaction the knobs change, not the whole map
-    kw = dict(world=0, size=(size, size), legend=False, fit="controlled")
+    # the view fits the controlled cars' paths: the interaction the knobs change, not the whole map; the
+    # same seed makes the GIF the picture's episode
+    kw = dict(world=0, size=(size, size), legend=False, fit="controlled", seed=0)
     render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
-        torch.manual_seed(0)  # the same episode as the picture
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
     return np.asarray(Image.open(path).convert("RGB"))
 
@@ -680,7 +679,7 @@ def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict
              "the agent's frame (hit from behind, ran into a car ahead, crossing / side / head-on); rates per policy "
              "agent-episode (`tg_gpudrive/evaluation/risk.py`).\n\n")
     keys = ["collision_rate", "collision_with_policy_rate", "collision_with_other_rate",
-            *(f"collision_{c.replace(' ', '_')}_rate" for c in rk.CONTACTS)]
+            *rk.CONTACT_KEYS]
     L.append(_table(["policy", "collision rate", "with a policy car", "with a non-policy car",
                      *(f"contact: {c}" for c in rk.CONTACTS)],
                     [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results]))

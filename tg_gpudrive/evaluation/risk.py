@@ -36,6 +36,7 @@ TTC_DISCS = 3
 TTC_CRITICAL = 1.5  # s, "near miss" threshold reported as a rate
 CONTACT_ANGLE = np.pi / 4  # rad: headings closer than this count as "the same way" (collision_partners)
 CONTACTS = ("from behind", "ahead", "crossing")
+CONTACT_KEYS = tuple(f"collision_{c.replace(' ', '_')}_rate" for c in CONTACTS)  # their rates in `summarize`
 
 
 def disc_centres(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -156,7 +157,7 @@ def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
         # with no other agent present)
         "collision_with_policy_rate": float(((r["contact"] >= 0) & r["partner_policy"])[m].mean()),
         "collision_with_other_rate": float(((r["contact"] >= 0) & ~r["partner_policy"])[m].mean()),
-        **{f"collision_{c.replace(' ', '_')}_rate": float((r["contact"] == i)[m].mean()) for i, c in enumerate(CONTACTS)},
+        **{key: float((r["contact"] == i)[m].mean()) for i, key in enumerate(CONTACT_KEYS)},
     }
 
 

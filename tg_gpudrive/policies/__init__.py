@@ -9,5 +9,5 @@ vehicle with a budget of half the logs' CVaR (README, BENCHMARKS.md "The shipped
 every vehicle").
 
 `shipped_v1.pt`: the policy shipped before (400 updates of configs/train/gpu.yaml), loaded by the name
-"shipped-v1" (checkpoint.SHIPPED_EARLIER): the current one and the documented grid started from it.
+"shipped_v1" (checkpoint.SHIPPED_EARLIER): the current one and the documented grid started from it.
 """

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch
 from matplotlib import animation
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -174,7 +175,7 @@ def save_mp4(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> Non
 
 def render_episode(sim, policy: Callable, steps: int | None = None, world: int = 0, out: str | Path | None = None,
                    *, fps: float = 10, reset: bool = True, stop_at_end: bool = True, progress: bool = False,
-                   **kw) -> list[np.ndarray]:
+                   seed: int | None = None, **kw) -> list[np.ndarray]:
     """Reset `sim`, record world `world` under `policy(sim)` for `steps` steps; optionally save to `out`.
 
     Returns the frames, the reset state first. `steps` defaults to one episode.
@@ -183,8 +184,12 @@ def render_episode(sim, policy: Callable, steps: int | None = None, world: int =
     `auto_reset` on, the frame of that step would show the world reset, so it
     is left out; with `auto_reset: false` the final state is the last frame.
     Other keywords go to `EpisodeRecorder` / `render_frame`. For a .png `out`
-    without auto-reset only the last frame is drawn (and returned).
+    without auto-reset only the last frame is drawn (and returned). `seed` seeds torch's generator
+    first, which trained policies sample from (as `run_rollout` and `record_episodes` do): the same
+    seed draws the same episode.
     """
+    if seed is not None:
+        torch.manual_seed(seed)
     if out is not None and Path(out).suffix.lower() == ".mp4":
         check_mp4()  # fail before the episode, not after it
     if steps is None:
