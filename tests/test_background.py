@@ -126,9 +126,9 @@ def test_vector_env_world_model_background_rows_are_masked(worlds):
 def test_vector_env_world_model_background_across_auto_reset():
     scene = crossing_scene(T=20)  # an episode of 9 steps after init_steps=10
     mask = [np.array([True, False, False])]
-    env = TGVectorEnv([scene], config=dict(max_agents=4, road_k=8, partner_k=4), controlled=mask,
+    env = TGVectorEnv([scene], config=dict(max_agents=4, road_k=8, partner_k=4, replay_infeasible=False), controlled=mask,
                       background="world_model", strict=True)
-    log_env = TGVectorEnv([scene], config=dict(max_agents=4, road_k=8, partner_k=4), controlled=mask)
+    log_env = TGVectorEnv([scene], config=dict(max_agents=4, road_k=8, partner_k=4, replay_infeasible=False), controlled=mask)
     first, _ = env.reset()
     first = first.clone()
     log_env.reset()
@@ -204,7 +204,7 @@ def test_episode_ends_when_the_policy_agents_are_done_not_the_background(device)
     valid = np.ones((2, T), bool)
     valid[0, 21:] = False
     scene = make_scene(pos, np.zeros((2, T)), log_vel=vel, log_valid=valid, length=4.0, width=2.0)
-    cfg = EngineConfig(max_agents=4, road_k=8, partner_k=2, init_steps=1, goal_behaviour="remove",
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, road_k=8, partner_k=2, init_steps=1, goal_behaviour="remove",
                        auto_reset=False)
     ends = []
     for background in ([False, True], [False, False]):

@@ -85,7 +85,7 @@ def test_simulator_cuda_fails_before_building(monkeypatch):
 
     monkeypatch.setattr(simulator_mod, "Model", model)
     with pytest.raises(ValueError, match=r"device='cuda': no CUDA device is visible .*use device='cpu' or 'auto'"):
-        Simulator([crossing_scene()], EngineConfig(max_agents=4, road_k=8, partner_k=2), device="cuda")
+        Simulator([crossing_scene()], EngineConfig(replay_infeasible=False, max_agents=4, road_k=8, partner_k=2), device="cuda")
 
 
 @no_gpu_only
@@ -99,7 +99,7 @@ def test_vector_env_cuda_fails_before_loading_scenes(monkeypatch):
 
 
 def test_simulator_and_env_default_to_auto():
-    cfg = EngineConfig(max_agents=4, road_k=8, partner_k=2)
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, road_k=8, partner_k=2)
     assert Simulator([crossing_scene()], cfg).device == resolve_device("auto")
     env = TGSingleAgentEnv([crossing_scene()], config=cfg)
     assert env.device == env.sim.device == resolve_device("auto")

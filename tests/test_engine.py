@@ -43,7 +43,7 @@ def test_expert_tracks_real_womd_logs(womd_scenes, device):
     plain Waymax inverse (no feedback) gives mean 0.33 m, max 2.09 m."""
     errs = []
     for sc in womd_scenes:
-        sim = Simulator([sc], EngineConfig(max_agents=128, action_space="continuous"), device)
+        sim = Simulator([sc], EngineConfig(replay_infeasible=False, max_agents=128, action_space="continuous"), device)
         idx = sim.model.slot_agent[0]
         n = int((idx >= 0).sum())
         track = sim.slot_log("expert_track")[0, :n].cpu().numpy()
@@ -67,7 +67,7 @@ def head_on_scene():
 
 
 def run_modes(mode, device, steps=35):
-    cfg = EngineConfig(max_agents=4, init_steps=0, action_space="continuous", control="all_agents",
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, init_steps=0, action_space="continuous", control="all_agents",
                        collision_mode=mode, road_k=8, partner_k=4)
     sim = Simulator([head_on_scene()], cfg, device)
     sim.reset()
@@ -114,7 +114,7 @@ def test_collision_modes_differ_as_specified(device):
 
 def test_episode_bookkeeping_and_auto_reset(device):
     sc = head_on_scene()
-    cfg = EngineConfig(max_agents=4, init_steps=5, action_space="continuous", control="all_agents",
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, init_steps=5, action_space="continuous", control="all_agents",
                        collision_mode="ignore", road_k=8, partner_k=4)
     sim = Simulator([sc, sc], cfg, device)
     sim.reset()
@@ -141,7 +141,7 @@ def test_same_inputs_same_state_on_cpu():
     scenes = [head_on_scene() for _ in range(3)]
     runs = []
     for _ in range(2):
-        sim = Simulator(scenes, EngineConfig(max_agents=8, control="all_agents", init_steps=2), "cpu")
+        sim = Simulator(scenes, EngineConfig(replay_infeasible=False, max_agents=8, control="all_agents", init_steps=2), "cpu")
         sim.reset()
         g = torch.Generator().manual_seed(7)
         for _ in range(20):
@@ -174,7 +174,7 @@ def test_more_agents_than_slots_is_a_counted_truncation(caplog):
     types = np.array([AgentType.VEHICLE] * 8 + [AgentType.PEDESTRIAN] * 4)
     sc = make_scene(pos, np.zeros((n, T)), agent_type=types, scene_id="crowded")
     with caplog.at_level(logging.WARNING, logger="tg_gpudrive"):
-        sim = Simulator([sc], EngineConfig(max_agents=8, road_k=4, partner_k=4), "cpu")
+        sim = Simulator([sc], EngineConfig(replay_infeasible=False, max_agents=8, road_k=4, partner_k=4), "cpu")
     assert sim.model.report.truncated_agents == [4]
     assert "crowded" in caplog.text and "4 agents beyond max_agents=8" in caplog.text
     # vehicles are kept before pedestrians
@@ -182,13 +182,13 @@ def test_more_agents_than_slots_is_a_counted_truncation(caplog):
 
 
 def test_bad_actions_are_rejected():
-    sim = Simulator([head_on_scene()], EngineConfig(max_agents=4, road_k=4, partner_k=4), "cpu")
+    sim = Simulator([head_on_scene()], EngineConfig(replay_infeasible=False, max_agents=4, road_k=4, partner_k=4), "cpu")
     sim.reset()
     with pytest.raises(ValueError, match="expected integer tensor of shape"):
         sim.step(torch.zeros((1, 4), dtype=torch.float32))
     with pytest.raises(ValueError, match=r"must lie in \[0, 91\)"):
         sim.step(torch.full((1, 4), 91, dtype=torch.int32))
-    simc = Simulator([head_on_scene()], EngineConfig(max_agents=4, action_space="continuous", road_k=4,
+    simc = Simulator([head_on_scene()], EngineConfig(replay_infeasible=False, max_agents=4, action_space="continuous", road_k=4,
                                                      partner_k=4), "cpu")
     with pytest.raises(ValueError, match="NaN"):
         simc.step(torch.full((1, 4, 2), float("nan")))
@@ -202,7 +202,7 @@ def test_cuda_graph_matches_cpu_and_allocates_nothing():
     scene.road_offsets = np.array([0, 10, 20])
     scene.road_type = np.array([RoadType.LANE, RoadType.ROAD_EDGE], np.int8)
     scene.road_id = np.array([0, 1])
-    cfg = EngineConfig(max_agents=4, init_steps=2, control="all_agents", road_k=8, partner_k=4)
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, init_steps=2, control="all_agents", road_k=8, partner_k=4)
     sims = {d: Simulator([scene] * 8, cfg, d) for d in ("cpu", "cuda:0")}
     acts = torch.randint(0, 91, (30, 8, 4), generator=torch.Generator().manual_seed(1), dtype=torch.int32)
     for d, sim in sims.items():
@@ -221,7 +221,7 @@ def test_cuda_graph_matches_cpu_and_allocates_nothing():
 
 def test_without_auto_reset_worlds_wait_frozen_until_reset(device):
     sc = head_on_scene()
-    cfg = EngineConfig(max_agents=4, init_steps=5, action_space="continuous", control="all_agents",
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, init_steps=5, action_space="continuous", control="all_agents",
                        auto_reset=False, road_k=8, partner_k=4)
     sim = Simulator([sc, sc], cfg, device)
     sim.reset()
@@ -249,7 +249,7 @@ def test_without_auto_reset_worlds_wait_frozen_until_reset(device):
 
 def test_background_agents_are_driven_but_not_counted(device):
     sc = head_on_scene()
-    cfg = EngineConfig(max_agents=4, init_steps=0, action_space="continuous", road_k=4, partner_k=4)
+    cfg = EngineConfig(replay_infeasible=False, max_agents=4, init_steps=0, action_space="continuous", road_k=4, partner_k=4)
     sim = Simulator([sc], cfg, device, controlled=[np.array([False, True, False])],
                     background=[np.array([True, False, False])])
     # policy agent first, then the background one, then the replayed one
@@ -268,7 +268,7 @@ def test_background_agents_are_driven_but_not_counted(device):
 def test_unusable_actions_written_in_place_are_counted():
     """NaN written straight into the continuous buffer, or an out-of-range grid index, is counted
     per acting row and step in sim.report() (the kernels would otherwise clamp it silently)."""
-    cont = Simulator([crossing_scene()], EngineConfig(max_agents=4, action_space="continuous"), "cpu")
+    cont = Simulator([crossing_scene()], EngineConfig(replay_infeasible=False, max_agents=4, action_space="continuous"), "cpu")
     cont.reset()
     cont.actions.zero_()
     cont.step()
@@ -277,7 +277,7 @@ def test_unusable_actions_written_in_place_are_counted():
     cont.step()
     cont.step()
     assert cont.report()["bad_actions"] == 2 and cont.report()["agents_dropped"] == 0
-    disc = Simulator([crossing_scene()], EngineConfig(max_agents=4), "cpu")
+    disc = Simulator([crossing_scene()], EngineConfig(replay_infeasible=False, max_agents=4), "cpu")
     disc.reset()
     disc.actions_index.fill_(disc.cfg.noop_index)
     disc.actions_index[0, 1] = 10_000
@@ -288,7 +288,7 @@ def test_unusable_actions_written_in_place_are_counted():
 def test_scenes_without_road_edges_are_warned_and_counted(caplog):
     bare = make_scene(np.zeros((1, 20, 2)), np.zeros((1, 20)), scene_id="bare")  # no roads at all
     with caplog.at_level("WARNING"):
-        sim = Simulator([bare, crossing_scene()], EngineConfig(max_agents=4), "cpu")
+        sim = Simulator([bare, crossing_scene()], EngineConfig(replay_infeasible=False, max_agents=4), "cpu")
     assert sim.report()["worlds_without_road_edges"] == 1 + int(not (crossing_scene().road_type == 3).any())
     assert "no road edges" in caplog.text and "bare" in caplog.text
 
@@ -311,7 +311,7 @@ def test_modes_parse_print_and_round_trip_as_their_yaml_names():
 
 
 def test_simulator_views_are_the_state_fields_declared_once():
-    sim = Simulator([crossing_scene()], EngineConfig(max_agents=4, road_k=8, partner_k=2), "cpu")
+    sim = Simulator([crossing_scene()], EngineConfig(replay_infeasible=False, max_agents=4, road_k=8, partner_k=2), "cpu")
     for f in dataclasses.fields(StepState):
         view = getattr(sim, f.name)
         assert view.data_ptr() == wp.to_torch(getattr(sim.state, f.name)).data_ptr(), f.name

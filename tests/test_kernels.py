@@ -36,7 +36,7 @@ def random_replay_scene(rng, n, spread, seed_id="rand", roads=(), types=None):
 
 
 def cfg(**kw):
-    base = dict(max_agents=32, init_steps=INIT, partner_k=8, road_k=16, road_radius=30.0, partner_radius=30.0)
+    base = dict(replay_infeasible=False, max_agents=32, init_steps=INIT, partner_k=8, road_k=16, road_radius=30.0, partner_radius=30.0)
     base.update(kw)
     return EngineConfig(**base)
 
@@ -123,7 +123,7 @@ def test_inverse_matches_numpy_and_recovers_forward_trajectories(device, rng):
     """Inverse kernel == NumPy inverse on the log; inverse-then-forward reproduces a bicycle-generated
     log to float32 round-off (< 5 mm over 8 s): nothing was clipped, so nothing may drift."""
     scene = forward_generated_scene(rng, 12)
-    sim = Simulator([scene], EngineConfig(max_agents=16, action_space="continuous"), device)
+    sim = Simulator([scene], EngineConfig(replay_infeasible=False, max_agents=16, action_space="continuous"), device)
     exp = sim.slot_log("expert_action")[0, :12].cpu().numpy()
     a, k = ref.bicycle_inverse(scene.log_yaw[:, :-1], scene.log_vel[:, :-1], scene.log_yaw[:, 1:],
                                scene.log_vel[:, 1:], 0.1)

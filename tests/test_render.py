@@ -102,7 +102,7 @@ def test_episode_stops_at_its_end():
     scene = make_scene(pos, np.zeros((1, t)), roads=[(RoadType.ROAD_EDGE, [[-10, -5], [40, -5]]),
                                                     (RoadType.ROAD_EDGE, [[-10, 5], [40, 5]])])
     for auto in (True, False):
-        sim = Simulator([scene], EngineConfig(auto_reset=auto))
+        sim = Simulator([scene], EngineConfig(replay_infeasible=False, auto_reset=auto))
         frames = render_episode(sim, expert_policy, 100, size=(128, 128), legend=False)
         assert len(frames) <= sim.episode_length + 1
         assert int(sim.world_ended[0]) == 1
@@ -118,7 +118,7 @@ def _two_car_sim(overlap: bool):
     roads = [(RoadType.ROAD_EDGE, [[-20, -8], [40, -8]]), (RoadType.ROAD_EDGE, [[-20, 14], [40, 14]]),
              (RoadType.LANE, [[-20, 0], [40, 0]])]
     scene = make_scene(pos, np.zeros((2, t)), roads=roads, agent_type=AgentType.VEHICLE)
-    sim = Simulator([scene], EngineConfig(init_steps=2))
+    sim = Simulator([scene], EngineConfig(replay_infeasible=False, init_steps=2))
     sim.reset()
     expert_policy(sim)
     sim.step()
@@ -171,7 +171,7 @@ def test_fit_controlled_zooms_on_the_controlled_cars():
     near = np.stack([np.linspace(0.0, 20.0, t), np.zeros(t)], -1)
     far = np.stack([np.linspace(300.0, 310.0, t), np.zeros(t)], -1)
     scene = make_scene(np.stack([near, far]), np.zeros((2, t)), agent_type=AgentType.VEHICLE)
-    sim = Simulator([scene], EngineConfig(init_steps=2), "cpu", controlled=[np.array([True, False])])
+    sim = Simulator([scene], EngineConfig(replay_infeasible=False, init_steps=2), "cpu", controlled=[np.array([True, False])])
     sim.reset()
     spans = {}
     for fit in ("scene", "controlled"):

@@ -169,3 +169,93 @@ def test_all_invalid(tmp_path):
 
 def test_not_an_object(tmp_path):
     _expect_error(tmp_path, "[1, 2, 3]", "json", "expected a JSON object")
+
+
+# ---------------------------------------------------------- older revisions
+def _older_revision(raw: dict) -> dict:
+    """`raw` as GPUDrive's and Nocturne's older files have it: no height, no object or road ids, no
+    mark_as_expert, headings in degrees (the sentinel kept as it is)."""
+    for o in raw["objects"]:
+        for key in ("height", "id", "mark_as_expert"):
+            o.pop(key, None)
+        o["heading"] = [h if h == SENTINEL else float(np.degrees(h)) for h in o["heading"]]
+    for r in raw["roads"]:
+        r.pop("id", None)
+    return raw
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_older_revision_loads_as_the_current_one(tmp_path, name):
+    raw = json.loads((DATA / name).read_text())
+    new = load_gpudrive_json(DATA / name)
+    path = tmp_path / name
+    path.write_text(json.dumps(_older_revision(raw)))
+    old = load_gpudrive_json(path)
+    np.testing.assert_allclose(old.log_yaw, new.log_yaw, atol=1e-5)
+    np.testing.assert_array_equal(old.log_pos, new.log_pos)
+    n, r = new.num_agents, new.num_polylines
+    assert old.metadata["defaults"] == {"objects.height": n, "objects.id": n, "roads.id": r, "objects.heading": "degrees"}
+    assert new.metadata["defaults"] == {}
+    assert old.agent_id.tolist() == list(range(n)) and old.road_id.tolist() == list(range(r))
+    vehicles = old.agent_type == AgentType.VEHICLE
+    assert (old.height[vehicles] == 1.6).all()
+
+
+def test_heading_unit_rule():
+    from tg_gpudrive.data.womd.gpudrive_json import heading_unit
+
+    t = np.arange(20)
+    vel = np.zeros((1, 20, 2))
+    vel[..., 0] = 10.0  # driving east: heading 0
+    valid = np.ones((1, 20), bool)
+    assert heading_unit(np.full((1, 20), 0.01), vel, valid) == "radians"
+    assert heading_unit(np.full((1, 20), 7.0), vel, valid) == "degrees"  # beyond 2 pi: certain
+    vel[..., 0], vel[..., 1] = np.cos(np.radians(5.0)) * 10, np.sin(np.radians(5.0)) * 10
+    assert heading_unit(np.full((1, 20), 5.0), vel, valid) == "degrees"  # 5 degrees north of east: motion decides
+    assert heading_unit(np.full((1, 20), np.radians(5.0)), vel, valid) == "radians"
+    assert heading_unit(np.full((1, 20), 5.0), np.zeros((1, 20, 2)), valid) == "radians"  # parked: undecided
+    del t
+
+
+def test_placeholder_road_kinds_are_dropped_and_counted(tmp_path):
+    raw = _raw()
+    raw["roads"][0]["type"] = "unknown"
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(raw))
+    sc = load_gpudrive_json(path)
+    assert sc.num_polylines == len(raw["roads"]) - 1 and sc.metadata["defaults"] == {"roads.type": 1}
+
+
+def test_a_scene_too_short_to_play_is_skipped_and_counted(tmp_path):
+    from tg_gpudrive import cli
+    from tg_gpudrive.data.sources import resolve_scenes, source_report
+
+    raw = _raw()
+    for o in raw["objects"]:
+        for key in ("position", "velocity", "heading", "valid"):
+            o[key] = o[key][:11]
+    (tmp_path / "short.json").write_text(json.dumps(raw))
+    with pytest.raises(ValueError, match="short.json.*too short to play"):
+        resolve_scenes(str(tmp_path / "short.json"))  # alone: an error naming the file
+    (tmp_path / "full.json").write_text((DATA / "womd_1c365f15b70ebdbf.json").read_text())
+    src = resolve_scenes(str(tmp_path))
+    assert len(src) == 1 and source_report(src) == {"scene_files_skipped": 0, "scenes_unplayable": 1}
+    mix = resolve_scenes(f"mix:procedural:all=0.5,{tmp_path}=0.5", n=8)
+    assert source_report(mix)["scenes_unplayable"] == 1
+    assert all(mix.get(i).num_steps == 91 for i in range(len(mix)))  # it never fills a world
+
+
+def test_builtin_and_trained_policies_drop_no_agent_and_write_per_scene_rates(tmp_path, capsys):
+    from tg_gpudrive import cli
+
+    csv_path = tmp_path / "scenes.csv"
+    common = ["--scenes", str(DATA), "--episodes", "2", "--device", "cpu", "--json", "--per-scene", str(csv_path)]
+    for who in (["--policy", "expert", "--set", "max_agents=8"], ["--policy", "constant", "--set", "max_agents=8"],
+                ["--checkpoint", "shipped"]):
+        assert cli.main(["evaluate", *who, *common]) == 0
+        out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert out["agents_dropped"] == 0 and out["max_agents"] >= 81, who
+        assert set(out["ci95"]) == {"goal_rate", "collision_rate", "offroad_rate", "score_rate"}
+        rows = csv_path.read_text().strip().splitlines()
+        assert len(rows) == 3 and rows[0].startswith("collision_mode,scene_id,source,agents,agent_episodes,goal_rate")
+        assert sum(int(r.split(",")[4]) for r in rows[1:]) == out["agent_episodes"]

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from tg_gpudrive.engine.control import control_masks
-from tg_gpudrive.engine.model import agents_needed
+from tg_gpudrive.engine.model import agents_needed, sized_for
 
 if TYPE_CHECKING:
     from tg_gpudrive.config import EngineConfig, TrainConfig
@@ -135,14 +135,13 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
     agent (heads = 1, the slot index unused) and works at any slot count. A checkpoint with per-slot
     heads (heads > 1) keeps its max_agents, with a warning that agents beyond it are dropped."""
     env = cfg.env
-    need = max((agents_needed(s) for s in scenes), default=0)
-    if need <= env.max_agents:
-        return env
     if cfg.heads > 1:
-        log.warning("the policy has per-slot heads (heads=%d): keeping its max_agents=%d; agents beyond it "
-                    "are dropped (scenes need up to %d slots)", cfg.heads, env.max_agents, need)
+        need = max((agents_needed(s) for s in scenes), default=0)
+        if need > env.max_agents:
+            log.warning("the policy has per-slot heads (heads=%d): keeping its max_agents=%d; agents beyond it "
+                        "are dropped (scenes need up to %d slots)", cfg.heads, env.max_agents, need)
         return env
-    return dataclasses.replace(env, max_agents=need)
+    return sized_for(env, scenes)
 
 
 def policy_worlds(cfg: TrainConfig, scenes) -> tuple[EngineConfig, list]:

@@ -78,6 +78,7 @@ class EngineConfig:
     collision_mode: CollisionMode = CollisionMode.IGNORE  # ignore | stop | remove
     goal_behaviour: GoalBehaviour = GoalBehaviour.REMOVE  # continue | stop | remove
     control: ControlMode = ControlMode.VEHICLES  # vehicles | all_agents | none: whom the policy drives by default
+    replay_infeasible: bool = True  # marked and log-infeasible agents replay their logs, counted apart
     beta: float = 4.0  # m, distance under which the cost is 1
     partner_k: int = 16
     partner_radius: float = 50.0

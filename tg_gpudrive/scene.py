@@ -219,6 +219,16 @@ class Scene:
         return self
 
 
+def scene_defaults(scenes: Sequence[Scene]) -> dict[str, int]:
+    """How often the loaders of `scenes` filled in a field an older format revision lacks (each scene's
+    metadata["defaults"]: objects, roads or, for a unit such as degree headings, files), summed."""
+    out: dict[str, int] = {}
+    for sc in {id(s): s for s in scenes}.values():
+        for key, v in (sc.metadata.get("defaults") or {}).items():
+            out[key] = out.get(key, 0) + (v if isinstance(v, int) else 1)
+    return dict(sorted(out.items()))
+
+
 def make_scene(
     log_pos: np.ndarray,
     log_yaw: np.ndarray,

@@ -14,11 +14,14 @@ specs (`SPEC_FORMS`):
     <dir with manifest>    a packed store (`store.open_store`)
     <file>.json            one GPUDrive processed WOMD JSON
     <file> *tfrecord*      one raw WOMD TFRecord (all its scenes, read at resolve time)
-    <dir>                  every *.json / *tfrecord* file under it, recursively
+    <file>.pkl             one ScenarioNet / MetaDrive scenario pickle (sd_*.pkl; read without
+                           running pickled code, `womd.scenarionet`)
+    <dir>                  every *.json / *tfrecord* / sd_*.pkl file under it, recursively (a
+                           ScenarioNet directory's dataset_summary.pkl / dataset_mapping.pkl are skipped)
     mix:<spec>=<w>,...     worlds filled from several of the above in proportion to the
                            weights (`MixedSource`), e.g. "mix:procedural:all=0.7,tests/data=0.3"
 
-File sources are for quick looks: each JSON is parsed on first use (a small LRU
+File sources are for quick looks: each JSON or pickle is parsed on first use (a small LRU
 cache keeps recent ones); pack large sets with `store.convert` for training.
 Opening a source validates what it can cheaply (a directory's scenes are checked when it opens).
 """
@@ -39,10 +42,12 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from tg_gpudrive.config import ConfigError, coerce_field
+from tg_gpudrive.config import ConfigError, EngineConfig, coerce_field
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene
+from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, unplayable
 from tg_gpudrive.data.procedural.dense import dense_scene
-from tg_gpudrive.data.store import _is_json, _is_tfrecord, expand_inputs, is_store, load_file, open_store
+from tg_gpudrive.data.store import (_is_json, _is_scenarionet, _is_tfrecord, expand_inputs, is_store, load_file,
+                                    open_store)
 from tg_gpudrive.scene import Scene
 
 log = logging.getLogger(__name__)
@@ -56,6 +61,7 @@ SPEC_FORMS = (
     "a packed store directory (holding manifest.json)",
     "a GPUDrive .json file",
     "a WOMD .tfrecord file (or a name containing 'tfrecord')",
+    "a ScenarioNet / MetaDrive scenario pickle (sd_*.pkl)",
     "a directory of such files",
     "mix:<spec>=<weight>,<spec>=<weight>,... (any of the above; a weight may be omitted for 1)",
 )
@@ -176,23 +182,35 @@ class StoreSource(SceneSource):
 
     def __init__(self, path: str | Path, n: int | None = None):
         self.store = open_store(path)
-        self.n = len(self.store) if n is None else min(int(n), len(self.store))
         self.name = f"store:{Path(path)}"
+        # `convert` keeps unplayable scenes out; a store written otherwise may still hold short ones
+        steps = self.store.num_steps
+        short = steps < EngineConfig().init_steps + 1 + MIN_PLAY_STEPS
+        self._index = np.nonzero(~short)[0]
+        self.unplayable = [(self.name, self.store.scene_ids[int(i)], f"too short to play: {int(steps[i])} logged steps")
+                           for i in np.nonzero(short)[0]]
+        if self.unplayable:
+            log.warning("%s: %d scene(s) too short to play are skipped", self.name, len(self.unplayable))
+        if short.all() and len(short):
+            raise ValueError(f"scene spec {str(path)!r}: no scene of the store can be played")
+        self.n = len(self._index) if n is None else min(int(n), len(self._index))
 
     def __len__(self) -> int:
         return self.n
 
     def get(self, i: int) -> Scene:
-        return self._cached(self._check(i), self.store.get)
+        return self._cached(self._check(i), lambda j: self.store.get(int(self._index[j])))
 
 
 class FileSource(SceneSource):
-    """GPUDrive JSON files plus TFRecord scenes, every file checked when the source opens.
+    """One-scene files (GPUDrive JSON, ScenarioNet pickles) plus TFRecord scenes, every file checked
+    when the source opens.
 
-    A file that does not load (bad JSON, a bad field, a truncated or CRC-broken TFRecord) is
-    skipped with a warning and listed in `skipped` ((path, reason) pairs), so a training run that
-    resamples never meets it mid-way; opening fails only when no scene is left. JSON scenes are
-    parsed again on demand (LRU-cached) rather than all held in memory; TFRecord scenes are kept.
+    A file that does not load (bad JSON, a bad field, a refused or truncated pickle, a truncated or
+    CRC-broken TFRecord) is skipped with a warning and listed in `skipped` ((path, reason) pairs), so
+    a training run that resamples never meets it mid-way; opening fails only when no scene is left.
+    One-scene files (`json_files`: *.json and *.pkl) are parsed again on demand (LRU-cached) rather
+    than all held in memory; TFRecord scenes are kept.
     For thousands of files, pack them into a store once (`tg-gpudrive convert`)."""
 
     def __init__(self, json_files: Sequence[Path], tfrecord_files: Sequence[Path], name: str,
@@ -202,11 +220,12 @@ class FileSource(SceneSource):
         self._load: Callable[[Path], list[Scene]] = load_file
         self._items: list[Path | Scene] = []
         self.skipped: list[tuple[str, str]] = []
+        self.unplayable: list[tuple[str, str, str]] = []  # (file, scene id, reason) of the scenes left out
         files = [(f, True) for f in json_files] + [(f, False) for f in tfrecord_files]
         bar = None
         if len(files) > 64:
             bar = tqdm(total=len(files), desc=f"checking {name}", unit="file", leave=False)
-        for f, is_json in files:
+        for f, one_scene in files:
             if n is not None and len(self._items) >= n:
                 break
             try:
@@ -216,7 +235,8 @@ class FileSource(SceneSource):
                 self.skipped.append((str(f), f"{type(e).__name__}: {reason}"))
                 log.warning("%s: skipped, it does not load (%s: %s)", f, type(e).__name__, reason)
                 scenes = []
-            if is_json and scenes:
+            scenes = self._playable(f, scenes)
+            if one_scene and scenes:
                 self._items.append(f)
                 if len(self._cache) < self.cache_size:
                     self._cache[len(self._items) - 1] = scenes[0]
@@ -229,10 +249,26 @@ class FileSource(SceneSource):
         if n is not None:
             self._items = self._items[: int(n)]
         if not self._items:
-            first = f"; first: {self.skipped[0][0]}: {self.skipped[0][1]}" if self.skipped else ""
-            raise ValueError(f"scene spec {name!r}: no scene loads ({len(self.skipped)} file(s) skipped{first})")
+            first = (f"; first: {self.skipped[0][0]}: {self.skipped[0][1]}" if self.skipped else
+                     f"; first: {self.unplayable[0][0]} (scene {self.unplayable[0][1]}): {self.unplayable[0][2]}"
+                     if self.unplayable else "")
+            raise ValueError(f"scene spec {name!r}: no scene loads ({len(self.skipped)} file(s) skipped, "
+                             f"{len(self.unplayable)} scene(s) unplayable{first})")
         if self.skipped:
             log.warning("%s: %d of %d file(s) skipped because they do not load", name, len(self.skipped), len(files))
+        if self.unplayable:
+            log.warning("%s: %d scene(s) skipped because they cannot be played (first: %s, scene %s: %s)", name,
+                        len(self.unplayable), *self.unplayable[0])
+
+    def _playable(self, path: Path, scenes: list[Scene]) -> list[Scene]:
+        keep = []
+        for sc in scenes:
+            why = unplayable(sc)
+            if why is None:
+                keep.append(sc)
+            else:
+                self.unplayable.append((str(path), sc.scene_id, why))
+        return keep
 
     def __len__(self) -> int:
         return len(self._items)
@@ -243,6 +279,17 @@ class FileSource(SceneSource):
         if isinstance(item, Scene):
             return item
         return self._cached(i, lambda j: self._load(self._items[j])[0])
+
+
+def source_report(src: SceneSource) -> dict:
+    """What opening `src` (and the parts of a mix) left out: files that do not load and scenes that
+    cannot be played (`data.log_audit.unplayable`), as counts for the commands' JSON reports."""
+    while hasattr(src, "source"):  # a wrapper such as a rank's shard
+        src = src.source
+    parts = getattr(src, "parts", [src])
+    return {"scene_files_skipped": sum(len(getattr(p, "skipped", ())) for p in parts),
+            "scenes_unplayable": sum(len(getattr(p, "unplayable", ())) for p in parts)}
+
 
 
 class MixedSource(SceneSource):
@@ -551,14 +598,15 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
     if is_store(path):
         return StoreSource(path, n)
     if path.is_file():
-        if not (_is_json(path) or _is_tfrecord(path)):
-            raise _spec_error(spec, "file is neither *.json nor a *tfrecord* file")
+        if not (_is_json(path) or _is_tfrecord(path) or _is_scenarionet(path)):
+            raise _spec_error(spec, "file is neither *.json, a *tfrecord* file nor a ScenarioNet *.pkl")
         files = [path.resolve()]
     elif path.is_dir():
         files = expand_inputs([path])
         if not files:
-            raise _spec_error(spec, "directory holds no *.json or *tfrecord* files and no store manifest")
+            raise _spec_error(spec, "directory holds no *.json, *tfrecord* or sd_*.pkl files and no store "
+                                    "manifest")
     else:
         raise _spec_error(spec, "not a procedural spec and no such file or directory")
-    return FileSource([f for f in files if _is_json(f)], [f for f in files if _is_tfrecord(f)],
+    return FileSource([f for f in files if _is_json(f) or _is_scenarionet(f)], [f for f in files if _is_tfrecord(f)],
                       name=str(path), n=n)

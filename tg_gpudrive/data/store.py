@@ -46,8 +46,11 @@ manifest is the commit point. Shards or temp dirs it does not list are ignored
 by `open_store` and removed by the next `convert`; the inputs they held are
 not marked done and are converted again. One writer per store at a time.
 
-This module must not parse source formats itself: it calls the loaders in
-`data/womd` (imported lazily) and only packs `Scene`s.
+Source formats: GPUDrive processed JSON (one scene per file), WOMD TFRecord
+shards (many per file) and ScenarioNet / MetaDrive scenario pickles (`sd_*.pkl`,
+one per file, read without running pickled code). This module must not parse
+source formats itself: it calls the loaders in `data/womd` and only packs
+`Scene`s.
 """
 
 from __future__ import annotations
@@ -65,10 +68,12 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 from tqdm import tqdm
 
+from tg_gpudrive.data.log_audit import unplayable
 from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes
-from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.data.womd.scenarionet import load_scenarionet
+from tg_gpudrive.scene import Scene, SceneError, scene_defaults
 
 FORMAT = "tg_gpudrive.scene_store"
 VERSION = 1
@@ -128,6 +133,10 @@ class ConvertReport:
     converted_files   input files converted by this run
     skipped_existing  input files skipped because the manifest lists them as done
     failed            (path, reason) of every input that could not be converted
+    unplayable        (path, scene id, reason) of every scene left out because it cannot be played
+                      (`log_audit.unplayable`: too short, or no vehicle the control rule would drive)
+    defaults          fields an older format revision lacked, filled in by the loaders: how many
+                      objects, roads or files each default was used for (`sources.scene_defaults`)
     seconds           wall time of the run
     scenes_per_s      converted / seconds
     num_scenes        scenes in the store after the run
@@ -138,6 +147,8 @@ class ConvertReport:
     converted_files: int = 0
     skipped_existing: int = 0
     failed: list[tuple[str, str]] = dataclasses.field(default_factory=list)
+    unplayable: list[tuple[str, str, str]] = dataclasses.field(default_factory=list)
+    defaults: dict[str, int] = dataclasses.field(default_factory=dict)
     seconds: float = 0.0
     scenes_per_s: float = 0.0
     num_scenes: int = 0
@@ -313,13 +324,24 @@ def _is_json(p: Path) -> bool:
     return p.suffix.lower() == ".json"
 
 
+def _is_scenarionet(p: Path) -> bool:
+    return p.suffix.lower() == ".pkl"
+
+
 def _is_tfrecord(p: Path) -> bool:
-    # GPUDrive JSONs are named "tfrecord-...json": the .json suffix wins
-    return not _is_json(p) and "tfrecord" in p.name.lower()
+    # GPUDrive JSONs ("tfrecord-...json") and ScenarioNet pickles ("sd_training.tfrecord-...pkl")
+    # carry the shard name too: the suffix wins
+    return not _is_json(p) and not _is_scenarionet(p) and "tfrecord" in p.name.lower()
+
+
+def _is_scenarionet_scene(p: Path) -> bool:
+    # ScenarioNet names every scenario sd_*.pkl; a directory's other pickles (dataset_summary.pkl,
+    # dataset_mapping.pkl) index them and are not scenes
+    return _is_scenarionet(p) and p.name.lower().startswith("sd_")
 
 
 def expand_inputs(inputs: Iterable[str | Path], exclude: Path | None = None) -> list[Path]:
-    """Files named by `inputs`, directories expanded recursively to *.json and *tfrecord* files.
+    """Files named by `inputs`, directories expanded recursively to *.json, *tfrecord* and sd_*.pkl files.
 
     Paths are resolved and de-duplicated, directory contents sorted; stores
     (and `exclude`, the store being written) and hidden files are left out. Paths
@@ -340,7 +362,8 @@ def expand_inputs(inputs: Iterable[str | Path], exclude: Path | None = None) -> 
                 continue
             dirs[:] = [d for d in dirs if not d.startswith(".")]
             found.extend(r / f for f in names
-                         if not f.startswith(".") and (_is_json(Path(f)) or _is_tfrecord(Path(f))))
+                         if not f.startswith(".") and (_is_json(Path(f)) or _is_tfrecord(Path(f))
+                                                       or _is_scenarionet_scene(Path(f))))
         for q in sorted(found):
             seen.setdefault(q, None)
     return list(seen)
@@ -354,11 +377,13 @@ def _looks_like_store(d: Path) -> bool:
         return False
 
 
-_UNKNOWN_TYPE = "{}: unknown scene file type (expected *.json or a name containing 'tfrecord')"
+_UNKNOWN_TYPE = ("{}: unknown scene file type (expected *.json, a name containing 'tfrecord', or a ScenarioNet "
+                 "sd_*.pkl)")
 
 
 def load_file(path: str | Path) -> list[Scene]:
-    """All scenes of one source file: a GPUDrive JSON (one scene) or a WOMD TFRecord (many).
+    """All scenes of one source file: a GPUDrive JSON or a ScenarioNet pickle (one scene each) or a
+    WOMD TFRecord (many).
 
     Raises SceneError / OSError / ValueError on a bad file, ValueError for an
     unknown file type.
@@ -366,6 +391,8 @@ def load_file(path: str | Path) -> list[Scene]:
     p = Path(path)
     if _is_json(p):
         return [load_gpudrive_json(p)]
+    if _is_scenarionet(p):
+        return [load_scenarionet(p)]
     if _is_tfrecord(p):
         return list(read_tfrecord_scenes(p))
     raise ValueError(_UNKNOWN_TYPE.format(p))
@@ -375,22 +402,27 @@ def load_file(path: str | Path) -> list[Scene]:
 _FILE_ERRORS = (SceneError, OSError, ValueError, KeyError, TypeError, IndexError, EOFError)
 
 
-def _load_prepared(path: Path, simplify_tolerance: float | None) -> tuple[list[Scene] | None, str]:
-    """(scenes, "") of one input file ready to pack, or (None, reason); runs in worker processes."""
+def _load_prepared(path: Path, simplify_tolerance: float | None) -> tuple[list[Scene] | None, Any]:
+    """(playable scenes, [(scene id, why unplayable)]) of one input file ready to pack, or (None, reason
+    it does not load); runs in worker processes."""
     try:
         if not path.is_file():
             raise FileNotFoundError(f"no such file: {path}")
-        if not (_is_json(path) or _is_tfrecord(path)):
+        if not (_is_json(path) or _is_tfrecord(path) or _is_scenarionet(path)):
             raise ValueError(_UNKNOWN_TYPE.format(path))
-        return _prepared(load_file(path), simplify_tolerance), ""
+        scenes = _prepared(load_file(path), simplify_tolerance)
     except _FILE_ERRORS as e:
         return None, f"{type(e).__name__}: {e}"
+    # the audit of the control rule runs here once and travels with the scenes (metadata["log_audit"])
+    why = [(sc, unplayable(sc)) for sc in scenes]
+    return [sc for sc, w in why if w is None], [(sc.scene_id, w) for sc, w in why if w is not None]
 
 
 def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, progress: bool = True,
             simplify_tolerance: float | None = None, shard_size: int = DEFAULT_SHARD_SIZE,
             workers: int = 1) -> ConvertReport:
-    """Convert source files (GPUDrive JSON, WOMD TFRecord, or directories of them) into a store.
+    """Convert source files (GPUDrive JSON, WOMD TFRecord, ScenarioNet sd_*.pkl, or directories of
+    them) into a store.
 
     Per-file errors are caught and reported (also in ``<out>/failed.txt``) and
     the conversion goes on; a file is all-or-nothing. With `resume`, inputs the
@@ -424,6 +456,9 @@ def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, p
                 if scenes is None:
                     report.failed.append((str(f), reason))
                 else:
+                    report.unplayable.extend((str(f), sid, why) for sid, why in reason)
+                    for key, v in scene_defaults(scenes).items():
+                        report.defaults[key] = report.defaults.get(key, 0) + v
                     w.add(scenes, str(f), input_key=str(f))
                     report.converted += len(scenes)
                     report.converted_files += 1

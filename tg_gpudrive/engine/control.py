@@ -6,13 +6,20 @@
     integrated   policy | background: the agents the engine moves from the action buffers
     the rest     replay their logs
 
-An agent is *eligible* when it is a vehicle present at init_step and not already within
-`goal_radius` of its goal. The modes (tg_gpudrive.types.ControlMode):
+Which agents count (the rule of GPUDrive and PufferDrive, applied identically to every policy, the
+expert replay included): an agent is *eligible* when it is a vehicle present at init_step, at
+least `goal_radius` from its goal there, not marked `mark_as_expert` by its source file, and its
+log is feasible (`data.log_audit`: the logged box neither overlaps another agent's, nor crosses a
+road edge, nor jumps, over its scoring window). With `replay_infeasible` (the default) marked and
+log-infeasible agents replay their logs and are counted apart (`exclusions`), never in a policy's
+rates; rates count each agent's first episode only (the rollouts' `episodes_per_world`).
+The modes (tg_gpudrive.types.ControlMode):
 
     engine default (EngineConfig.control), over the agents that get slots:
         none              nobody
         vehicles          the eligible vehicles
-        all_agents        every agent present at init_step and away from its goal
+        all_agents        every agent present at init_step and away from its goal (marked and
+                          log-infeasible agents still excluded)
     selection for a run (TrainConfig.control, --control), over the scene's agents:
         vehicles          the eligible vehicles (the engine default)
         nearest_conflict  the k eligible vehicles nearest the scene's conflict point
@@ -32,6 +39,7 @@ from typing import Sequence
 import numpy as np
 
 from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.data.log_audit import infeasible_mask
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import ENGINE_CONTROL, SELECT_CONTROL, AgentType, ControlMode
 
@@ -58,10 +66,29 @@ def _present_and_at_goal(scene: Scene, cfg: EngineConfig, idx) -> tuple[np.ndarr
     return present, at_goal
 
 
+def exclusions(scene: Scene, cfg: EngineConfig) -> dict[str, np.ndarray]:
+    """(N,) bool masks of the agents the rule keeps from the policy although present and away from
+    their goal: "mark_as_expert" (marked by the source file) and "log_infeasible" (`data.log_audit`,
+    not marked). Both empty without `cfg.replay_infeasible`."""
+    n = scene.num_agents
+    marked = np.zeros(n, bool)
+    if not cfg.replay_infeasible:
+        return {"mark_as_expert": marked, "log_infeasible": np.zeros(n, bool)}
+    marked[[int(i) for i in scene.metadata.get("mark_as_expert") or [] if 0 <= int(i) < n]] = True
+    infeasible = infeasible_mask(scene, init_index(scene, cfg), cfg.goal_radius) & ~marked
+    return {"mark_as_expert": marked, "log_infeasible": infeasible}
+
+
+def excluded(scene: Scene, cfg: EngineConfig) -> np.ndarray:
+    """(N,) bool: marked or log-infeasible (`exclusions`)."""
+    ex = exclusions(scene, cfg)
+    return ex["mark_as_expert"] | ex["log_infeasible"]
+
+
 def eligible(scene: Scene, cfg: EngineConfig) -> np.ndarray:
-    """(N,) bool: the vehicles present at init_step and away from their goal."""
+    """(N,) bool: the vehicles present at init_step, away from their goal and not excluded by the rule."""
     present, at_goal = _present_and_at_goal(scene, cfg, slice(None))
-    return present & (scene.agent_type == AgentType.VEHICLE) & ~at_goal
+    return present & (scene.agent_type == AgentType.VEHICLE) & ~at_goal & ~excluded(scene, cfg)
 
 
 def default_controlled(scene: Scene, idx: np.ndarray, cfg: EngineConfig,
@@ -75,7 +102,7 @@ def default_controlled(scene: Scene, idx: np.ndarray, cfg: EngineConfig,
     ok, at_goal = _present_and_at_goal(scene, cfg, idx)
     if mode == ControlMode.VEHICLES:
         ok &= scene.agent_type[idx] == AgentType.VEHICLE
-    return ok & ~at_goal, int((ok & at_goal).sum())
+    return ok & ~at_goal & ~excluded(scene, cfg)[idx], int((ok & at_goal).sum())
 
 
 def default_mask(scene: Scene, cfg: EngineConfig, mode: ControlMode | str | None = None) -> np.ndarray:
@@ -140,11 +167,9 @@ def slot_masks(scene: Scene, idx: np.ndarray, cfg: EngineConfig, controlled: np.
     return policy, bg, skipped
 
 
-def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
-    """Indices of the agents that get one of the `max_agents` slots (sorted), the most relevant kept.
-
-    Order: the SDC, objects of interest, agents valid at `init_step`,
-    vehicles, then nearest to the SDC (or the scene centre)."""
+def relevance_order(scene: Scene, init_step: int) -> np.ndarray:
+    """The scene's agents valid at some step, most relevant first: the SDC, objects of interest, agents
+    valid at `init_step`, vehicles, then nearest to the SDC (or the scene centre)."""
     init = min(init_step, scene.num_steps - 1)
     valid_any = scene.log_valid.any(axis=1)
     centre = scene.log_pos[scene.is_sdc, init].mean(0) if scene.is_sdc.any() else np.zeros(2, np.float32)
@@ -153,5 +178,22 @@ def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
     keys = (dist, ~(scene.agent_type == AgentType.VEHICLE), ~scene.log_valid[:, init], ~scene.is_interest,
             ~scene.is_sdc)
     order = np.lexsort(keys)
-    order = order[valid_any[order]]
-    return np.sort(order[:max_agents])
+    return order[valid_any[order]]
+
+
+def select_slots(scene: Scene, max_agents: int, init_step: int) -> np.ndarray:
+    """Indices of the agents that get one of the `max_agents` slots (sorted), the most relevant kept
+    (`relevance_order`). Commands size max_agents to hold every agent (`engine.model.sized_for`)."""
+    return np.sort(relevance_order(scene, init_step)[:max_agents])
+
+
+def cap_controlled(scene: Scene, mask: np.ndarray, cap: int, init_step: int) -> tuple[np.ndarray, int]:
+    """(N,) `mask` keeping at most `cap` of its agents, the most relevant (`relevance_order`), and how many
+    it left to replay their logs: how training bounds the policy's agents per world without dropping any."""
+    mask = np.asarray(mask, bool)
+    if mask.sum() <= cap:
+        return mask, 0
+    order = relevance_order(scene, init_step)
+    keep = np.zeros_like(mask)
+    keep[order[mask[order]][:cap]] = True
+    return keep, int(mask.sum()) - cap

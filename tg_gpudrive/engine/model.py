@@ -73,7 +73,8 @@ import numpy as np
 import warp as wp
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.engine.control import select_slots, slot_masks
+from tg_gpudrive.data.log_audit import candidates
+from tg_gpudrive.engine.control import exclusions, init_index, select_slots, slot_masks
 from tg_gpudrive.engine.roads import build_road_tables
 from tg_gpudrive.kernels.dynamics import launch_expert_actions
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
@@ -96,6 +97,8 @@ class BuildReport:
     controlled: list[int]  # the policy's agents per world (background-driven ones not counted)
     skipped_at_goal: list[int]  # vehicles not controlled because they start within goal_radius
     segments: list[int]  # road segments per world after splitting
+    marked_expert: list[int] = dataclasses.field(default_factory=list)  # candidates replayed: mark_as_expert
+    log_infeasible: list[int] = dataclasses.field(default_factory=list)  # candidates replayed: infeasible log
 
     @property
     def total_truncated(self) -> int:
@@ -105,6 +108,13 @@ class BuildReport:
 def agents_needed(scene: Scene) -> int:
     """Slots `scene` needs to keep every agent: those valid at some step (the ones `select_slots` keeps)."""
     return int(scene.log_valid.any(axis=1).sum())
+
+
+def sized_for(cfg: EngineConfig, scenes) -> EngineConfig:
+    """`cfg` with max_agents raised to the most agents any of `scenes` needs (`agents_needed`), so a
+    batch of them drops no agent; unchanged when it already holds them all."""
+    need = max((agents_needed(s) for s in scenes), default=0)
+    return cfg if need <= cfg.max_agents else dataclasses.replace(cfg, max_agents=need)
 
 
 # --------------------------------------------------------------------- slots
@@ -120,6 +130,8 @@ class SlotPlan:
     skipped_at_goal: int
     dropped: int  # agents beyond max_agents
     cell: float  # m, collision broad-phase cell
+    marked: int = 0  # vehicles the control rule would drive but the source marks mark_as_expert: replayed
+    infeasible: int = 0  # the same for log-infeasible agents (data.log_audit): replayed
 
     @classmethod
     def build(cls, scene: Scene, cfg: EngineConfig, controlled: np.ndarray | None,
@@ -137,7 +149,10 @@ class SlotPlan:
         # within one cell size and reports `nearest` capped there (nearest_cap); the cost
         # (nearest < beta) is exact only while no partner within beta can be missed
         assert cell >= cfg.beta, "broad-phase cell smaller than beta: the distance cost would miss partners"
-        return cls(scene, idx, policy, bg, skipped, dropped, cell)
+        ex = exclusions(scene, cfg)
+        cand = candidates(scene, init_index(scene, cfg), cfg.goal_radius)[idx]
+        return cls(scene, idx, policy, bg, skipped, dropped, cell, int((ex["mark_as_expert"][idx] & cand).sum()),
+                   int((ex["log_infeasible"][idx] & cand).sum()))
 
 
 # --------------------------------------------------------------------- model
@@ -195,6 +210,8 @@ class Model:
             report.truncated_agents.append(max(plan.dropped, 0))
             report.controlled.append(int(plan.policy.sum()))
             report.skipped_at_goal.append(plan.skipped_at_goal)
+            report.marked_expert.append(plan.marked)
+            report.log_infeasible.append(plan.infeasible)
             if id(sc) not in roads:
                 roads[id(sc)] = len(road_scenes)
                 road_scenes.append(sc)

@@ -177,8 +177,11 @@ class Simulator(StepState[torch.Tensor]):
             self._ev_out = wp.Event(self.device)
 
     def set_scenes(self, scenes: Sequence[Scene], controlled: Sequence[np.ndarray] | None = None,
-                   background: Sequence[np.ndarray] | None = None) -> None:
-        """Load a new batch of scenes (resampling); the step graph is captured again."""
+                   background: Sequence[np.ndarray] | None = None, config: EngineConfig | None = None) -> None:
+        """Load a new batch of scenes (resampling); the step graph is captured again. `config` replaces
+        the engine config (e.g. more slots for denser scenes, `engine.model.sized_for`)."""
+        if config is not None:
+            self.cfg = config
         self._build(list(scenes), controlled, background)
         self.reset()
 
@@ -270,11 +273,15 @@ class Simulator(StepState[torch.Tensor]):
 
     def report(self) -> dict:
         """What the engine dropped, truncated or could not use: agents beyond max_agents (from the
-        build), worlds whose scene has no road edge (off-road never fires there) and unusable actions
-        written into the buffers (summed over the steps so far)."""
+        build), worlds whose scene has no road edge (off-road never fires there), unusable actions
+        written into the buffers (summed over the steps so far), and the vehicles the control rule
+        replays instead of giving them to the policy (marked by their file, or log-infeasible)."""
         rep = self.model.report
         return {"agents_dropped": int(rep.total_truncated), "bad_actions": int(self.bad_actions),
-                "worlds_without_road_edges": self.worlds_without_road_edges}
+                "worlds_without_road_edges": self.worlds_without_road_edges,
+                # vehicles the control rule keeps from the policy: they replay their logs, out of the rates
+                "agents_marked_expert": int(sum(rep.marked_expert)),
+                "agents_log_infeasible": int(sum(rep.log_infeasible))}
 
     def use_expert_actions(self) -> None:
         """Fill the action buffers with the logged (inverse-dynamics) expert actions of the current step."""

@@ -43,8 +43,9 @@ from tqdm import tqdm
 from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
-from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.data.sources import resolve_scenes, source_report
+from tg_gpudrive.engine.control import cap_controlled, control_masks
+from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
@@ -152,7 +153,8 @@ class Trainer:
             scenes = [self.source.get(int(i)) for i in self.sampler.last_indices]
         else:
             scenes = self.sampler.sample()
-        self.sim = Simulator(scenes, cfg.env, self.device, controlled=self._control(scenes))
+        self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_control`)
+        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=self._control(scenes))
         self.actor, self.critic = build_models(cfg, self.sim, self.device)
         if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
             self.actor.load_state_dict(ck["actor"])
@@ -222,12 +224,23 @@ class Trainer:
         torch.manual_seed(seed)
 
     def _control(self, scenes):
+        """The run's control masks, at most env.max_agents policy agents per world (the rest replay their
+        logs, counted in `left_to_replay`); the engine itself gives every agent a slot (`sized_for`)."""
         c = self.cfg
-        return control_masks(scenes, c.env, c.control, c.control_k, c.control_ids)
+        masks, left = [], 0
+        for scene, m in zip(scenes, control_masks(scenes, c.env, c.control, c.control_k, c.control_ids)):
+            m, n = cap_controlled(scene, m, c.env.max_agents, c.env.init_steps)
+            masks.append(m)
+            left += n
+        if left:
+            log.warning("%d policy agents beyond env.max_agents=%d per world replay their logs in this batch",
+                        left, c.env.max_agents)
+        self.left_to_replay += left
+        return masks
 
     def _resample(self) -> None:
         scenes = self.sampler.sample()
-        self.sim.set_scenes(scenes, controlled=self._control(scenes))
+        self.sim.set_scenes(scenes, controlled=self._control(scenes), config=sized_for(self.cfg.env, scenes))
 
     # ------------------------------------------------------------- rollout
     def _amp(self):
@@ -525,7 +538,7 @@ class Trainer:
                 "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
                 "mean_speed": float(stats["speed"]) / max(steps, 1),
                 "scenes_visited": self.sampler.visited,
-                "scene_files_skipped": len(getattr(self.source, "skipped", ())),  # files that do not load
+                **source_report(self.source),  # files that do not load, scenes that cannot be played
             })
             per_term = stats["terms"] / max(steps, 1)
             for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
@@ -742,5 +755,6 @@ def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> di
     trainer = Trainer(cfg, out_dir, resume, progress)
     last = trainer.train()
     return {k: v for k, v in last.items() if not (isinstance(v, float) and math.isnan(v))} | {
-        "out_dir": str(trainer.out), "checkpoint": str(trainer.out / "checkpoint.pt")}
+        "out_dir": str(trainer.out), "checkpoint": str(trainer.out / "checkpoint.pt"),
+        "agents_left_to_replay": trainer.left_to_replay}
 

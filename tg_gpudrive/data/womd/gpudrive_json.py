@@ -21,15 +21,39 @@ JSON, missing key, wrong type, NaN, nothing valid) raises
 or TypeError from deep inside, so a bad file in a large dataset is easy to find.
 
 Required keys are the ones the Scene needs (objects with their trajectories,
-sizes, goal, type and id; roads with geometry, type and id). `name`,
+width, length, goal and type; roads with geometry and type). `name`,
 `scenario_id`, `tl_states`, `metadata`, `map_element_id` and `mark_as_expert`
 are optional. Traffic-signal entries that cannot be read are dropped and
 counted in metadata["tl_dropped"], since signals are auxiliary.
+
+Older revisions. GPUDrive's earlier files and Nocturne's (the same layout, and
+many users' processed data) differ from the current revision; each difference
+is filled in by one rule and counted in metadata["defaults"] (field -> how
+many objects, roads or files it was used for), which `convert` and the scene
+commands report:
+
+    field                  older revision             rule
+    objects[i].height      missing                    DEFAULT_HEIGHT of the agent type
+    objects[i].id          missing                    a unique id: the object's index, moved past
+                                                      the largest id the file does give
+    roads[r].id            missing                    the same rule over roads
+    objects[i].heading     degrees                    converted to radians (see `heading_unit`)
+    objects[i].goalPosition missing                   the last valid position
+    objects[i].type        other spellings            "car" / "bicycle" / "bike" are vehicle /
+                                                      cyclist (`_TYPE_ALIASES`), unknown -> other
+    roads[r].type          unknown kind (e.g. "unknown", "none")
+                                                      dropped and counted as "roads.type"
+    mark_as_expert         missing                    no object is marked
+
+Headings are in degrees when any valid heading lies beyond 2 pi (+ 1e-3) in
+magnitude, or else when the agents' direction of motion fits the headings read
+as degrees clearly better than read as radians (`heading_unit`).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from typing import Any
@@ -40,12 +64,18 @@ from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.scene import Scene, SceneError
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
-__all__ = ["load_gpudrive_json", "scene_origin", "SENTINEL", "WOMD_SUBTYPE_BY_MAP_ELEMENT"]
+log = logging.getLogger(__name__)
+
+__all__ = ["load_gpudrive_json", "heading_unit", "scene_origin", "SENTINEL", "WOMD_SUBTYPE_BY_MAP_ELEMENT"]
 
 SENTINEL = -10000.0  # GPUDrive's value for fields of invalid steps
 
 _AGENT_TYPES = {"vehicle": AgentType.VEHICLE, "pedestrian": AgentType.PEDESTRIAN, "cyclist": AgentType.CYCLIST}
+_TYPE_ALIASES = {"car": AgentType.VEHICLE, "bicycle": AgentType.CYCLIST, "bike": AgentType.CYCLIST}
 _ROAD_TYPES = {m.name.lower(): m for m in RoadType if m != RoadType.NONE}
+_UNKNOWN_ROAD_TYPES = {"unknown", "none", "unset", "other", "invalid"}  # older files' placeholder kinds
+# m, typical WOMD box heights (median of the files that carry height); only drawing and exports read it
+DEFAULT_HEIGHT = {AgentType.VEHICLE: 1.6, AgentType.PEDESTRIAN: 1.75, AgentType.CYCLIST: 1.8, AgentType.OTHER: 1.5}
 
 
 def _map_element_subtype(mid: int) -> int:
@@ -154,48 +184,53 @@ class _Reader:
         return np.array(lst, bool)
 
 
-def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | None = None) -> Scene:
-    """Load one GPUDrive processed WOMD JSON file as a validated Scene.
+def heading_unit(yaw: np.ndarray, vel: np.ndarray, valid: np.ndarray) -> str:
+    """"degrees" or "radians": the unit of a file's headings (N, T) given velocities (N, T, 2).
 
-    Positions are shifted by `scene_origin` (stored in `Scene.origin`); goals are
-    `goalPosition` in the same frame (the last valid position where the file
-    has a sentinel). With `simplify_tolerance` (metres) road polylines are
-    simplified by `simplify.simplify_scene` and its report is stored in
-    metadata["simplify"].
-    """
-    src = str(path)
-    rd = _Reader(src)
-    try:
-        with open(path, "rb") as f:
-            raw = json.loads(f.read())
-    except json.JSONDecodeError as e:
-        raise SceneError(src, "json", f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}") from None
-    except UnicodeDecodeError as e:
-        raise SceneError(src, "json", f"not UTF-8 text: {e.reason} at byte {e.start}") from None
-    if not isinstance(raw, dict):
-        rd.fail("json", f"expected a JSON object at the top level, got {type(raw).__name__}")
+    Degrees for certain when a valid heading lies beyond 2 pi (+ 1e-3) in magnitude. Otherwise the
+    direction of motion decides: over the valid steps faster than 2 m/s (at least 5 of them), the
+    median angle between velocity and heading must be under 0.2 rad read as degrees and exceed
+    twice that plus 0.1 rad read as radians; anything less clear (headings near 0 fit both) stays
+    radians, the current revision's unit."""
+    h = np.abs(yaw[valid])
+    if h.size and h.max() > 2 * math.pi + 1e-3:
+        return "degrees"
+    moving = valid & (np.hypot(vel[..., 0], vel[..., 1]) > 2.0)
+    if moving.sum() < 5:
+        return "radians"
+    motion = np.arctan2(vel[..., 1], vel[..., 0])[moving]
 
-    objects = rd.list(raw, "objects", "")
-    if not objects:
-        rd.fail("objects", "scene has no agents (empty list)")
+    def err(theta):
+        return float(np.median(np.abs((motion - theta + math.pi) % (2 * math.pi) - math.pi)))
+
+    as_rad, as_deg = err(yaw[moving]), err(np.radians(yaw[moving]))
+    return "degrees" if as_deg < 0.2 and as_rad > 2 * as_deg + 0.1 else "radians"
+
+
+def _unique_ids(given: list[int | None]) -> tuple[np.ndarray, int]:
+    """Ids with the missing ones (None) filled by index, moved past the largest given id so none
+    collides; and how many were filled."""
+    known = [v for v in given if v is not None]
+    base = max(known) + 1 if known else 0
+    filled = [base + i if v is None else v for i, v in enumerate(given)]
+    return np.asarray(filled, np.int64), len(given) - len(known)
+
+
+def _objects(rd: _Reader, objects: list, defaults: dict) -> dict:
+    """The objects' arrays, sentinels still in place; older-revision fields filled and counted."""
     n = len(objects)
     t_steps = None
     pos, vel, yaw, valid = [], [], [], []
     length, width, height = np.zeros(n), np.zeros(n), np.zeros(n)
-    goal = np.zeros((n, 2))
+    goal = np.full((n, 2), SENTINEL)
     agent_type = np.zeros(n, np.int8)
-    agent_id = np.zeros(n, np.int64)
+    ids: list[int | None] = []
     expert = []
     for i, o in enumerate(objects):
         p = f"objects[{i}]"
         if not isinstance(o, dict):
             rd.fail(p, f"expected an object, got {type(o).__name__}")
-        traj = {
-            "position": rd.list(o, "position", p),
-            "velocity": rd.list(o, "velocity", p),
-            "heading": rd.list(o, "heading", p),
-            "valid": rd.list(o, "valid", p),
-        }
+        traj = {key: rd.list(o, key, p) for key in ("position", "velocity", "heading", "valid")}
         if t_steps is None:
             t_steps = len(traj["position"])
         for key, lst in traj.items():
@@ -207,63 +242,72 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
         valid.append(rd.bools(traj["valid"], f"{p}.valid"))
         length[i] = rd.number(rd.key(o, "length", p), f"{p}.length")
         width[i] = rd.number(rd.key(o, "width", p), f"{p}.width")
-        height[i] = rd.number(rd.key(o, "height", p), f"{p}.height")
-        g = rd.key(o, "goalPosition", p)
-        goal[i] = [rd.number(rd.key(g, k, f"{p}.goalPosition"), f"{p}.goalPosition.{k}") for k in ("x", "y")]
         kind = rd.key(o, "type", p)
         if not isinstance(kind, str):
             rd.fail(f"{p}.type", f"expected a string, got {type(kind).__name__}")
-        agent_type[i] = _AGENT_TYPES.get(kind.lower(), AgentType.OTHER)
-        agent_id[i] = rd.integer(rd.key(o, "id", p), f"{p}.id")
+        kind = kind.lower()
+        agent_type[i] = _AGENT_TYPES.get(kind, _TYPE_ALIASES.get(kind, AgentType.OTHER))
+        if kind in _TYPE_ALIASES:
+            defaults["objects.type"] = defaults.get("objects.type", 0) + 1
+        if "height" in o:
+            height[i] = rd.number(o["height"], f"{p}.height")
+        else:
+            height[i] = DEFAULT_HEIGHT[AgentType(agent_type[i])]
+            defaults["objects.height"] = defaults.get("objects.height", 0) + 1
+        if "goalPosition" in o:
+            g = o["goalPosition"]
+            goal[i] = [rd.number(rd.key(g, k, f"{p}.goalPosition"), f"{p}.goalPosition.{k}") for k in ("x", "y")]
+        else:
+            defaults["objects.goalPosition"] = defaults.get("objects.goalPosition", 0) + 1
+        ids.append(rd.integer(o["id"], f"{p}.id") if "id" in o else None)
         if o.get("mark_as_expert") is True:
             expert.append(i)
-    pos_a, vel_a = np.stack(pos), np.stack(vel)
-    yaw_a, valid_a = np.stack(yaw), np.stack(valid)
-    # a step is real only if flagged valid and free of the sentinel
-    sentinel = (pos_a == SENTINEL).any(-1) | (vel_a == SENTINEL).any(-1) | (yaw_a == SENTINEL)
-    valid_a &= ~sentinel
-    if not valid_a.any():
-        rd.fail("objects[*].valid", "no object has a single valid step")
-    if t_steps < 2:
-        rd.fail("objects[0].position", f"need at least 2 logged steps, got {t_steps}")
-    pos_a[~valid_a] = 0.0
-    vel_a[~valid_a] = 0.0
-    yaw_a[~valid_a] = 0.0
-    origin = scene_origin(pos_a, valid_a)
+    agent_id, filled = _unique_ids(ids)
+    if filled:
+        defaults["objects.id"] = filled
+    return {"t_steps": t_steps, "pos": np.stack(pos), "vel": np.stack(vel), "yaw": np.stack(yaw),
+            "valid": np.stack(valid), "length": length, "width": width, "height": height, "goal": goal,
+            "agent_type": agent_type, "agent_id": agent_id, "expert": expert}
 
-    has_valid = valid_a.any(1)
-    last = t_steps - 1 - np.argmax(valid_a[:, ::-1], axis=1)
-    last_pos = pos_a[np.arange(n), last]
-    no_goal = (goal == SENTINEL).any(-1)
-    goal = np.where(no_goal[:, None], last_pos, goal)
-    goal[~has_valid] = origin  # such agents never appear; keep their goal finite and harmless
 
-    roads = rd.list(raw, "roads", "")
-    pts, road_type, road_id, subtype = [], [], [], []
+def _roads(rd: _Reader, roads: list, origin: np.ndarray, defaults: dict) -> dict:
+    """Road polylines in the scene frame; empty and unknown-kind polylines dropped and counted."""
+    pts, road_type, ids, subtype = [], [], [], []
     dropped_empty = 0
     for r, road in enumerate(roads):
         p = f"roads[{r}]"
         geom = rd.points(rd.list(road, "geometry", p), f"{p}.geometry")
         kind = rd.key(road, "type", p)
+        if isinstance(kind, str) and kind.lower() in _UNKNOWN_ROAD_TYPES:
+            defaults["roads.type"] = defaults.get("roads.type", 0) + 1  # a placeholder kind: nothing to use
+            continue
         if not isinstance(kind, str) or kind.lower() not in _ROAD_TYPES:
             rd.fail(f"{p}.type", f"unknown road type {kind!r}; expected one of {', '.join(_ROAD_TYPES)}")
-        rid = rd.integer(rd.key(road, "id", p), f"{p}.id")
+        rid = rd.integer(road["id"], f"{p}.id") if "id" in road else None
         if len(geom) == 0:
             dropped_empty += 1  # an empty polyline has nothing to draw or collide with
             continue
         mid = road.get("map_element_id")
         pts.append(geom)
         road_type.append(int(_ROAD_TYPES[kind.lower()]))
-        road_id.append(rid)
+        ids.append(rid)
         subtype.append(WOMD_SUBTYPE_BY_MAP_ELEMENT.get(mid, 0) if type(mid) is int else 0)
-    road_points = (np.concatenate(pts) - origin) if pts else np.zeros((0, 2))
-    offsets = np.concatenate([[0], np.cumsum([len(g) for g in pts], dtype=np.int64)]).astype(np.int64)
+    road_id, filled = _unique_ids(ids)
+    if filled:
+        defaults["roads.id"] = filled
+    return {
+        "road_points": ((np.concatenate(pts) - origin) if pts else np.zeros((0, 2))).astype(np.float32),
+        "road_offsets": np.concatenate([[0], np.cumsum([len(g) for g in pts], dtype=np.int64)]).astype(np.int64),
+        "road_type": np.asarray(road_type, np.int8),
+        "road_id": road_id,
+        "subtype": subtype,
+        "dropped_empty": dropped_empty,
+    }
 
-    tl_lane, tl_stop, tl_state, tl_dropped = _traffic_lights(raw.get("tl_states"), t_steps, origin)
 
-    meta = raw.get("metadata") or {}
-    if not isinstance(meta, dict):
-        rd.fail("metadata", f"expected an object, got {type(meta).__name__}")
+def _interest(rd: _Reader, meta: dict, agent_id: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(is_sdc, is_interest, metadata entries) from the file's `metadata` object."""
+    n = len(agent_id)
     is_sdc = np.zeros(n, bool)
     sdc = meta.get("sdc_track_index")
     if sdc is not None:
@@ -273,9 +317,8 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
         if sdc >= 0:
             is_sdc[sdc] = True
     is_interest = np.zeros(n, bool)
-    ttp = meta.get("tracks_to_predict") or []
     tracks_to_predict = []
-    for k, item in enumerate(ttp):
+    for k, item in enumerate(meta.get("tracks_to_predict") or []):
         fp = f"metadata.tracks_to_predict[{k}]"
         idx = rd.integer(rd.key(item, "track_index", fp) if isinstance(item, dict) else item,
                          f"{fp}.track_index")
@@ -290,6 +333,73 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
         oid = rd.integer(oid, f"metadata.objects_of_interest[{k}]")
         if oid in index_of:  # ids absent from objects refer to nothing here
             is_interest[index_of[oid]] = True
+    entries = {"sdc_track_index": sdc, "tracks_to_predict": tracks_to_predict,
+               "objects_of_interest": [int(v) for v in ooi]}
+    return is_sdc, is_interest, entries
+
+
+def _read_json(path, rd: _Reader) -> dict:
+    try:
+        with open(path, "rb") as f:
+            raw = json.loads(f.read())
+    except json.JSONDecodeError as e:
+        rd.fail("json", f"invalid JSON at line {e.lineno} column {e.colno}: {e.msg}")
+    except UnicodeDecodeError as e:
+        rd.fail("json", f"not UTF-8 text: {e.reason} at byte {e.start}")
+    if not isinstance(raw, dict):
+        rd.fail("json", f"expected a JSON object at the top level, got {type(raw).__name__}")
+    return raw
+
+
+def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | None = None) -> Scene:
+    """Load one GPUDrive (or Nocturne) processed WOMD JSON file, of any revision, as a validated Scene.
+
+    Positions are shifted by `scene_origin` (stored in `Scene.origin`); goals are
+    `goalPosition` in the same frame (the last valid position where the file
+    has a sentinel or none). Older revisions' missing fields and degree headings are
+    filled in and counted in metadata["defaults"] (module docstring). With
+    `simplify_tolerance` (metres) road polylines are simplified by
+    `simplify.simplify_scene` and its report is stored in metadata["simplify"].
+    """
+    src = str(path)
+    rd = _Reader(src)
+    raw = _read_json(path, rd)
+    objects = rd.list(raw, "objects", "")
+    if not objects:
+        rd.fail("objects", "scene has no agents (empty list)")
+    defaults: dict[str, int | str] = {}
+    ob = _objects(rd, objects, defaults)
+    t_steps, pos_a, vel_a, yaw_a, valid_a = ob["t_steps"], ob["pos"], ob["vel"], ob["yaw"], ob["valid"]
+    # a step is real only if flagged valid and free of the sentinel
+    sentinel = (pos_a == SENTINEL).any(-1) | (vel_a == SENTINEL).any(-1) | (yaw_a == SENTINEL)
+    valid_a &= ~sentinel
+    if not valid_a.any():
+        rd.fail("objects[*].valid", "no object has a single valid step")
+    if t_steps < 2:
+        rd.fail("objects[0].position", f"need at least 2 logged steps, got {t_steps}")
+    pos_a[~valid_a] = 0.0
+    vel_a[~valid_a] = 0.0
+    yaw_a[~valid_a] = 0.0
+    if heading_unit(yaw_a, vel_a, valid_a) == "degrees":
+        yaw_a = np.radians(yaw_a)
+        defaults["objects.heading"] = "degrees"
+    origin = scene_origin(pos_a, valid_a)
+
+    n = len(objects)
+    goal = ob["goal"]
+    last = t_steps - 1 - np.argmax(valid_a[:, ::-1], axis=1)
+    no_goal = (goal == SENTINEL).any(-1)
+    goal = np.where(no_goal[:, None], pos_a[np.arange(n), last], goal)
+    goal[~valid_a.any(1)] = origin  # such agents never appear; keep their goal finite and harmless
+
+    rs = _roads(rd, rd.list(raw, "roads", ""), origin, defaults)
+    tl_lane, tl_stop, tl_state, tl_dropped = _traffic_lights(raw.get("tl_states"), t_steps, origin)
+    meta = raw.get("metadata") or {}
+    if not isinstance(meta, dict):
+        rd.fail("metadata", f"expected an object, got {type(meta).__name__}")
+    is_sdc, is_interest, interest = _interest(rd, meta, ob["agent_id"])
+    if defaults:
+        log.info("%s: older GPUDrive/Nocturne revision, filled in: %s", src, defaults)
 
     name = raw.get("name")
     scene = Scene(
@@ -298,18 +408,18 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
         log_yaw=yaw_a.astype(np.float32),
         log_vel=vel_a.astype(np.float32),
         log_valid=valid_a,
-        length=length.astype(np.float32),
-        width=width.astype(np.float32),
-        height=height.astype(np.float32),
-        agent_type=agent_type,
-        agent_id=agent_id,
+        length=ob["length"].astype(np.float32),
+        width=ob["width"].astype(np.float32),
+        height=ob["height"].astype(np.float32),
+        agent_type=ob["agent_type"],
+        agent_id=ob["agent_id"],
         goal=(goal - origin).astype(np.float32),
         is_sdc=is_sdc,
         is_interest=is_interest,
-        road_points=road_points.astype(np.float32),
-        road_offsets=offsets,
-        road_type=np.asarray(road_type, np.int8),
-        road_id=np.asarray(road_id, np.int64),
+        road_points=rs["road_points"],
+        road_offsets=rs["road_offsets"],
+        road_type=rs["road_type"],
+        road_id=rs["road_id"],
         tl_lane=tl_lane,
         tl_stop_point=tl_stop,
         tl_state=tl_state,
@@ -319,14 +429,13 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
             "source": src,
             "scenario_type": "womd",
             "name": name if isinstance(name, str) else None,
-            "sdc_track_index": sdc,
-            "tracks_to_predict": tracks_to_predict,
-            "objects_of_interest": [int(v) for v in ooi],
-            "mark_as_expert": expert,
+            **interest,
+            "mark_as_expert": ob["expert"],
             # WOMD per-kind subtype of each polyline (lane type, road-line type, road-edge type)
-            "road_subtype": subtype,
-            "dropped_empty_roads": dropped_empty,
+            "road_subtype": rs["subtype"],
+            "dropped_empty_roads": rs["dropped_empty"],
             "tl_dropped": tl_dropped,
+            "defaults": defaults,
         },
     ).validate(src)
     if simplify_tolerance is not None:

@@ -41,6 +41,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from tg_gpudrive.data.womd.protowire import DecodeError, EncodeError, Field as F, Message, decode, encode
+from tg_gpudrive.data.womd.tf_example import is_tf_example, tf_example_to_scene
 from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
 from tg_gpudrive.scene import Scene, SceneError
@@ -443,17 +444,27 @@ def scene_to_scenario(scene: Scene) -> dict[str, Any]:
 
 # ------------------------------------------------------------------- TFRecords
 def read_tfrecord_scenes(path: str | os.PathLike) -> Iterator[Scene]:
-    """Yield a Scene per Scenario record of a WOMD TFRecord shard.
+    """Yield a Scene per record of a WOMD TFRecord shard, of either flavour.
 
-    Framing, decoding and conversion errors raise SceneError(path, "record[i]...", problem).
-    metadata["record_index"] holds i.
+    Each record is a `Scenario` proto (`scenario/` shards) or a `tf.Example` of the
+    motion features (`tf_example/` shards, see `tf_example`), told apart record by
+    record. Framing, decoding and conversion errors raise
+    SceneError(path, "record[i]...", problem). metadata["record_index"] holds i.
     """
     src = str(path)
     for i, data in enumerate(iter_records(path)):
+        if is_tf_example(data):
+            scene = tf_example_to_scene(data, src, field_prefix=f"record[{i}].")
+            scene.metadata["record_index"] = i
+            yield scene
+            continue
         try:
             msg = decode(SCENARIO, data)
         except DecodeError as e:
-            raise SceneError(src, f"record[{i}].{e.field}" if e.field else f"record[{i}]", e.problem) from None
+            # neither flavour: say what was tried, on one line
+            raise SceneError(src, f"record[{i}].{e.field}" if e.field else f"record[{i}]",
+                             f"{e.problem} (the record is neither of the two flavours understood: a WOMD "
+                             f"Scenario proto, or a tf.Example of WOMD motion features)") from None
         scene = scenario_to_scene(msg, src, field_prefix=f"record[{i}].")
         scene.metadata["record_index"] = i
         yield scene
