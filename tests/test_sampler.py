@@ -34,7 +34,9 @@ class CountSource:
 
 
 def tiny(k: int):
-    return make_scene(np.full((1, 2, 2), k, np.float32), np.zeros((1, 2)), scene_id=f"s{k}")
+    """One car driving 20 m along x from (k, k): the shortest scene a source plays (init step 10 + 10)."""
+    pos = np.stack([np.arange(21.0) + k, np.full(21, float(k))], -1)[None].astype(np.float32)
+    return make_scene(pos, np.zeros((1, 21)), scene_id=f"s{k}")
 
 
 # ------------------------------------------------------------------ sampler

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -457,3 +458,16 @@ def test_init_policy_fine_tunes_from_a_trained_run(tmp_path):
                      env=dataclasses.replace(tiny(dst).env, road_k=8)), tmp_path / "bad", progress=False)
     with pytest.raises(ConfigError, match=r"init_policy shipped: .*hidden 128"):
         Trainer(tiny(tmp_path / "bad2", init_policy="shipped"), tmp_path / "bad2", progress=False)
+
+
+def test_training_on_dense_real_scenes_drops_no_agent_and_replays_beyond_its_cap(tmp_path):
+    """With env.max_agents below a real scene's agent count, every agent still gets a slot; the policy
+    drives at most max_agents per world and the rest replay their logs, counted."""
+    data = Path(__file__).parent / "data"
+    cfg = tiny(tmp_path, updates=1, scenes=str(data), num_scenes=2, num_worlds=2, prior="expert")
+    cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, max_agents=4))
+    tr = Trainer(cfg, tmp_path, progress=False)
+    assert tr.sim.report()["agents_dropped"] == 0 and tr.sim.max_agents >= 81
+    assert int(tr.sim.policy_agents.sum(1).max()) <= 4
+    out = tr.train()
+    assert tr.left_to_replay > 0 and out["scenes_unplayable"] == 0

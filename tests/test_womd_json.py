@@ -227,7 +227,6 @@ def test_placeholder_road_kinds_are_dropped_and_counted(tmp_path):
 
 
 def test_a_scene_too_short_to_play_is_skipped_and_counted(tmp_path):
-    from tg_gpudrive import cli
     from tg_gpudrive.data.sources import resolve_scenes, source_report
 
     raw = _raw()
@@ -243,6 +242,13 @@ def test_a_scene_too_short_to_play_is_skipped_and_counted(tmp_path):
     mix = resolve_scenes(f"mix:procedural:all=0.5,{tmp_path}=0.5", n=8)
     assert source_report(mix)["scenes_unplayable"] == 1
     assert all(mix.get(i).num_steps == 91 for i in range(len(mix)))  # it never fills a world
+    from tg_gpudrive.data.store import convert
+
+    report = convert([tmp_path], tmp_path / "store", progress=False)
+    assert report.converted == 2 and [r[1:] for r in report.unplayable] == [(raw["scenario_id"], report.unplayable[0][2])]
+    assert "too short to play" in report.unplayable[0][2]
+    store = resolve_scenes(str(tmp_path / "store"))
+    assert len(store) == 1 and source_report(store)["scenes_unplayable"] == 1
 
 
 def test_builtin_and_trained_policies_drop_no_agent_and_write_per_scene_rates(tmp_path, capsys):

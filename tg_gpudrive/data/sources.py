@@ -183,14 +183,18 @@ class StoreSource(SceneSource):
     def __init__(self, path: str | Path, n: int | None = None):
         self.store = open_store(path)
         self.name = f"store:{Path(path)}"
-        # `convert` keeps unplayable scenes out; a store written otherwise may still hold short ones
+        # the scenes `convert` found unplayable, and any too short (a store written by `write_store`)
         steps = self.store.num_steps
-        short = steps < EngineConfig().init_steps + 1 + MIN_PLAY_STEPS
+        why = dict(self.store.unplayable)
+        for i in np.nonzero(steps < EngineConfig().init_steps + 1 + MIN_PLAY_STEPS)[0]:
+            why.setdefault(int(i), f"too short to play: {int(steps[i])} logged steps")
+        short = np.zeros(len(steps), bool)
+        short[list(why)] = True
         self._index = np.nonzero(~short)[0]
-        self.unplayable = [(self.name, self.store.scene_ids[int(i)], f"too short to play: {int(steps[i])} logged steps")
-                           for i in np.nonzero(short)[0]]
+        self.unplayable = [(self.name, self.store.scene_ids[i], w) for i, w in sorted(why.items())]
         if self.unplayable:
-            log.warning("%s: %d scene(s) too short to play are skipped", self.name, len(self.unplayable))
+            log.warning("%s: %d scene(s) that cannot be played are skipped (first: %s: %s)", self.name,
+                        len(self.unplayable), *self.unplayable[0][1:])
         if short.all() and len(short):
             raise ValueError(f"scene spec {str(path)!r}: no scene of the store can be played")
         self.n = len(self._index) if n is None else min(int(n), len(self._index))

@@ -133,8 +133,9 @@ class ConvertReport:
     converted_files   input files converted by this run
     skipped_existing  input files skipped because the manifest lists them as done
     failed            (path, reason) of every input that could not be converted
-    unplayable        (path, scene id, reason) of every scene left out because it cannot be played
-                      (`log_audit.unplayable`: too short, or no vehicle the control rule would drive)
+    unplayable        (path, scene id, reason) of every scene that cannot be played (`log_audit.unplayable`:
+                      too short, or no vehicle the control rule would drive); stored, listed in the
+                      manifest, and skipped by the store's scene source
     defaults          fields an older format revision lacked, filled in by the loaders: how many
                       objects, roads or files each default was used for (`sources.scene_defaults`)
     seconds           wall time of the run
@@ -219,6 +220,7 @@ class _Writer:
         self.buf_scenes: list[Scene] = []
         self.buf_sources: list[str] = []
         self.buf_inputs: dict[str, int] = {}
+        self.buf_unplayable: dict[int, str] = {}  # buffer index -> why the scene cannot be played
 
     def _remove_store_files(self) -> None:
         for p in self.out.iterdir():
@@ -236,8 +238,13 @@ class _Writer:
     def done(self, key: str) -> bool:
         return key in self.manifest["inputs"]
 
-    def add(self, scenes: list[Scene], source: str, input_key: str | None = None) -> None:
-        """Buffer the scenes of one input; flush a shard once the buffer is full."""
+    def add(self, scenes: list[Scene], source: str, input_key: str | None = None,
+            unplayable: list[str | None] | None = None) -> None:
+        """Buffer the scenes of one input (with, per scene, why it cannot be played or None); flush a
+        shard once the buffer is full."""
+        for k, why in enumerate(unplayable or []):
+            if why is not None:
+                self.buf_unplayable[len(self.buf_scenes) + k] = why
         self.buf_scenes.extend(scenes)
         self.buf_sources.extend([source] * len(scenes))
         if input_key is not None:
@@ -253,11 +260,13 @@ class _Writer:
             name = f"shard_{len(self.manifest['shards']):05d}"
             _write_shard(self.out / name, self.buf_scenes, self.buf_sources)
             self.manifest["shards"].append({"name": name, "num_scenes": len(self.buf_scenes)})
+            for k, why in self.buf_unplayable.items():
+                self.manifest.setdefault("unplayable", {})[str(self.manifest["num_scenes"] + k)] = why
             self.manifest["num_scenes"] += len(self.buf_scenes)
         for key, count in self.buf_inputs.items():
             self.manifest["inputs"][key] = {"shard": name, "scenes": count}
         self.commit()
-        self.buf_scenes, self.buf_sources, self.buf_inputs = [], [], {}
+        self.buf_scenes, self.buf_sources, self.buf_inputs, self.buf_unplayable = [], [], {}, {}
 
     def commit(self) -> None:
         _atomic_write_text(self.out / MANIFEST, json.dumps(self.manifest, indent=1))
@@ -403,7 +412,7 @@ _FILE_ERRORS = (SceneError, OSError, ValueError, KeyError, TypeError, IndexError
 
 
 def _load_prepared(path: Path, simplify_tolerance: float | None) -> tuple[list[Scene] | None, Any]:
-    """(playable scenes, [(scene id, why unplayable)]) of one input file ready to pack, or (None, reason
+    """(scenes, [why each cannot be played, or None]) of one input file ready to pack, or (None, reason
     it does not load); runs in worker processes."""
     try:
         if not path.is_file():
@@ -413,9 +422,11 @@ def _load_prepared(path: Path, simplify_tolerance: float | None) -> tuple[list[S
         scenes = _prepared(load_file(path), simplify_tolerance)
     except _FILE_ERRORS as e:
         return None, f"{type(e).__name__}: {e}"
-    # the audit of the control rule runs here once and travels with the scenes (metadata["log_audit"])
-    why = [(sc, unplayable(sc)) for sc in scenes]
-    return [sc for sc, w in why if w is None], [(sc.scene_id, w) for sc, w in why if w is not None]
+    why = []
+    for sc in scenes:
+        why.append(unplayable(sc))
+        sc.metadata.pop("log_audit", None)  # the store keeps what the file holds; the audit runs at use
+    return scenes, why
 
 
 def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, progress: bool = True,
@@ -456,10 +467,10 @@ def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, p
                 if scenes is None:
                     report.failed.append((str(f), reason))
                 else:
-                    report.unplayable.extend((str(f), sid, why) for sid, why in reason)
+                    report.unplayable.extend((str(f), sc.scene_id, why) for sc, why in zip(scenes, reason) if why)
                     for key, v in scene_defaults(scenes).items():
                         report.defaults[key] = report.defaults.get(key, 0) + v
-                    w.add(scenes, str(f), input_key=str(f))
+                    w.add(scenes, str(f), input_key=str(f), unplayable=reason)
                     report.converted += len(scenes)
                     report.converted_files += 1
                     bar.update(len(scenes))
@@ -562,6 +573,8 @@ class SceneStore:
         self.path = Path(path)
         manifest = _read_manifest(self.path)
         self.simplify_tolerance = manifest.get("simplify_tolerance")
+        # store index -> why the scene cannot be played (`log_audit.unplayable`), as `convert` found it
+        self.unplayable = {int(k): str(v) for k, v in (manifest.get("unplayable") or {}).items()}
         self._shards = [_Shard(self.path, s["name"], int(s["num_scenes"])) for s in manifest["shards"]]
         counts = np.array([len(s.num_steps) for s in self._shards], np.int64)
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
