@@ -468,6 +468,9 @@ def test_report_on_tiny_runs(tmp_path):
     assert [p["update"] for p in curve["cce"]] == [1, 2] and [p["update"] for p in curve["mappo"]] == [0, 2]
     assert all(math.isfinite(p["mean_gap"]) for p in curve["cce"] + curve["mappo"])
     assert (out / "cce_gap_curve.png").stat().st_size > 0 and "## CCE-gap over training" in md
+    worst = summary["meta"]["worst_scenes"]
+    assert worst["label"] == "cce" and worst["scenes"] and "## Worst scenes of cce" in md
+
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
     # every policy's evaluation is cached: the same report again reads it all back, nothing is recomputed
@@ -610,3 +613,25 @@ def test_flexibility_table_averages_the_last_updates(tmp_path):
     (base / "config.json").write_text(json.dumps({"alpha": 0.5, "env": {"beta": 4.0}}))
     rows = mod.flexibility(tmp_path, [("mappo", ["eta1=0.0"])], tail=5)
     assert rows[0]["beta"] == "4.0" and rows[0]["alpha"] == "0.5"
+
+
+def test_worst_scenes_rank_scenes_by_failures_per_agent_episode():
+    from types import SimpleNamespace
+
+    from tg_gpudrive.evaluation.report import worst_scenes
+
+    E, A, K = 4, 3, 5
+    policy = np.ones((E, A), bool)
+    policy[:, 2] = False  # never counted
+    col = np.zeros((E, A, K), bool)
+    off = np.zeros((E, A, K), bool)
+    col[0, 0, 3] = True  # scene 0: 1 of 2 agents (its two episodes: 0 and 2)
+    off[1, :, 1] = True  # scene 1: both policy agents off the road in episode 1 (the third agent does not count)
+    col[3, 0, 0] = off[3, 0, 4] = True  # scene 1 again: one agent, both events
+    gen = SimpleNamespace(policy=policy, collided=col, offroad=off, scene_index=np.array([0, 1, 0, 1]),
+                          scenes=[SimpleNamespace(scene_id="a"), SimpleNamespace(scene_id="b")])
+    rows = worst_scenes(gen)
+    assert [r["scene_id"] for r in rows] == ["b", "a"]
+    assert rows[0] == {"scene": 1, "scene_id": "b", "agent_episodes": 4, "collisions": 1, "offroad": 3,
+                       "failure_rate": 0.75}
+    assert rows[1]["failure_rate"] == 0.25 and worst_scenes(gen, k=1) == rows[:1]

@@ -40,6 +40,8 @@ Writes into `out`:
     summary.json        every number of the tables
     scenarios/<run>/    the most critical generated scenarios as GPUDrive JSON (risk in metadata)
     frames/<run>.png    the top-down pictures of the grid
+    worst_scenes.png    the first run's scenes with the most collisions and off-road events per agent-episode,
+                        drawn as their episodes end (frames/worst_<k>.png)
     cache/<label>.pkl   each policy's rollouts and figures, CCE-gap included, keyed by its checkpoint
                         files and the options: a report that was stopped goes on where it stopped, and
                         several processes (one per GPU, each with some of the runs and --no-baselines
@@ -81,7 +83,7 @@ from tg_gpudrive.policy import load_actor, load_policy
 from tg_gpudrive.rollout import expert_policy
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_world_model
 
-FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "summary.json")
+FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "worst_scenes.png", "summary.json")
 
 
 @dataclasses.dataclass
@@ -212,6 +214,41 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
     return np.asarray(Image.open(path).convert("RGB"))
+
+
+WORST_SCENES = 4  # scenes drawn in worst_scenes.png
+
+
+def worst_scenes(gen, k: int = WORST_SCENES) -> list[dict]:
+    """The `k` scenes where the policy's agents fail most (a collision or leaving the road, per
+    agent-episode), most failures first: scene index and id, agent-episodes, collisions, off-road."""
+    pol = np.asarray(gen.policy, bool)
+    col = np.asarray(gen.collided, bool).any(-1) & pol
+    off = np.asarray(gen.offroad, bool).any(-1) & pol
+    by: dict[int, list[int]] = {}
+    for e, i in enumerate(np.asarray(gen.scene_index)):
+        t = by.setdefault(int(i), [0, 0, 0, 0])
+        t[0] += int(pol[e].sum())
+        t[1] += int(col[e].sum())
+        t[2] += int(off[e].sum())
+        t[3] += int((col[e] | off[e]).sum())
+    rows = [{"scene": i, "scene_id": gen.scenes[i].scene_id, "agent_episodes": n, "collisions": c, "offroad": o,
+             "failure_rate": f / n} for i, (n, c, o, f) in by.items() if n and f]
+    return sorted(rows, key=lambda r: (-r["failure_rate"], -r["agent_episodes"], r["scene"]))[:k]
+
+
+def plot_worst_scenes(frames: list[np.ndarray], rows: list[dict], label: str, path: Path) -> None:
+    """The last frames of the worst scenes side by side, each titled with its failures."""
+    fig = _fig()
+    fig.set_size_inches(min(3.2 * len(frames), MAX_FIG_W), 3.6)
+    for k, (img, r) in enumerate(zip(frames, rows)):
+        ax = fig.add_subplot(1, len(frames), k + 1)
+        ax.imshow(img)
+        ax.set_axis_off()
+        ax.set_title(f"{_short(r['scene_id'], 22)}\ncollisions {r['collisions']}, off-road {r['offroad']} "
+                     f"of {r['agent_episodes']}", fontsize=8)
+    fig.suptitle(f"Worst scenes of {label}", fontsize=10)
+    fig.savefig(path)
 
 
 def _br_copies(opts: ReportOptions, device: str) -> int:
@@ -717,6 +754,13 @@ def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict
     L.append("\n## Diversity per scenario type [m]\n\n")
     rows = [[r["label"], t, v] for r in results for t, v in r["diversity"]["per_type"].items()]
     L.append(_table(["policy", "scenario type", "mean pairwise displacement"], rows))
+    worst = meta.get("worst_scenes") or {}
+    if worst.get("scenes"):
+        L.append(f"\n## Worst scenes of {worst['label']}\n\nThe scenes where its agents collided or left the road "
+                 "most often (per agent-episode), each drawn as its episode ends.\n\n![worst scenes](worst_scenes.png)\n\n")
+        L.append(_table(["scene", "agent-episodes", "collisions", "off-road", "failure rate"],
+                        [[w["scene_id"], w["agent_episodes"], w["collisions"], w["offroad"], w["failure_rate"]]
+                         for w in worst["scenes"]]))
     L.append("\n## Most safety-critical generated scenarios\n\n")
     rows = [[c["label"], c["scene_id"], c["seed"], c["collisions"], c["min_ttc_s"], c["min_gap_m"], c["hard_brakes"],
              c.get("file", "-")] for r in results if r.get("kind") for c in r["critical"]]
@@ -752,6 +796,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
         if res["cce_gap"]:
             gaps[res["label"]] = res["cce_gap"]
 
+    worst_meta = None  # the first run's worst scenes
     try:
         for i, run in enumerate(runs):
             cfg, ckpt = _run_files(run)
@@ -802,6 +847,15 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
 
             res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
             keep(res, gen)
+            if i == 0:  # where the report's first policy fails most, drawn as its episodes end
+                worst = worst_scenes(gen)
+                frames = [_last_frame(cfg, scenes[w["scene"]], masks[w["scene"]], ckpt, device, opts.frame_size,
+                                      out / "frames" / f"worst_{k}.png") for k, w in enumerate(worst)]
+                if frames:
+                    plot_worst_scenes(frames, worst, label, out / "worst_scenes.png")
+                else:
+                    (out / "worst_scenes.png").unlink(missing_ok=True)
+                worst_meta = {"label": label, "scenes": worst}
             # the starting policy's gap is shared by the runs that fine-tuned it, so the process that does
             # the baselines does it (report parts: the first), and every run's curve reads it back
             start = (start_gap(run, cfg, gsim, opts, out, bar)
@@ -837,7 +891,7 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
         else:
             plot(data, out / name)
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap,
+            "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap, "worst_scenes": worst_meta,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
