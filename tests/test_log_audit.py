@@ -114,12 +114,12 @@ def womd():
     return [load_gpudrive_json(f) for f in sorted(DATA.glob("womd_*.json"))]
 
 
-def engine_events(scenes, cfg):
+def engine_events(scenes, cfg, device="cpu"):
     """{(world, scene agent): {(reason, log step)}} of the engine replaying every log (nobody driven),
     inside each audited candidate's scoring window (up to its first step within goal_radius of the goal)."""
     cfg = dataclasses.replace(cfg, max_agents=max(agents_needed(s) for s in scenes), control="none",
                               auto_reset=False)
-    sim = Simulator(scenes, cfg, "cpu")
+    sim = Simulator(scenes, cfg, device)
     sim.reset()
     slot_agent = np.asarray(sim.model.slot_agent)
     out = {}
@@ -127,7 +127,7 @@ def engine_events(scenes, cfg):
         sim.step()
         t = cfg.init_steps + 1 + k
         for name, flags in (("overlap", sim.collided), ("offroad", sim.offroad)):
-            for w, a in zip(*np.nonzero(flags.numpy())):
+            for w, a in zip(*np.nonzero(flags.cpu().numpy())):
                 sc, i = scenes[w], int(slot_agent[w, a])
                 if not candidates(sc, cfg.init_steps, cfg.goal_radius)[i]:
                     continue
@@ -138,7 +138,7 @@ def engine_events(scenes, cfg):
     return out
 
 
-def test_audit_agrees_with_the_engine_replaying_the_logs(womd):
+def test_audit_agrees_with_the_engine_replaying_the_logs(womd, device):
     """On hand-made logs the engine's collision and off-road flags and the audit name the same agents; on
     real scenes every event the engine flags inside a window is one the audit names (the audit also sees
     the init step, which the engine does not step through)."""
@@ -146,19 +146,19 @@ def test_audit_agrees_with_the_engine_replaying_the_logs(womd):
     edge = (RoadType.ROAD_EDGE, [[20, -10], [20, 10]])
     made = [scene_of(drive(0, 0, 10), drive(3, 0.5, 10), drive(30, 20, 10)), scene_of(drive(0, 0, 10), roads=[edge]),
             scene_of(drive(0, 0, 10), drive(4.5, 0, 10))]
-    ev = engine_events(made, cfg)
+    ev = engine_events(made, cfg, device)
     for w, sc in enumerate(made):
         found = {i: {r for r in rs if r in ("overlap", "offroad")} for i, rs in audit(sc, 10, 2.0).items()}
         assert {i: {n for n, _ in e} for (ww, i), e in ev.items() if ww == w} == found
-    for (w, i), e in engine_events(womd, cfg).items():
+    for (w, i), e in engine_events(womd, cfg, device).items():
         for name, t in e:
             assert name in audit(womd[w], 10, 2.0).get(i, []), (womd[w].scene_id, i, name, t)
 
 
-def test_expert_replay_is_clean_under_the_rule(womd):
+def test_expert_replay_is_clean_under_the_rule(womd, device):
     cfg = EngineConfig(max_agents=max(agents_needed(s) for s in womd))
     for mode in ("ignore", "stop", "remove"):
-        sim = Simulator(womd, dataclasses.replace(cfg, collision_mode=mode), "cpu")
+        sim = Simulator(womd, dataclasses.replace(cfg, collision_mode=mode), device)
         out = run_rollout(sim, expert_policy, sim.episode_length, episodes_per_world=1)
         assert out["agent_episodes"] >= 10
         assert out["goal_rate"] >= 0.97 and out["collision_rate"] == 0 and out["offroad_rate"] == 0, (mode, out)
@@ -179,3 +179,24 @@ def test_training_caps_the_policy_agents_and_replays_the_rest():
     mask, left = control.cap_controlled(sc, np.ones(5, bool), 3, 10)
     assert mask.sum() == 3 and mask[4] and left == 2
     assert control.cap_controlled(sc, mask, 3, 10)[1] == 0
+
+
+def test_replay_events_are_put_in_their_class():
+    from tg_gpudrive.evaluation.log_events import classify, first_events
+
+    edge = (RoadType.ROAD_EDGE, [[30, -10], [30, 10]])
+    scenes = [scene_of(drive(0, 0, 10), drive(3, 0.5, 10), drive(0, 30, 10)),  # two logs overlap from the start
+              scene_of(drive(0, 0, 10), roads=[edge])]  # the log crosses an edge at x = 30, step 30
+    cfg = EngineConfig(max_agents=4, replay_infeasible=False)  # the rule's exclusions off: the events happen
+    events = first_events(scenes, cfg, "cpu")
+    got = sorted((w, i, kind, classify(scenes[w], i, kind, t, off, partner, 10, 2.0))
+                 for w, i, kind, t, off, partner in events)
+    assert got == [(0, 0, "collision", "log overlaps another agent at the first step"),
+                   (0, 1, "collision", "log overlaps another agent at the first step"),
+                   (1, 0, "offroad", "log leaves the road")]
+    assert first_events(scenes, EngineConfig(max_agents=4), "cpu") == []  # under the rule: replayed, no event
+    # a clean log whose replay hits a pedestrian, or drifts, or grazes
+    sc = scene_of(drive(0, 0, 10))
+    assert classify(sc, 0, "collision", 5, 0.1, int(AgentType.PEDESTRIAN), 10, 2.0) == "with a pedestrian or cyclist"
+    assert classify(sc, 0, "offroad", 5, 2.0, None, 10, 2.0).startswith("tracking")
+    assert classify(sc, 0, "offroad", 5, 0.1, None, 10, 2.0).startswith("geometry")

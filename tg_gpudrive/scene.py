@@ -58,6 +58,24 @@ class SceneError(ValueError):
         super().__init__(f"{source}: field '{field}': {problem}")
 
 
+class FieldReader:
+    """Typed access into a parsed source file (a JSON document, an unpickled dict) that raises
+    SceneError naming the file and the field path; loaders add the value readers of their format."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, field: str, problem: str):
+        raise SceneError(self.source, field, problem)
+
+    def key(self, obj: Any, key: str, path: str) -> Any:
+        if not isinstance(obj, dict):
+            self.fail(path, f"expected an object, got {type(obj).__name__}")
+        if key not in obj:
+            self.fail(f"{path}.{key}" if path else key, "missing key")
+        return obj[key]
+
+
 _AGENT_FIELDS = {
     # name: (dtype, trailing shape after N; "T" stands for the step count)
     "log_pos": (np.float32, ("T", 2)),

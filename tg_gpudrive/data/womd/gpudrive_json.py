@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from tg_gpudrive.data.simplify import simplify_scene
-from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.scene import FieldReader, Scene, SceneError
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 log = logging.getLogger(__name__)
@@ -109,21 +109,8 @@ def scene_origin(xy: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.round(pts.mean(0))
 
 
-class _Reader:
+class _Reader(FieldReader):
     """Typed access into parsed JSON that raises SceneError with the field path."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, field: str, problem: str):
-        raise SceneError(self.source, field, problem)
-
-    def key(self, obj: Any, key: str, path: str) -> Any:
-        if not isinstance(obj, dict):
-            self.fail(path, f"expected an object, got {type(obj).__name__}")
-        if key not in obj:
-            self.fail(f"{path}.{key}" if path else key, "missing key")
-        return obj[key]
 
     def list(self, obj: Any, key: str, path: str) -> list:
         v = self.key(obj, key, path)

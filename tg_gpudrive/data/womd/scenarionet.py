@@ -90,7 +90,7 @@ import numpy as np
 
 from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
-from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.scene import FieldReader, Scene, SceneError
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 __all__ = ["load_scenarionet", "load_pickle", "is_dataset_file", "DATASET_FILES", "DEFAULT_HEIGHT"]
@@ -385,19 +385,8 @@ def _describe(v: Any) -> str:
     return type(v).__name__
 
 
-class _Reader:
+class _Reader(FieldReader):
     """Typed access into the unpickled dict that raises SceneError with the field path."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, field: str, problem: str):
-        raise SceneError(self.source, field, problem)
-
-    def key(self, obj: dict, key: str, path: str) -> Any:
-        if key not in obj:
-            self.fail(f"{path}.{key}" if path else key, "missing key")
-        return obj[key]
 
     def dict(self, v: Any, path: str) -> dict:
         if not isinstance(v, dict):
