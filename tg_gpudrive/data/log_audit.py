@@ -91,7 +91,11 @@ def _windows(scene: Scene, init: int, goal_radius: float) -> tuple[np.ndarray, n
     return np.full(scene.num_agents, init), np.minimum(last_valid, first_near)
 
 
+SEGMENT_M = 5.0  # m: road edges are cut into pieces no longer than this, so a piece lies near its midpoint
+
+
 def _edge_segments(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """The road-edge segments cut to SEGMENT_M, (E, 2) start and end points, sorted by midpoint x."""
     a, b = [], []
     for kind, pts in scene.polylines():
         if kind == RoadType.ROAD_EDGE and len(pts) >= 2:
@@ -99,7 +103,14 @@ def _edge_segments(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
             b.append(pts[1:])
     if not a:
         return np.zeros((0, 2), np.float64), np.zeros((0, 2), np.float64)
-    return np.concatenate(a).astype(np.float64), np.concatenate(b).astype(np.float64)
+    a, b = np.concatenate(a).astype(np.float64), np.concatenate(b).astype(np.float64)
+    pieces = np.maximum(np.ceil(np.linalg.norm(b - a, axis=-1) / SEGMENT_M), 1).astype(np.int64)
+    seg = np.repeat(np.arange(len(a)), pieces)
+    k = np.arange(len(seg)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    f0, f1 = (k / pieces[seg])[:, None], ((k + 1) / pieces[seg])[:, None]
+    ea, eb = a[seg] + (b[seg] - a[seg]) * f0, a[seg] + (b[seg] - a[seg]) * f1
+    order = np.argsort(0.5 * (ea[:, 0] + eb[:, 0]), kind="stable")
+    return ea[order], eb[order]
 
 
 def _jumps(scene: Scene, i: int, t0: int, t1: int) -> bool:
@@ -140,42 +151,73 @@ def audit(scene: Scene, init_step: int, goal_radius: float) -> dict[int, list[st
     if len(cand) == 0:
         return {}
     first, last = _windows(scene, init, goal_radius)
+    steps = np.arange(scene.num_steps)
+    # (C, T): the valid steps of each candidate's scoring window
+    window = scene.log_valid[cand] & (steps >= first[cand, None]) & (steps <= last[cand, None])
     pos = scene.log_pos.astype(np.float64)
     yaw = scene.log_yaw.astype(np.float64)
     length, width = scene.length.astype(np.float64), scene.width.astype(np.float64)
-    diag = np.hypot(length, width)
-    ea, eb = _edge_segments(scene)
+    found = {"overlap": _overlapping(scene, cand, window, pos, yaw, length, width)}
+    c, t = np.nonzero(window)
+    rows = cand[c]
+    off = _off_road(pos[rows, t], yaw[rows, t], length[rows], width[rows], *_edge_segments(scene))
+    found["offroad"] = {int(i) for i in np.unique(rows[off])}
+    found["jump"] = {int(i) for i in cand if _jumps(scene, i, int(first[i]), int(last[i]))}
+    found["kinematics"] = {int(i) for i in cand if _unfollowable(scene, i, int(first[i]), int(last[i]))}
     out: dict[int, list[str]] = {}
     for i in cand:
-        t0, t1 = int(first[i]), int(last[i])
-        if t1 < t0:
-            continue
-        steps = np.arange(t0, t1 + 1)[scene.log_valid[i, t0:t1 + 1]]
-        reasons = []
-        # overlap: partners present at the same steps, near enough for their boxes to touch
-        present = scene.log_valid[:, steps].T.copy()  # (S, N)
-        present[:, i] = False
-        d = np.linalg.norm(pos[:, steps].transpose(1, 0, 2) - pos[i, steps][:, None], axis=-1)
-        s, j = np.nonzero(present & (d < 0.5 * (diag[i] + diag)[None, :]))
-        if len(s) and boxes_overlap(pos[i, steps[s]], yaw[i, steps[s]], length[i], width[i],
-                                    pos[j, steps[s]], yaw[j, steps[s]], length[j], width[j]).any():
-            reasons.append("overlap")
-        # off-road: the road-edge segments that pass within half a diagonal of the box centre
-        if len(ea):
-            c = pos[i, steps]
-            lo, hi = c.min(0) - 0.5 * diag[i], c.max(0) + 0.5 * diag[i]
-            box = ((np.minimum(ea, eb) <= hi) & (np.maximum(ea, eb) >= lo)).all(-1)
-            sa, sb = ea[box], eb[box]
-            near = _segment_distance(c[:, None], sa[None], sb[None]) < 0.5 * diag[i]
-            s, k = np.nonzero(near)
-            if len(s) and box_crosses_segments(c[s], yaw[i, steps[s]], length[i], width[i], sa[k], sb[k]).any():
-                reasons.append("offroad")
-        if _jumps(scene, i, t0, t1):
-            reasons.append("jump")
-        if _unfollowable(scene, i, t0, t1):
-            reasons.append("kinematics")
+        reasons = [r for r in REASONS if int(i) in found[r]]
         if reasons:
             out[int(i)] = reasons
+    return out
+
+
+def _overlapping(scene, cand, window, pos, yaw, length, width) -> set[int]:
+    """The candidates whose box overlaps another present agent's at a step of their window."""
+    diag = np.hypot(length, width)
+    c, t = np.nonzero(window)  # candidate rows and steps
+    if len(c) == 0:
+        return set()
+    present = scene.log_valid[:, t].T.copy()  # (P, N): who is there at each of those steps
+    present[np.arange(len(c)), cand[c]] = False
+    d = np.linalg.norm(pos[:, t].transpose(1, 0, 2) - pos[cand[c], t][:, None], axis=-1)  # (P, N)
+    p, j = np.nonzero(present & (d < 0.5 * (diag[cand[c], None] + diag[None, :])))
+    if len(p) == 0:
+        return set()
+    i, tt = cand[c[p]], t[p]
+    hit = boxes_overlap(pos[i, tt], yaw[i, tt], length[i], width[i], pos[j, tt], yaw[j, tt], length[j], width[j])
+    return {int(v) for v in np.unique(i[hit])}
+
+
+def _off_road(c, yaw, length, width, ea, eb) -> np.ndarray:
+    """(P,) bool: the boxes (centres c (P, 2), yaw and sizes (P,)) that cross a road-edge segment ea -> eb
+    (`_edge_segments`: at most SEGMENT_M long). Boxes meet segments through a grid whose cells are at
+    least a box's reach: each segment is listed in its midpoint's cell and the eight around it, and a box
+    looks in its own cell only, then tests the segments within half its diagonal exactly."""
+    out = np.zeros(len(c), bool)
+    if len(ea) == 0 or len(c) == 0:
+        return out
+    r = 0.5 * np.hypot(length, width)
+    cell = float(r.max() + 0.5 * SEGMENT_M) + 1e-6
+    mid = 0.5 * (ea + eb)
+    lo = np.minimum(mid.min(0), c.min(0)) - 2 * cell
+    ny = int(np.ceil((np.maximum(mid.max(0), c.max(0))[1] - lo[1]) / cell)) + 3
+    near = np.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)])
+    seg_cells = (np.floor((mid - lo) / cell).astype(np.int64)[:, None, :] + near[None]).reshape(-1, 2)
+    seg_keys = seg_cells[:, 0] * ny + seg_cells[:, 1]
+    seg_of = np.repeat(np.arange(len(ea)), len(near))
+    order = np.argsort(seg_keys, kind="stable")
+    seg_keys, seg_of = seg_keys[order], seg_of[order]
+    box_cells = np.floor((c - lo) / cell).astype(np.int64)
+    box_keys = box_cells[:, 0] * ny + box_cells[:, 1]
+    a, b = np.searchsorted(seg_keys, box_keys, "left"), np.searchsorted(seg_keys, box_keys, "right")
+    n = b - a
+    box = np.repeat(np.arange(len(c)), n)
+    seg = seg_of[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())]
+    close = _segment_distance(c[box], ea[seg], eb[seg]) < r[box]
+    box, seg = box[close], seg[close]
+    hit = box_crosses_segments(c[box], yaw[box], length[box], width[box], ea[seg], eb[seg])
+    out[box[hit]] = True
     return out
 
 
