@@ -2,9 +2,10 @@
 
 One flat float32 row per agent slot: ego features, then `partner_k` partner
 rows, then `road_k` road rows; each partner/road row starts with a 0/1 mask.
-Partners are the nearest present agents within `partner_radius`, nearest
+Partners are the nearest present agents within `partner_radius` and the view
+cone (`view_cos`, the cosine of half its angle; -1 sees all around), nearest
 first; road rows are the nearest road segments (by midpoint) within
-`road_radius`, nearest first, found through the static road grid and a
+`road_radius` and the cone, nearest first, found through the static road grid and a
 bounded max-heap, so the work per agent grows with the road density around
 it, not with the map size.
 
@@ -32,11 +33,20 @@ def to_local(d: wp.vec2, c: float, s: float):
     return wp.vec2(c * d[0] + s * d[1], -s * d[0] + c * d[1])
 
 
+@wp.func
+def in_view(d: wp.vec2, c: float, s: float, view_cos: float):
+    """Whether offset d (world frame) lies in the cone of half-angle acos(view_cos) around heading (c, s)."""
+    if view_cos <= -1.0:
+        return True
+    return c * d[0] + s * d[1] >= view_cos * wp.length(d)
+
+
 @wp.kernel
 def ego_partner_obs_kernel(
     agents_per_world: int,
     partner_k: int,
     partner_radius: float,
+    view_cos: float,
     obs_dim: int,
     dt: float,
     # model
@@ -100,7 +110,7 @@ def ego_partner_obs_kernel(
             continue
         d = pos[j] - p
         d2 = wp.dot(d, d)
-        if d2 >= r2:
+        if d2 >= r2 or not in_view(d, c, s, view_cos):
             continue
         if n == partner_k:
             if d2 >= part_d[sb + n - 1]:
@@ -199,6 +209,7 @@ def road_select_kernel(
     agents_per_world: int,
     road_k: int,
     road_radius: float,
+    view_cos: float,
     sort_here: int,  # 1: leave the candidates sorted (CPU); 0: road_rows_kernel ranks them (GPU)
     slot_mul: int,  # heap layout: element k of slot i at i * slot_mul + k * k_mul
     k_mul: int,
@@ -213,7 +224,8 @@ def road_select_kernel(
     cell_size: float,
     # state
     pos: wp.array(dtype=wp.vec2),
-    # out: the road_k nearest segment midpoints within road_radius (sorted when sort_here)
+    yaw: wp.array(dtype=float),
+    # out: the road_k nearest segment midpoints within road_radius and the view cone (sorted when sort_here)
     heap_d: wp.array(dtype=float),  # (road_k * slots,) m^2
     heap_j: wp.array(dtype=wp.int32),
     road_n: wp.array(dtype=wp.int32),
@@ -237,6 +249,8 @@ def road_select_kernel(
         return
     b = i * slot_mul
     p = pos[i]
+    hc = wp.cos(yaw[i])
+    hs = wp.sin(yaw[i])
     n = int(0)
     r2 = road_radius * road_radius
     bound = r2  # candidates must lie strictly closer than this (the root once road_k are held)
@@ -285,7 +299,7 @@ def road_select_kernel(
             for k in range(cell_start[g], cell_start[g + 1]):
                 mid = seg_mid[k] - p
                 d2 = wp.dot(mid, mid)
-                if d2 >= bound:
+                if d2 >= bound or not in_view(mid, hc, hs, view_cos):
                     continue
                 if n < road_k:
                     heap_d[b + n * k_mul] = d2
@@ -380,7 +394,7 @@ def road_rows_kernel(
 def launch_observations(model, state, control) -> None:
     n, dev = model.num_slots, model.device
     wp.launch(ego_partner_obs_kernel, dim=n, device=dev,
-              inputs=[model.max_agents, model.partner_k, model.partner_radius, model.obs_dim, model.dt,
+              inputs=[model.max_agents, model.partner_k, model.partner_radius, model.view_cos, model.obs_dim, model.dt,
                       model.integrated, model.length, model.width, model.agent_type, model.goal,
                       model.last_step, state.world_step, state.world_done, state.pos, state.yaw, state.vel, state.speed,
                       state.present, state.agent_done, state.ep_collided, state.ep_offroad,
@@ -391,9 +405,9 @@ def launch_observations(model, state, control) -> None:
         ranked = int(model.parallel_road_rows)
         layout = [1, n] if ranked else [model.road_k, 1]
         wp.launch(road_select_kernel, dim=n, device=dev,
-                  inputs=[model.max_agents, model.road_k, model.road_radius, 1 - ranked, *layout, model.integrated, model.seg_mid,
-                          model.grid_origin, model.grid_nx, model.grid_ny, model.grid_cell_offset,
-                          model.cell_start, model.road_cell_size, state.pos],
+                  inputs=[model.max_agents, model.road_k, model.road_radius, model.view_cos, 1 - ranked, *layout,
+                          model.integrated, model.seg_mid, model.grid_origin, model.grid_nx, model.grid_ny,
+                          model.grid_cell_offset, model.cell_start, model.road_cell_size, state.pos, state.yaw],
                   outputs=[state.heap_d, state.heap_j, state.road_n])
         wp.launch(road_rows_kernel, dim=n * model.road_k, device=dev,
                   inputs=[model.road_k, EGO_DIM + model.partner_k * PARTNER_DIM, ranked, *layout, model.integrated, model.seg_a,

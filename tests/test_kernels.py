@@ -310,7 +310,10 @@ def test_goal_reached_off_the_road_is_not_a_goal(device):
 
 
 # --------------------------------------------------------------- observations
-def test_observation_frames_and_nearest_k_match_numpy(device, rng):
+@pytest.mark.parametrize("view_angle", [360.0, 120.0])
+def test_observation_frames_and_nearest_k_match_numpy(device, rng, view_angle):
+    """Partners and road rows: the nearest within their radius and the view cone (a 120-degree one, as
+    GPUDrive's agents see), in the agent's frame, nearest first."""
     roads = [(RoadType.LANE, rng.uniform(-30, 30, (6, 2))), (RoadType.ROAD_EDGE, rng.uniform(-30, 30, (8, 2))),
              (RoadType.CROSSWALK, rng.uniform(-30, 30, (4, 2))), (RoadType.STOP_SIGN, rng.uniform(-30, 30, (1, 2)))]
     types = rng.choice([AgentType.VEHICLE, AgentType.PEDESTRIAN, AgentType.CYCLIST], 25)
@@ -320,7 +323,11 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
     scene.log_pos[:, -1] += 500  # keep goals away
     scene.goal[:] = scene.log_pos[:, -1]
     c = cfg(control="all_agents", partner_k=8, road_k=16, partner_radius=20.0, road_radius=25.0,
-            max_segment_length=3.0)
+            max_segment_length=3.0, view_angle=view_angle)
+    cos_half = np.cos(np.radians(view_angle) / 2)
+
+    def seen(d, yaw):  # offsets d (n, 2) inside the cone around heading yaw
+        return d @ np.array([np.cos(yaw), np.sin(yaw)]) >= cos_half * np.linalg.norm(d, axis=-1) - 1e-9
     sim = Simulator([scene], c, device)
     sim.reset()
     obs_p = sim.obs_partners[0].cpu().numpy()
@@ -329,6 +336,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
     p, y = scene.log_pos[:, INIT], scene.log_yaw[:, INIT]
     a_seg, b_seg, t_seg = (x.copy() for x in ref.scene_segments(scene, 3.0))
     mid = 0.5 * (a_seg + b_seg)
+    hidden = 0  # partners within reach that the cone hides
     for i in range(25):
         g = ref.to_local(scene.goal[i] - p[i], y[i])
         np.testing.assert_allclose(ego[i, 3:5], g, atol=1e-3)
@@ -336,6 +344,8 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
         # partners: nearest 8 within 20 m, nearest first
         d = np.linalg.norm(p - p[i], axis=1)
         d[i] = np.inf
+        hidden += int(((d < 20.0) & ~seen(p - p[i], y[i])).sum())
+        d[~seen(p - p[i], y[i])] = np.inf
         cand = np.argsort(d, kind="stable")
         cand = [j for j in cand if d[j] < 20.0][:8]
         assert obs_p[i, :, 0].sum() == len(cand)
@@ -347,6 +357,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
             np.testing.assert_allclose(row[7:10], [scene.length[j], scene.width[j], types[j]], atol=1e-5)
         # road: nearest 16 segment midpoints within 25 m, nearest first
         dm = np.linalg.norm(mid - p[i], axis=1)
+        dm[~seen(mid - p[i], y[i])] = np.inf
         sel = np.argsort(dm, kind="stable")
         sel = [k for k in sel if dm[k] < 25.0][:16]
         assert obs_r[i, :, 0].sum() == len(sel)
@@ -360,6 +371,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng):
             if ln > 0:
                 np.testing.assert_allclose(row[3:5], ref.to_local(dvec / ln, y[i]), atol=1e-4)
         assert not obs_r[i, len(sel):].any() and not obs_p[i, len(cand):].any()
+    assert (hidden > 0) == (view_angle < 360)
 
 
 def _brute_force_road_rows(sim, scene_list, road_k, radius, max_segment_length):

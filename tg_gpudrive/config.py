@@ -84,6 +84,7 @@ class EngineConfig:
     partner_radius: float = 50.0
     road_k: int = 128
     road_radius: float = 50.0
+    view_angle: float = 360.0  # degrees: the cone around its heading in which an agent sees partners and road
     road_query_radius: float = 5.0  # m, search (and cap) for edge and lane distances
     max_segment_length: float = 5.0  # m, longer road segments are split
     road_cell_size: float = 5.0  # m, static road grid (5 m: fastest measured, BENCHMARKS.md)
@@ -104,6 +105,8 @@ class EngineConfig:
             raise ConfigError(f"max_agents: expected 1..1024, got {self.max_agents}")
         if self.init_steps < 0:
             raise ConfigError("init_steps must be >= 0")
+        if not 0 < self.view_angle <= 360:
+            raise ConfigError(f"view_angle: expected degrees in (0, 360], got {self.view_angle}")
 
     @property
     def num_actions(self) -> int:

@@ -214,14 +214,14 @@ def _off_road(c, yaw, length, width, ea, eb) -> np.ndarray:
     n = b - a
     box = np.repeat(np.arange(len(c)), n)
     seg = seg_of[np.repeat(a - np.cumsum(n) + n, n) + np.arange(n.sum())]
-    close = _segment_distance(c[box], ea[seg], eb[seg]) < r[box]
+    close = segment_distance(c[box], ea[seg], eb[seg]) < r[box]
     box, seg = box[close], seg[close]
     hit = box_crosses_segments(c[box], yaw[box], length[box], width[box], ea[seg], eb[seg])
     out[box[hit]] = True
     return out
 
 
-def _segment_distance(p, a, b) -> np.ndarray:
+def segment_distance(p, a, b) -> np.ndarray:
     ab = b - a
     den = (ab * ab).sum(-1)
     t = np.clip(((p - a) * ab).sum(-1) / np.where(den > 0, den, 1.0), 0.0, 1.0)

@@ -51,6 +51,8 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
     goal_radius, beta, speed_limit, lane_cap                            reward and cost parameters
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
+    view_cos            cos of half the view cone (EngineConfig.view_angle): partners and road
+                        points outside it are not observed; -1 sees all around
     road_query_radius, road_cell_size, seg_pad, collision_cells         road queries and broad phases
     parallel_road_rows  road heaps strided across slots and rows ordered by parallel ranks (True on
                         CUDA), or contiguous heaps heap-sorted by each agent's thread (kernels/observation.py)
@@ -332,6 +334,7 @@ class Model:
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
         self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
+        self.view_cos = float(np.cos(np.radians(cfg.view_angle) / 2))  # cos of half the view cone
         self.obs_dim = obs_dim(cfg)
         self.road_query_radius = float(cfg.road_query_radius)
         self.road_cell_size = float(cfg.road_cell_size)

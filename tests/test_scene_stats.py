@@ -1,0 +1,53 @@
+"""Scene-set statistics against hand-computed values, and the W1 distance against its definition."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tg_gpudrive.evaluation.scene_stats import gap_table, scene_features, set_features, w1
+from tg_gpudrive.scene import make_scene
+from tg_gpudrive.types import AgentType, RoadType
+
+T = 41
+
+
+def street():
+    """A car at 10 m/s along a 3.5 m lane bordered by edges, a parked car and a pedestrian."""
+    t = np.arange(T) * 0.1
+    pos = np.zeros((3, T, 2))
+    pos[0, :, 0] = 10 * t
+    pos[1] = [30.0, 3.0]  # parked
+    pos[2, :, 0], pos[2, :, 1] = 5.0, -4 + 0.5 * t  # walking
+    yaw = np.zeros((3, T))
+    roads = [(RoadType.LANE, [[-20, 0], [80, 0]]), (RoadType.ROAD_EDGE, [[-20, 1.75], [80, 1.75]]),
+             (RoadType.ROAD_EDGE, [[-20, -1.75], [80, -1.75]])]
+    return make_scene(pos, yaw, roads=roads, agent_type=np.array([1, 1, 2]))
+
+
+def test_features_of_a_hand_made_street():
+    f = scene_features(street())
+    np.testing.assert_allclose(f["speed"], 10.0, atol=1e-3)  # the driving car from init_step on
+    np.testing.assert_allclose(f["accel"], 0.0, atol=1e-2)
+    np.testing.assert_allclose(f["curvature"], 0.0, atol=1e-6)
+    np.testing.assert_allclose(f["goal_distance"], [30.0], atol=1e-3)  # from x = 10 at step 10 to x = 40
+    np.testing.assert_allclose(f["route_length"], [30.0], atol=1e-3)
+    assert f["agents"][0] == 3 and f["pedestrians"][0] == 1 and f["cyclists"][0] == 0
+    assert f["controlled"][0] == 1  # the parked car starts at its goal
+    assert f["parked_share"][0] == pytest.approx(0.5)
+    np.testing.assert_allclose(f["lane_width"], 3.5, atol=1e-6)
+    assert f["lanes"][0] == 1
+    # within 50 m of the car's init position (10, 0): 2 x 100 m of edge over a disc of pi 50^2 m^2
+    assert f["edge_density"][0] == pytest.approx(200 / (np.pi * 2500 / 1e4), rel=0.03)
+
+
+def test_w1_is_the_shift_of_a_shifted_sample_and_the_table_ranks_by_distance():
+    x = np.random.default_rng(0).normal(size=500)
+    assert w1(x, x + 2.0) == pytest.approx(2.0)
+    assert w1(x, x) == 0.0
+    ref = set_features([street()])
+    other = {k: v.copy() for k, v in ref.items()}
+    other["speed"] = other["speed"] + 5.0  # only speed moves
+    rows = gap_table({**ref, "speed": np.r_[ref["speed"], 9.0]}, {**other, "speed": np.r_[other["speed"], 14.0]})
+    assert rows[0].feature == "speed" and rows[0].distance > 1
+    assert all(r.distance == 0 or np.isnan(r.distance) for r in rows[1:])

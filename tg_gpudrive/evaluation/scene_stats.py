@@ -1,0 +1,198 @@
+"""How far one scene set is from another: per-feature statistics of the logs and maps, and a distance.
+
+What it is for: measuring the gap between the procedural generator and real WOMD traffic, feature by
+feature, so the generator's largest gaps can be found and closed (scripts/real_gap.py prints the table).
+Every feature is computed from a Scene alone (logs and map), for real and generated scenes alike:
+
+    feature            unit     samples                     definition
+    speed              m/s      vehicle steps               path speed |p_t+1 - p_t| / dt over the steps of the
+                                                            control rule's candidates (vehicles valid at
+                                                            init_step, away from their goal), from init_step on
+    accel              m/s^2    vehicle steps               change of that path speed per step / dt
+    curvature          1/m      vehicle steps               change of path heading / arc, where both arcs
+                                                            are at least 0.5 m
+    goal_distance      m        candidates                  straight line from the init position to the goal
+    route_length       m        candidates                  path length of the log from init_step to its last
+                                                            valid step
+    agents             -        scenes                      agents valid at some step
+    controlled         -        scenes                      the rule's eligible vehicles (engine.control)
+    pedestrians        -        scenes                      pedestrians valid at some step
+    cyclists           -        scenes                      cyclists valid at some step
+    parked_share       -        scenes                      vehicles whose log moves less than 1 m in all,
+                                                            over vehicles
+    edge_density       m/ha     scenes                      road-edge length within 50 m of the candidates'
+                                                            init positions, per hectare of that area
+    lane_width         m        lane points (2 per m)       twice the distance from a lane centre point to the
+                                                            nearest road line or edge, where one is within 4 m
+    lanes              -        scenes                      lane polylines (a proxy for the junction's size)
+
+The distance of a feature is the Wasserstein-1 distance between the two sets' samples divided by the
+first set's standard deviation (scale-free: 1 means the distributions are a standard deviation apart in
+the W1 sense). Must not: touch the engine (this is a function of scenes), or tune anything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import numpy as np
+
+from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.data.log_audit import segment_distance, candidates
+from tg_gpudrive.engine import control
+from tg_gpudrive.scene import Scene
+from tg_gpudrive.types import AgentType, RoadType
+
+FEATURES = ("speed", "accel", "curvature", "goal_distance", "route_length", "agents", "controlled",
+            "pedestrians", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
+UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "goal_distance": "m", "route_length": "m",
+         "edge_density": "m/ha", "lane_width": "m"}
+PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
+EDGE_REACH_M = 50.0  # m around the candidates' init positions where road-edge density is measured
+LANE_SIDE_M = 4.0  # m: a lane's bounding line or edge lies within this of its centre
+
+
+def _kinematics(scene: Scene, rows: np.ndarray, init: int) -> dict[str, np.ndarray]:
+    speed, accel, curv = [], [], []
+    for i in rows:
+        ok = np.nonzero(scene.log_valid[i, init:])[0] + init
+        if len(ok) < 3:
+            continue
+        steps = np.diff(scene.log_pos[i, ok].astype(np.float64), axis=0)
+        dt = np.diff(ok) * scene.dt
+        arc = np.linalg.norm(steps, axis=-1)
+        v = arc / dt
+        speed.append(v)
+        accel.append(np.diff(v) / dt[1:])
+        heading = np.arctan2(steps[:, 1], steps[:, 0])
+        turn = (np.diff(heading) + np.pi) % (2 * np.pi) - np.pi
+        both = (arc[1:] >= 0.5) & (arc[:-1] >= 0.5)
+        curv.append(turn[both] / arc[1:][both])
+    cat = lambda xs: np.concatenate(xs) if xs else np.zeros(0)  # noqa: E731
+    return {"speed": cat(speed), "accel": cat(accel), "curvature": cat(curv)}
+
+
+def _points_along(pts: np.ndarray, spacing: float = 0.5) -> np.ndarray:
+    """Points every `spacing` metres along a polyline (its vertices included)."""
+    if len(pts) < 2:
+        return pts.astype(np.float64)
+    a, b = pts[:-1].astype(np.float64), pts[1:].astype(np.float64)
+    n = np.maximum(np.ceil(np.linalg.norm(b - a, axis=-1) / spacing), 1).astype(np.int64)
+    seg = np.repeat(np.arange(len(a)), n)
+    f = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
+    return np.concatenate([a[seg] + (b[seg] - a[seg]) * f[:, None], b[-1:]])
+
+
+def _lane_widths(scene: Scene, rng: np.random.Generator, per_scene: int = 400) -> np.ndarray:
+    bounds_a, bounds_b, lanes = [], [], []
+    for kind, pts in scene.polylines():
+        if kind in (RoadType.ROAD_LINE, RoadType.ROAD_EDGE) and len(pts) >= 2:
+            bounds_a.append(pts[:-1])
+            bounds_b.append(pts[1:])
+        elif kind == RoadType.LANE and len(pts) >= 2:
+            lanes.append(_points_along(pts))
+    if not bounds_a or not lanes:
+        return np.zeros(0)
+    a, b = np.concatenate(bounds_a).astype(np.float64), np.concatenate(bounds_b).astype(np.float64)
+    p = np.concatenate(lanes)
+    p = p[rng.choice(len(p), min(per_scene, len(p)), replace=False)]
+    d = _nearest_segment(p, a, b)
+    return 2 * d[d < LANE_SIDE_M]
+
+
+def _nearest_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, chunk: int = 256) -> np.ndarray:
+    out = np.empty(len(p))
+    for k in range(0, len(p), chunk):
+        out[k:k + chunk] = segment_distance(p[k:k + chunk, None], a[None], b[None]).min(-1)
+    return out
+
+
+def _edge_density(scene: Scene, centres: np.ndarray) -> float:
+    """Road-edge metres within EDGE_REACH_M of `centres`, per hectare of the area within reach (sampled
+    on a 5 m grid: an edge point counts once however many centres it is near)."""
+    if len(centres) == 0:
+        return float("nan")
+    edges = [_points_along(pts, 1.0) for kind, pts in scene.polylines() if kind == RoadType.ROAD_EDGE]
+    lo, hi = centres.min(0) - EDGE_REACH_M, centres.max(0) + EDGE_REACH_M
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0], 5.0), np.arange(lo[1], hi[1], 5.0))
+    grid = np.stack([gx.ravel(), gy.ravel()], -1)
+    near = lambda q: (np.linalg.norm(q[:, None] - centres[None], axis=-1) < EDGE_REACH_M).any(-1)  # noqa: E731
+    area_ha = near(grid).sum() * 25.0 / 1e4
+    metres = sum(int(near(e).sum()) for e in edges) if edges else 0  # 1 m between edge points
+    return metres / area_ha if area_ha > 0 else float("nan")
+
+
+def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0) -> dict[str, np.ndarray]:
+    """Every feature of the module docstring for one scene: arrays of samples (one per scene for the
+    per-scene features)."""
+    cfg = cfg or EngineConfig()
+    init = min(cfg.init_steps, scene.num_steps - 1)
+    cand = np.nonzero(candidates(scene, init, cfg.goal_radius))[0]
+    out = _kinematics(scene, cand, init)
+    goal_d, route = [], []
+    for i in cand:
+        ok = np.nonzero(scene.log_valid[i, init:])[0] + init
+        goal_d.append(float(np.linalg.norm(scene.goal[i] - scene.log_pos[i, init])))
+        route.append(float(np.linalg.norm(np.diff(scene.log_pos[i, ok], axis=0), axis=-1).sum()))
+    out["goal_distance"], out["route_length"] = np.asarray(goal_d), np.asarray(route)
+    present = scene.log_valid.any(1)
+    vehicles = present & (scene.agent_type == AgentType.VEHICLE)
+    moved = np.array([np.ptp(scene.log_pos[i][scene.log_valid[i]], axis=0).max() if present[i] else 0.0
+                      for i in range(scene.num_agents)])
+    per_scene = {
+        "agents": present.sum(),
+        "controlled": control.eligible(scene, cfg).sum(),
+        "pedestrians": (present & (scene.agent_type == AgentType.PEDESTRIAN)).sum(),
+        "cyclists": (present & (scene.agent_type == AgentType.CYCLIST)).sum(),
+        "parked_share": (vehicles & (moved < PARKED_M)).sum() / max(vehicles.sum(), 1),
+        "edge_density": _edge_density(scene, scene.log_pos[cand, init].astype(np.float64)),
+        "lanes": (scene.road_type == RoadType.LANE).sum(),
+    }
+    out.update({k: np.asarray([float(v)]) for k, v in per_scene.items()})
+    out["lane_width"] = _lane_widths(scene, np.random.default_rng(seed))
+    return out
+
+
+def set_features(scenes: Sequence[Scene], cfg: EngineConfig | None = None) -> dict[str, np.ndarray]:
+    """`scene_features` of every scene, pooled per feature (NaN samples dropped)."""
+    pooled: dict[str, list[np.ndarray]] = {f: [] for f in FEATURES}
+    for k, sc in enumerate(scenes):
+        for f, v in scene_features(sc, cfg, seed=k).items():
+            pooled[f].append(v)
+    out = {f: np.concatenate(v) if v else np.zeros(0) for f, v in pooled.items()}
+    return {f: v[np.isfinite(v)] for f, v in out.items()}
+
+
+def w1(x: np.ndarray, y: np.ndarray) -> float:
+    """Wasserstein-1 distance between two samples (the area between their empirical CDFs)."""
+    x, y = np.sort(np.asarray(x, np.float64)), np.sort(np.asarray(y, np.float64))
+    if len(x) == 0 or len(y) == 0:
+        return float("nan")
+    grid = np.concatenate([x, y])
+    grid.sort()
+    fx = np.searchsorted(x, grid[:-1], "right") / len(x)
+    fy = np.searchsorted(y, grid[:-1], "right") / len(y)
+    return float(np.sum(np.abs(fx - fy) * np.diff(grid)))
+
+
+@dataclasses.dataclass(frozen=True)
+class Gap:
+    feature: str
+    ref_median: float
+    other_median: float
+    ref_n: int
+    other_n: int
+    distance: float  # W1 / std of the reference samples
+
+
+def gap_table(ref: dict[str, np.ndarray], other: dict[str, np.ndarray]) -> list[Gap]:
+    """One Gap per feature, largest distance first."""
+    rows = []
+    for f in FEATURES:
+        x, y = ref[f], other[f]
+        sd = float(np.std(x)) if len(x) > 1 else float("nan")
+        dist = w1(x, y) / sd if sd and sd > 0 else float("nan")
+        rows.append(Gap(f, float(np.median(x)) if len(x) else float("nan"),
+                        float(np.median(y)) if len(y) else float("nan"), len(x), len(y), dist))
+    return sorted(rows, key=lambda g: -np.nan_to_num(g.distance, nan=-1.0))
