@@ -37,8 +37,9 @@ def test_features_of_a_hand_made_street():
     assert f["parked_share"][0] == pytest.approx(0.5)
     np.testing.assert_allclose(f["lane_width"], 3.5, atol=1e-6)
     assert f["lanes"][0] == 1
-    # within 50 m of the car's init position (10, 0): 2 x 100 m of edge over a disc of pi 50^2 m^2
-    assert f["edge_density"][0] == pytest.approx(200 / (np.pi * 2500 / 1e4), rel=0.03)
+    # within 50 m of the car's init position (10, 0): both edges from x = -20 (their start) to 60, 2 x 80 m,
+    # over a disc of pi 50^2 m^2 (sampled on a 5 m grid: a few per cent)
+    assert f["edge_density"][0] == pytest.approx(160 / (np.pi * 2500 / 1e4), rel=0.05)
 
 
 def test_w1_is_the_shift_of_a_shifted_sample_and_the_table_ranks_by_distance():
