@@ -137,11 +137,33 @@ class EngineConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class AugmentConfig:
+    """Training-scene augmentation (tg_gpudrive.data.augment): every knob off by default."""
+
+    mirror: float = 0.0  # probability of mirroring a scene across its x axis
+    rotate: bool = False  # turn each scene by a uniform random angle
+    start_shift: int = 0  # start each log up to this many steps later
+    perturb_pos: float = 0.0  # m, std of an offset of each candidate vehicle's warm-up positions
+    perturb_yaw: float = 0.0  # rad, std of a turn of each candidate vehicle's warm-up headings
+    control_fraction: float = 1.0  # each policy agent stays the policy's with this probability
+
+    def __post_init__(self):
+        if not 0.0 <= self.mirror <= 1.0:
+            raise ConfigError(f"augment.mirror: expected a probability in [0, 1], got {self.mirror}")
+        if not 0.0 < self.control_fraction <= 1.0:
+            raise ConfigError(f"augment.control_fraction: expected (0, 1], got {self.control_fraction}")
+        for name in ("start_shift", "perturb_pos", "perturb_yaw"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"augment.{name}: expected >= 0, got {getattr(self, name)}")
+
+
+@dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """CCE-MAPPO training run (tg-gpudrive train). YAML files live in configs/train/."""
 
     env: EngineConfig = EngineConfig()
     scenes: str = "procedural:all"  # scene spec (tg_gpudrive.data.sources)
+    augment: AugmentConfig = AugmentConfig()  # augmentation of the drawn scenes (tg_gpudrive.data.augment)
     num_scenes: int = 1000  # distinct scenes drawn from the source
     num_worlds: int = 64
     resample_every: int = 0  # updates between scene resamples (0: never)

@@ -43,6 +43,7 @@ from tqdm import tqdm
 from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
+from tg_gpudrive.data.augment import augment_scene, subset_mask
 from tg_gpudrive.data.sources import resolve_scenes, source_report
 from tg_gpudrive.engine.control import cap_controlled, control_masks
 from tg_gpudrive.engine.model import sized_for
@@ -154,7 +155,8 @@ class Trainer:
         else:
             scenes = self.sampler.sample()
         self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_control`)
-        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=self._control(scenes))
+        scenes, masks = self._worlds(scenes)
+        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=masks)
         self.actor, self.critic = build_models(cfg, self.sim, self.device)
         if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
             self.actor.load_state_dict(ck["actor"])
@@ -223,24 +225,30 @@ class Trainer:
         np.random.seed(seed)
         torch.manual_seed(seed)
 
-    def _control(self, scenes):
-        """The run's control masks, at most env.max_agents policy agents per world (the rest replay their
-        logs, counted in `left_to_replay`); the engine itself gives every agent a slot (`sized_for`)."""
-        c = self.cfg
+    def _worlds(self, drawn):
+        """The sampler's scenes augmented (`augment`) and the run's control masks over them: a random
+        subset (augment.control_fraction) of the agents its control mode picks, at most env.max_agents per
+        world (the rest replay their logs, counted in `left_to_replay`); the engine itself gives every
+        agent a slot (`sized_for`). The draws are seeded by the sampler's position, so a resumed run
+        rebuilds the same worlds."""
+        c, aug = self.cfg, self.cfg.augment
+        rng = np.random.default_rng([c.seed, self.rank, self.sampler.draws])
+        scenes = [augment_scene(s, aug, c.env.init_steps, c.env.goal_radius, rng) for s in drawn]
         masks, left = [], 0
         for scene, m in zip(scenes, control_masks(scenes, c.env, c.control, c.control_k, c.control_ids)):
-            m, n = cap_controlled(scene, m, c.env.max_agents, c.env.init_steps)
+            m, n = cap_controlled(scene, subset_mask(m, aug.control_fraction, rng), c.env.max_agents,
+                                  c.env.init_steps)
             masks.append(m)
             left += n
         if left:
             log.warning("%d policy agents beyond env.max_agents=%d per world replay their logs in this batch",
                         left, c.env.max_agents)
         self.left_to_replay += left
-        return masks
+        return scenes, masks
 
     def _resample(self) -> None:
-        scenes = self.sampler.sample()
-        self.sim.set_scenes(scenes, controlled=self._control(scenes), config=sized_for(self.cfg.env, scenes))
+        scenes, masks = self._worlds(self.sampler.sample())
+        self.sim.set_scenes(scenes, controlled=masks, config=sized_for(self.cfg.env, scenes))
 
     # ------------------------------------------------------------- rollout
     def _amp(self):

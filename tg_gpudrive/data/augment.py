@@ -1,0 +1,120 @@
+"""Augmentation that stretches a few real scenes into many training worlds.
+
+Each knob (`AugmentConfig`, the `augment:` section of a training config) makes a new Scene from one
+the sampler drew, never changing the source's own:
+
+    knob              what it does to a scene
+    mirror            with this probability, mirror it across its x axis (y -> -y, headings and
+                      velocities with it): left turns become right turns, and the driving side flips
+    rotate            turn it by a uniform random angle about its origin (the whole map and every log)
+    start_shift       start its log up to this many steps later (a uniform draw; the first k steps are
+                      cut, so control begins k steps into the original log), keeping at least
+                      MIN_PLAY_STEPS after init_step
+    perturb_pos       m: Gaussian noise on each candidate vehicle's position over the warm-up steps up to
+                      init_step (one offset per vehicle, so its warm-up motion is kept)
+    perturb_yaw       rad: the same for its heading (velocities turn with it)
+    control_fraction  (applied to the control masks, `subset_mask`): each of the policy's agents stays
+                      the policy's with this probability, the others replay their logs; at least one
+                      stays
+
+Geometry-preserving transforms (mirror, rotate) keep a scene's cached log audit; the others drop it, so
+the control rule's audit is recomputed on the new logs. Must not: touch the engine, or mutate its input.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tg_gpudrive.config import AugmentConfig
+from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, candidates
+from tg_gpudrive.scene import Scene
+
+__all__ = ["augment_scene", "mirror", "rotate", "shift_start", "perturb_start", "subset_mask"]
+
+_XY_FIELDS = ("log_pos", "log_vel", "goal", "road_points", "tl_stop_point")
+
+
+def _transform(scene: Scene, matrix: np.ndarray, yaw) -> Scene:
+    """A copy of `scene` with every position, velocity and goal mapped by the 2 x 2 `matrix` (so is a
+    procedural scene's conflict point) and its valid headings by `yaw(headings)`."""
+    s = scene.copy()
+    for name in _XY_FIELDS:
+        arr = getattr(s, name)
+        arr[...] = (arr.astype(np.float64) @ matrix.T).astype(arr.dtype)
+    wrapped = (yaw(s.log_yaw.astype(np.float64)) + np.pi) % (2 * np.pi) - np.pi
+    s.log_yaw[:] = np.where(s.log_valid, wrapped, 0.0)
+    if s.metadata.get("conflict_point") is not None:
+        s.metadata["conflict_point"] = (np.asarray(s.metadata["conflict_point"], np.float64) @ matrix.T).tolist()
+    return s
+
+
+def mirror(scene: Scene) -> Scene:
+    """`scene` mirrored across its x axis."""
+    return _transform(scene, np.diag([1.0, -1.0]), lambda yaw: -yaw)
+
+
+def rotate(scene: Scene, angle: float) -> Scene:
+    """`scene` turned by `angle` (rad) about its origin."""
+    c, sn = np.cos(angle), np.sin(angle)
+    return _transform(scene, np.array([[c, -sn], [sn, c]]), lambda yaw: yaw + angle)
+
+
+def shift_start(scene: Scene, k: int) -> Scene:
+    """`scene` with its first `k` logged steps cut."""
+    if k <= 0:
+        return scene
+    s = scene.copy()
+    for name in ("log_pos", "log_yaw", "log_vel", "log_valid"):
+        setattr(s, name, np.ascontiguousarray(getattr(s, name)[:, k:]))
+    s.tl_state = np.ascontiguousarray(s.tl_state[k:])
+    s.metadata.pop("log_audit", None)
+    s.metadata["start_shift"] = int(k)
+    return s
+
+
+def perturb_start(scene: Scene, init_step: int, goal_radius: float, pos_std: float, yaw_std: float,
+                  rng: np.random.Generator) -> Scene:
+    """`scene` with the warm-up (steps up to `init_step`) of its candidate vehicles moved by one Gaussian
+    offset each (`pos_std` m) and turned by one Gaussian angle each (`yaw_std` rad) about their position."""
+    if pos_std <= 0 and yaw_std <= 0:
+        return scene
+    s = scene.copy()
+    init = min(init_step, s.num_steps - 1)
+    rows = np.nonzero(candidates(s, init, goal_radius))[0]
+    for i in rows:
+        ok = s.log_valid[i, :init + 1]
+        dp = rng.normal(0.0, pos_std, 2) if pos_std > 0 else np.zeros(2)
+        da = rng.normal(0.0, yaw_std) if yaw_std > 0 else 0.0
+        c, sn = np.cos(da), np.sin(da)
+        s.log_pos[i, :init + 1][ok] += dp.astype(np.float32)
+        v = s.log_vel[i, :init + 1][ok].astype(np.float64)
+        s.log_vel[i, :init + 1][ok] = np.stack([c * v[:, 0] - sn * v[:, 1], sn * v[:, 0] + c * v[:, 1]], -1)
+        s.log_yaw[i, :init + 1][ok] = (s.log_yaw[i, :init + 1][ok] + da + np.pi) % (2 * np.pi) - np.pi
+    s.metadata.pop("log_audit", None)
+    return s
+
+
+def augment_scene(scene: Scene, cfg: AugmentConfig, init_step: int, goal_radius: float,
+                  rng: np.random.Generator) -> Scene:
+    """One augmented copy of `scene` (the scene itself when every knob is off)."""
+    out = scene
+    if cfg.start_shift > 0:
+        room = scene.num_steps - (init_step + 1 + MIN_PLAY_STEPS)
+        out = shift_start(out, int(rng.integers(0, min(cfg.start_shift, max(room, 0)) + 1)))
+    if cfg.mirror > 0 and rng.random() < cfg.mirror:
+        out = mirror(out)
+    if cfg.rotate:
+        out = rotate(out, float(rng.uniform(-np.pi, np.pi)))
+    out = perturb_start(out, init_step, goal_radius, cfg.perturb_pos, cfg.perturb_yaw, rng)
+    return out
+
+
+def subset_mask(mask: np.ndarray, fraction: float, rng: np.random.Generator) -> np.ndarray:
+    """`mask` keeping each of its agents with probability `fraction`, at least one when it has any."""
+    mask = np.asarray(mask, bool)
+    if fraction >= 1.0 or not mask.any():
+        return mask
+    keep = mask & (rng.random(mask.shape) < fraction)
+    if not keep.any():
+        keep[rng.choice(np.nonzero(mask)[0])] = True
+    return keep
