@@ -3,18 +3,23 @@
 # with and without the 120-degree view cone, side by side on one GPU; then evaluate them, the shipped policy and
 # the expert replay on held-out real scenes in every collision mode, and the policies on held-out procedural
 # scenes (seed 90000, the procedural bar).
-#   scripts/gpu_real.sh TRAIN_STORE HELDOUT_STORE OUT_DIR [TIME_LIMIT_S]
-# OUT_DIR gets rates.jsonl (one evaluation per line), the runs' metrics and curves, and their policies.
+#   (cd /tmp && bash REPO/scripts/gpu_real.sh TRAIN_STORE HELDOUT_STORE OUT_DIR [TIME_LIMIT_S])
+# Run it outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl
+# (one evaluation per line), the runs' curves and a tarball of their metrics, configs and checkpoints.
 set -uo pipefail
 train=$1 held=$2 out=$3 tl=${4:-270}
+repo=$(cd "$(dirname "$0")/.." && pwd)
+runs=${RUNS:-/tmp/runs}
+phase=${PHASE:-all}  # train | eval | all: the two halves fit one device call each
 tg="python3 -m tg_gpudrive.cli"
 mix="mix:procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]=0.5,$train=0.5"
 mkdir -p "$out"
-for v in 360 120; do
-  $tg train --config configs/train/real_mix.yaml --set "scenes=$mix" --set time_limit_s="$tl" \
-    --set env.view_angle=$v --out runs/real_$v --overwrite --json > "$out/train_$v.json" 2> "$out/train_$v.log" &
+[ "$phase" = eval ] || for v in 360 120; do
+  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$mix" --set time_limit_s="$tl" \
+    --set env.view_angle=$v --out "$runs/real_$v" --overwrite --json > "$out/train_$v.json" 2> "$out/train_$v.log" &
 done
 wait
+[ "$phase" = train ] && { tail -n 3 "$out"/train_*.log; exit 0; }
 rates() {  # who scenes extra...
   local who=$1 scenes=$2; shift 2
   $tg evaluate $who --scenes "$scenes" --device cuda --seed 0 --json "$@" 2>/dev/null | tail -1 |
@@ -22,16 +27,16 @@ rates() {  # who scenes extra...
 }
 for mode in ignore stop remove; do
   rates "--policy expert" "$held" --episodes 17 --collision-mode $mode
-  for who in shipped runs/real_360 runs/real_120; do
+  for who in shipped "$runs/real_360" "$runs/real_120"; do
     rates "--checkpoint $who" "$held" --episodes 17 --collision-mode $mode
   done
 done
-for who in shipped runs/real_360 runs/real_120; do
+for who in shipped "$runs/real_360" "$runs/real_120"; do
   rates "--checkpoint $who" procedural:all --num-scenes 256 --episodes 256
 done
 for v in 360 120; do
-  cp runs/real_$v/curves.png "$out/curves_$v.png"
-  python3 -c "import torch,sys; ck=torch.load('runs/real_$v/checkpoint.pt', map_location='cpu', weights_only=False); print(sorted(ck))" > "$out/ck_keys_$v.txt" 2>&1
+  cp "$runs/real_$v/curves.png" "$out/curves_$v.png"
 done
-tar czf "$out/runs.tgz" runs/real_360/metrics.csv runs/real_120/metrics.csv runs/real_360/config.json runs/real_120/config.json runs/real_360/checkpoint.pt runs/real_120/checkpoint.pt
+tar czf "$out/runs.tgz" -C "$runs" real_360/metrics.csv real_120/metrics.csv real_360/config.json real_120/config.json \
+  real_360/checkpoint.pt real_120/checkpoint.pt
 ls -la "$out"
