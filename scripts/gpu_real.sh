@@ -5,7 +5,7 @@
 # scenes (seed 90000, the procedural bar).
 #   (cd /tmp && bash REPO/scripts/gpu_real.sh TRAIN_STORE HELDOUT_STORE OUT_DIR [TIME_LIMIT_S])
 # Run it outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl
-# (one evaluation per line), the runs' curves and a tarball of their metrics, configs and checkpoints.
+# (one evaluation per line), the runs' curves and a tarball of their metrics and configs.
 set -uo pipefail
 train=$1 held=$2 out=$3 tl=${4:-270}
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -37,6 +37,5 @@ done
 for v in 360 120; do
   cp "$runs/real_$v/curves.png" "$out/curves_$v.png"
 done
-tar czf "$out/runs.tgz" -C "$runs" real_360/metrics.csv real_120/metrics.csv real_360/config.json real_120/config.json \
-  real_360/checkpoint.pt real_120/checkpoint.pt
+tar czf "$out/runs.tgz" -C "$runs" real_360/metrics.csv real_120/metrics.csv real_360/config.json real_120/config.json
 ls -la "$out"

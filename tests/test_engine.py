@@ -146,7 +146,7 @@ def test_same_inputs_same_state_on_cpu():
         g = torch.Generator().manual_seed(7)
         for _ in range(20):
             sim.step(torch.randint(0, sim.num_actions, (3, 8), generator=g, dtype=torch.int32))
-        runs.append(sim.snapshot())
+        runs.append({**sim.snapshot(), "obs": sim.obs.numpy().copy()})  # obs: derived, not in snapshots
     for name in runs[0]:
         if name in ("grid_items",):  # bucket order comes from atomics; contents are compared below
             continue
@@ -393,3 +393,19 @@ def test_batched_road_tables_match_the_per_scene_reference(womd_scenes, device):
         np.testing.assert_array_equal(getattr(c, f).cpu().numpy(), getattr(t, f).cpu().numpy(), err_msg=f)
     for f in ("origin", "nx", "ny", "cell_offset", "segments"):
         np.testing.assert_array_equal(getattr(c, f), getattr(t, f), err_msg=f)
+
+
+def test_snapshots_leave_derived_fields_out_and_restore_recomputes_them():
+    scenes = [head_on_scene(), crossing_scene()]
+    cfg = EngineConfig(replay_infeasible=False, max_agents=8, control="all_agents", init_steps=2)
+    sim = Simulator(scenes, cfg, "cpu")
+    sim.reset()
+    for _ in range(5):
+        sim.step(torch.full((2, 8), cfg.noop_index, dtype=torch.int32))
+    snap, obs, active = sim.snapshot(), sim.obs.clone(), sim.active.clone()
+    assert not set(snap) & Simulator.DERIVED and "pos" in snap
+    other = Simulator(scenes, cfg, "cpu")
+    other.reset()
+    other.restore(snap)
+    torch.testing.assert_close(other.obs, obs, rtol=0, atol=0)
+    torch.testing.assert_close(other.active, active, rtol=0, atol=0)

@@ -385,16 +385,31 @@ class Simulator(StepState[torch.Tensor]):
                 groups[group] += arr.capacity
         return groups
 
+    # State fields that are functions of the others: the observations (and the action mask the same kernel
+    # writes) and the broad phases' scratch. Snapshots leave them out (the observations alone are most of
+    # a State: with real scenes' slot counts, hundreds of MB) and `restore` recomputes them.
+    DERIVED = frozenset({"obs", "active", "agent_cell", "grid_count", "grid_start", "grid_fill", "grid_items",
+                         "part_d", "part_j", "heap_d", "heap_j", "road_n"})
+
     def snapshot(self) -> dict[str, np.ndarray]:
-        """A host copy of the whole State, keyed by field name (tests, debugging, determinism checks)."""
-        return {f.name: getattr(self.state, f.name).numpy().copy() for f in dataclasses.fields(self.state)}
+        """A host copy of the State but its DERIVED fields, keyed by field name (checkpoints, determinism
+        checks)."""
+        return {f.name: getattr(self.state, f.name).numpy().copy() for f in dataclasses.fields(self.state)
+                if f.name not in self.DERIVED}
 
     def restore(self, snapshot: dict[str, np.ndarray]) -> None:
-        """Load a State saved by `snapshot()` (same scenes and config): exact resume mid-episode."""
+        """Load a State saved by `snapshot()` (same scenes and config), then recompute its DERIVED fields:
+        exact resume mid-episode."""
         if "world_step" not in snapshot and "step" in snapshot:  # saved before the field was renamed
             snapshot = {**snapshot, "world_step": snapshot["step"]}
         for f in dataclasses.fields(self.state):
+            if f.name in self.DERIVED:
+                continue
             arr = getattr(self.state, f.name)
             if f.name not in snapshot or tuple(snapshot[f.name].shape) != tuple(arr.numpy().shape):
                 raise ValueError(f"snapshot does not match this simulator's State at field '{f.name}'")
             arr.assign(snapshot[f.name])
+        with wp.ScopedDevice(self.device):
+            self._sync_in()
+            launch_observations(self.model, self.state, self.control)
+            self._sync_out()
