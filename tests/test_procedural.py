@@ -447,3 +447,40 @@ def test_kerb_ramp_keeps_the_turned_box_off_the_kerb():
     ang = np.arctan(d * 6 * x * (1 - x) / 10.0)
     reach = d * x * x * (3 - 2 * x) + 2.5 * np.sin(ang) + 1.0 * np.cos(ang)
     assert reach.max() == pytest.approx(4.1, abs=2e-3)
+
+
+def test_sidewalk_pedestrians_keep_off_the_lanes_and_touch_nobody():
+    from tg_gpudrive.data.log_audit import audit, boxes_overlap
+    from tg_gpudrive.data.procedural.generator import WALKER_LANE_CLEAR, WALKER_SPEED
+
+    p = ProceduralParams(pedestrians=5.0, parking=0.8)
+    total = 0
+    for k, kind in enumerate(SCENARIO_TYPES):
+        sc = generate_scene(kind, 40 + k, p)
+        walk = np.nonzero(sc.agent_type == AgentType.PEDESTRIAN)[0]
+        total += len(walk)
+        assert sc.metadata["num_pedestrians"] == len(walk)
+        if not len(walk):
+            continue
+        lanes = np.concatenate([pts for kind_, pts in sc.polylines() if kind_ == RoadType.LANE])
+        xy = sc.log_pos[walk].reshape(-1, 2)
+        # lane centre points lie at most 0.5 m apart: the clearance holds up to that sampling
+        assert np.linalg.norm(xy[:, None] - lanes[None], axis=-1).min() > WALKER_LANE_CLEAR - 0.3
+        speed = np.linalg.norm(sc.log_vel[walk], axis=-1)
+        assert speed.max() <= WALKER_SPEED[1] + 1e-5
+        for t in range(0, sc.num_steps, 10):  # nobody's box touches a pedestrian's
+            for i in walk:
+                others = np.arange(sc.num_agents) != i
+                hit = boxes_overlap(sc.log_pos[i, t], sc.log_yaw[i, t], sc.length[i], sc.width[i],
+                                    sc.log_pos[others, t], sc.log_yaw[others, t], sc.length[others], sc.width[others])
+                assert not hit.any(), (kind, i, t)
+        assert audit(sc, 10, 2.0) == {}  # no vehicle's log meets a pedestrian
+    assert total >= 12  # about five a scene, a few left out where they would not fit
+
+
+def test_no_pedestrians_leaves_scenes_bit_for_bit():
+    a = generate_scene("dual_lane_intersection", 7)
+    b = generate_scene("dual_lane_intersection", 7, ProceduralParams(pedestrians=0.0))
+    np.testing.assert_array_equal(a.log_pos, b.log_pos)
+    with pytest.raises(ValueError, match="pedestrians"):
+        ProceduralParams(pedestrians=-1.0)

@@ -46,6 +46,12 @@ PARK_FILL = (0.45, 0.95)  # fraction of a strip's spaces that hold a car, drawn 
 PARK_GAP = (0.8, 2.5)  # m between consecutive parked cars
 PARK_SPACE = (4.5, 7.0)  # m of an empty space
 PARK_KERB_CLEAR = 0.1  # m a parked box keeps from the kerb (and may reach over the lane edge)
+_WALKER_STREAM = 0xF007  # third seed word of the pedestrians' stream
+WALKER_SIZE = 0.8  # m, a pedestrian's box is this square (WOMD pedestrians: about 0.9 x 0.9)
+WALKER_KERB = (1.0, 3.0)  # m from the kerb, on the side away from the lanes
+WALKER_SPEED = (0.8, 1.6)  # m/s of those who walk
+WALKER_STAND = 0.3  # share who stand still
+WALKER_LANE_CLEAR = 2.5  # m a pedestrian keeps from every lane centre line
 
 SCENARIO_TYPES = ("merge", "dual_lane_intersection", "t_junction", "dense_intersection", "roundabout", "y_junction")
 
@@ -87,9 +93,15 @@ class ProceduralParams:
                     by 0.5-1 x the lane's room, wherever their route is straight; a parked car that
                     would still come within the check margin of a moving one is dropped.
 
+    pedestrians     mean number of pedestrians on the sidewalks (a Poisson draw per scene): each
+                    stands (WALKER_STAND) or walks along a kerb, 1-3 m beyond it, away from every
+                    lane; one that would touch a kerb, a vehicle or another pedestrian is left out.
+                    Real WOMD scenes hold 2 (median) pedestrians; procedural ones none by default.
+
     Street furniture (parking, stop lines, kerb stops, lane offsets) is drawn from its own random
-    stream: with parking = 0, stop_lines = 0 and lane_offset = 0 (kerb stops need parking) every scene
-    is what it was before these knobs existed, bit for bit.
+    stream, pedestrians from another: with parking = 0, stop_lines = 0, lane_offset = 0 and
+    pedestrians = 0 (kerb stops need parking) every scene is what it was before these knobs
+    existed, bit for bit.
     """
 
     size_scale: float = 1.0
@@ -114,6 +126,7 @@ class ProceduralParams:
     kerb_stops: float = 0.0
     lane_offset: float = 0.0
     park_reach: float = 0.0
+    pedestrians: float = 0.0
 
     def __post_init__(self):
         checks = [
@@ -134,6 +147,7 @@ class ProceduralParams:
             (0 <= self.max_parked <= 128, "max_parked must be in [0, 128]"),
             (0.0 <= self.lane_offset <= 1.0, "lane_offset must be in [0, 1] m"),
             (0.0 <= self.park_reach <= 2.0, "park_reach must be in [0, 2] m"),
+            (0.0 <= self.pedestrians <= 32.0, "pedestrians must be in [0, 32] (a mean per scene)"),
         ]
         for ok, msg in checks:
             if not ok:
@@ -200,7 +214,10 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
                 if kerb is not None:
                     veh, ro, dropped = kerb, ro_k, dropped + dropped_k
             parked = park_cars(m, street, ro, veh, p.max_parked, p.park_reach)
-            return _export(scenario_type, int(seed), p, m, veh, ro, len(dropped), parked, hold)
+            walkers = walk_sidewalks(m, np.random.default_rng([SCENARIO_TYPES.index(scenario_type),
+                                                               int(seed) % (1 << 64), _WALKER_STREAM]),
+                                     p.pedestrians, ro, veh, parked, p.dt)
+            return _export(scenario_type, int(seed), p, m, veh, ro, len(dropped), parked, hold, walkers)
         boost *= 1.2
     raise RuntimeError(f"procedural {scenario_type} seed {seed}: no valid scene after 12 attempts")
 
@@ -274,6 +291,78 @@ def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int
     return Parked(xy[keep], h[keep], L[keep], W[keep])
 
 
+# ----------------------------------------------------------------------------- pedestrians
+@dataclass
+class Walkers:
+    """Pedestrians on the sidewalks: (K, T) poses in the map frame."""
+
+    xy: np.ndarray  # (K, T, 2) m
+    yaw: np.ndarray  # (K, T) rad
+    speed: np.ndarray  # (K,) m/s
+
+    def __len__(self) -> int:
+        return len(self.speed)
+
+
+def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, parked: Parked,
+                   dt: float) -> Walkers:
+    """Poisson(`mean`) pedestrians, each standing or walking in a straight line along a kerb, 1-3 m
+    beyond it on the side away from the lanes; those whose box would touch a kerb, come within
+    WALKER_LANE_CLEAR of a lane centre line, or touch a vehicle, a parked car or an earlier pedestrian
+    at any step are left out (up to four tries for each)."""
+    n, T = ro.yaw.shape
+    none = Walkers(np.zeros((0, T, 2)), np.zeros((0, T)), np.zeros(0))
+    want = int(rng.poisson(mean)) if mean > 0 else 0
+    if want == 0 or not m.curbs:
+        return none
+    kerbs = [c.sample()[0] for c in m.curbs]
+    kerbs = [k for k in kerbs if len(k) >= 3]
+    lanes = np.concatenate([lane.path.sample()[0] for lane in m.lanes])
+    segs = m.curb_segments()
+    half = WALKER_SIZE / 2
+    others_xy = [ro.xy, np.repeat(parked.xy[:, None], T, 1)]
+    others_yaw = [ro.yaw, np.repeat(parked.yaw[:, None], T, 1)]
+    others_l, others_w = [veh.length, parked.length], [veh.width, parked.width]
+    out_xy, out_yaw, out_v = [], [], []
+    t = np.arange(T) * dt
+    for _ in range(4 * want):
+        if len(out_v) == want or not kerbs:
+            break
+        pts = kerbs[int(rng.integers(len(kerbs)))]
+        k = int(rng.integers(1, len(pts) - 1))
+        d = pts[k + 1] - pts[k - 1]
+        d = d / max(float(np.linalg.norm(d)), 1e-9)
+        normal = np.array([-d[1], d[0]])
+        near_lane = lambda q: float(np.min(np.linalg.norm(lanes - q, axis=-1)))  # noqa: E731
+        side = 1.0 if near_lane(pts[k] + 2 * normal) > near_lane(pts[k] - 2 * normal) else -1.0
+        start = pts[k] + side * normal * float(rng.uniform(*WALKER_KERB))
+        v = 0.0 if rng.random() < WALKER_STAND else float(rng.uniform(*WALKER_SPEED))
+        heading = d * (1.0 if rng.random() < 0.5 else -1.0)
+        xy = start + np.outer(v * t, heading)
+        yaw = np.full(T, math.atan2(heading[1], heading[0]))
+        if np.min(np.linalg.norm(xy[:, None] - lanes[None], axis=-1)) < WALKER_LANE_CLEAR:
+            continue
+        if m.curb_hits(xy, yaw, half, half, segs).any():
+            continue
+        all_xy = np.concatenate([*others_xy, xy[None]])
+        all_yaw = np.concatenate([*others_yaw, yaw[None]])
+        size_l = np.concatenate([*others_l, [WALKER_SIZE]])
+        size_w = np.concatenate([*others_w, [WALKER_SIZE]])
+        last = len(all_xy) - 1
+        if any(last in (i, j) for _, i, j in overlapping_pairs(all_xy, all_yaw, size_l, size_w)):
+            continue
+        out_xy.append(xy)
+        out_yaw.append(yaw)
+        out_v.append(v)
+        others_xy.append(xy[None])
+        others_yaw.append(yaw[None])
+        others_l.append([WALKER_SIZE])
+        others_w.append([WALKER_SIZE])
+    if not out_v:
+        return none
+    return Walkers(np.stack(out_xy), np.stack(out_yaw), np.asarray(out_v))
+
+
 def _parked_at_kerb(veh, ro) -> np.ndarray:
     """(N,) bool: the kerb-stopping vehicles that end the episode in their strip (most of the way over)."""
     out = np.zeros(len(veh), bool)
@@ -284,7 +373,7 @@ def _parked_at_kerb(veh, ro) -> np.ndarray:
 
 # ----------------------------------------------------------------------------- export
 def _export(kind: str, seed: int, p: ProceduralParams, m: geo.RoadMap, veh, ro, n_dropped: int,
-            parked: Parked, hold_at_stop_line: bool) -> Scene:
+            parked: Parked, hold_at_stop_line: bool, walkers: Walkers | None = None) -> Scene:
     off = np.asarray(m.info.pop("frame_offset", (0.0, 0.0)), np.float64)
     rot = float(m.info.pop("frame_rotation", 0.0))
     c, s_ = math.cos(rot), math.sin(rot)
@@ -329,20 +418,28 @@ def _export(kind: str, seed: int, p: ProceduralParams, m: geo.RoadMap, veh, ro, 
         pos = np.concatenate([pos, ppos])
         yaw = np.concatenate([yaw, pyaw])
         vel = np.concatenate([vel, np.zeros((k, t, 2))])
+    q = 0 if walkers is None else len(walkers)  # pedestrians follow the parked cars
+    if q:
+        wyaw = walkers.yaw + rot
+        pos = np.concatenate([pos, tf(walkers.xy.reshape(-1, 2)).reshape(q, t, 2)])
+        yaw = np.concatenate([yaw, (wyaw + np.pi) % (2 * np.pi) - np.pi])
+        vel = np.concatenate([vel, walkers.speed[:, None, None] * np.stack([np.cos(wyaw), np.sin(wyaw)], -1)])
+    metadata["num_pedestrians"] = q
     scene = Scene(
         scene_id=f"procedural/{kind}/{seed}",
         log_pos=pos.astype(np.float32),
         log_yaw=yaw.astype(np.float32),
         log_vel=vel.astype(np.float32),
-        log_valid=np.ones((n + k, t), bool),
-        length=np.concatenate([veh.length, parked.length]).astype(np.float32),
-        width=np.concatenate([veh.width, parked.width]).astype(np.float32),
-        height=np.concatenate([veh.height, np.full(k, 1.6)]).astype(np.float32),
-        agent_type=np.full(n + k, int(AgentType.VEHICLE), np.int8),
-        agent_id=np.arange(n + k, dtype=np.int64),
+        log_valid=np.ones((n + k + q, t), bool),
+        length=np.concatenate([veh.length, parked.length, np.full(q, WALKER_SIZE)]).astype(np.float32),
+        width=np.concatenate([veh.width, parked.width, np.full(q, WALKER_SIZE)]).astype(np.float32),
+        height=np.concatenate([veh.height, np.full(k, 1.6), np.full(q, 1.75)]).astype(np.float32),
+        agent_type=np.concatenate([np.full(n + k, int(AgentType.VEHICLE)),
+                                   np.full(q, int(AgentType.PEDESTRIAN))]).astype(np.int8),
+        agent_id=np.arange(n + k + q, dtype=np.int64),
         goal=pos[:, -1].astype(np.float32),
-        is_sdc=np.concatenate([is_sdc, np.zeros(k, bool)]),
-        is_interest=np.concatenate([junction, np.zeros(k, bool)]),
+        is_sdc=np.concatenate([is_sdc, np.zeros(k + q, bool)]),
+        is_interest=np.concatenate([junction, np.zeros(k + q, bool)]),
         road_points=np.concatenate(pts),
         road_offsets=np.concatenate([[0], np.cumsum([len(x) for x in pts])]).astype(np.int64),
         road_type=np.array([int(k) for k, _ in roads], np.int8),
