@@ -40,7 +40,7 @@ E lane-graph edges, L traffic-signal lanes):
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -163,12 +163,18 @@ class Scene:
                 raise SceneError(src, name, f"coordinate {np.asarray(pts).reshape(-1, 2)[i].tolist()} lies more "
                                  f"than {MAX_EXTENT:.0e} m from the scene's centre {centre.round(1).tolist()}")
 
-    def validate(self, source: str | None = None) -> "Scene":
+    def validate(self, source: str | None = None, field_prefix: str = "") -> "Scene":
         """Coerce dtypes and check shapes, finiteness and non-emptiness.
 
-        Raises SceneError naming `source` (default: the scene id) and the field.
-        Returns self so loaders can write `return Scene(...).validate(path)`.
+        Raises SceneError naming `source` (default: the scene id) and the field, after `field_prefix`
+        (a record of a multi-scene file: "record[3]."). Returns self so loaders can write
+        `return Scene(...).validate(path)`.
         """
+        if field_prefix:
+            try:
+                return self.validate(source)
+            except SceneError as e:
+                raise SceneError(e.source, field_prefix + e.field, e.problem) from None
         src = source or self.metadata.get("source") or self.scene_id
         if self.log_pos.ndim != 3 or self.log_pos.shape[-1] != 2:
             raise SceneError(src, "log_pos", f"expected shape (N, T, 2), got {self.log_pos.shape}")

@@ -61,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from tg_gpudrive.data.simplify import simplify_scene
-from tg_gpudrive.scene import FieldReader, Scene, SceneError
+from tg_gpudrive.scene import FieldReader, Scene
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 log = logging.getLogger(__name__)

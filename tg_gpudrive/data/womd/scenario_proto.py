@@ -333,10 +333,7 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
             "dropped_empty_roads": dropped,
         },
     )
-    try:
-        return scene.validate(source)
-    except SceneError as e:
-        raise SceneError(e.source, fp + e.field, e.problem) from None
+    return scene.validate(source, field_prefix=fp)
 
 
 # -------------------------------------------------------------- Scene -> proto

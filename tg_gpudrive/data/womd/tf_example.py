@@ -382,7 +382,4 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
                 "tl_skipped": tl_skipped,
             },
         )
-    try:
-        return scene.validate(source)
-    except SceneError as e:
-        raise SceneError(e.source, fp + e.field, e.problem) from None
+    return scene.validate(source, field_prefix=fp)
