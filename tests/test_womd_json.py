@@ -265,3 +265,8 @@ def test_builtin_and_trained_policies_drop_no_agent_and_write_per_scene_rates(tm
         rows = csv_path.read_text().strip().splitlines()
         assert len(rows) == 3 and rows[0].startswith("collision_mode,scene_id,source,agents,agent_episodes,goal_rate")
         assert sum(int(r.split(",")[4]) for r in rows[1:]) == out["agent_episodes"]
+        # real scenes: the expert replay of the same worlds, under the same rule, beside the policy
+        assert ("expert_replay" in out) == (who[1] != "expert")
+        if who[1] != "expert":
+            assert out["expert_replay"]["episodes"] == out["agent_episodes"]
+            assert out["expert_replay"]["goal_rate"] >= 0.97 and out["expert_replay"]["collision_rate"] == 0

@@ -57,7 +57,7 @@ from tg_gpudrive.evaluation.report import main as report_main
 from tg_gpudrive.learn import distributed
 from tg_gpudrive.learn.train import train_main
 from tg_gpudrive.policy import load_policy
-from tg_gpudrive.rollout import background_masks, builtin_policy, make_background_driver, run_rollout
+from tg_gpudrive.rollout import background_masks, builtin_policy, expert_policy, make_background_driver, run_rollout
 from tg_gpudrive.types import CollisionMode, ControlMode
 from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args
 from tg_gpudrive.worldmodel.cli import run as run_world_model
@@ -281,11 +281,15 @@ def cmd_simulate(args) -> int:
 
 def _print_rates(out: dict) -> None:
     for k, v in out.items():
-        if k not in ("per_type", "episodes", "kerb_stops"):  # "episodes" is printed by name: agent_episodes
+        if k not in ("per_type", "episodes", "kerb_stops", "expert_replay", "ci95"):  # printed below or by name
             print(f"{k:>22}: {v:.4g}" if isinstance(v, float) else f"{k:>22}: {v}")
+    for name, (lo, hi) in out.get("ci95", {}).items():  # bootstrap intervals, resampling scenes
+        print(f"{name + ' 95% CI':>22}: [{lo:.3f}, {hi:.3f}]")
     groups = dict(out.get("per_type", {}))
     if "kerb_stops" in out:  # the agents whose goal lies at the kerb (procedural kerb_stops)
         groups["(kerb stops)"] = out["kerb_stops"]
+    if "expert_replay" in out:  # the same worlds under the expert replay
+        groups["(expert replay)"] = out["expert_replay"]
     for name, r in groups.items():
         print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
               f"offroad {r['offroad_rate']:.3f}  ({r['episodes']} agent episodes)")
@@ -383,9 +387,15 @@ def cmd_evaluate(args) -> int:
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=True, background=background,
                       desc="evaluate", episodes_per_world=rounds, seed=args.seed, tables=True)
     mode = str(cfg.collision_mode)
-    for path, rows in ((args.per_scene, out.pop("per_scene")), (args.per_agent, out.pop("per_agent"))):
-        if path:
-            _write_csv(path, [{"collision_mode": mode, **r} for r in rows])
+    for csv_path, rows in ((args.per_scene, out.pop("per_scene")), (args.per_agent, out.pop("per_agent"))):
+        if csv_path:
+            _write_csv(csv_path, [{"collision_mode": mode, **r} for r in rows])
+    if args.policy != "expert" and any(s.metadata.get("scenario_type") == "womd" for s in scenes):
+        # on real scenes the expert replay, under the same rule and in the same worlds, is the reference
+        ref = run_rollout(sim, expert_policy, rounds * sim.episode_length, background=background,
+                          episodes_per_world=rounds, seed=args.seed)
+        out["expert_replay"] = {k: ref[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate",
+                                                     "score_rate")}
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, cfg)})
