@@ -20,6 +20,7 @@ import torch
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import control_masks
+from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.policy import action_grid
 from tg_gpudrive.worldmodel.data import full_horizon_env
@@ -112,7 +113,7 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
     """minADE / minFDE (m) over `samples` rollouts of `horizon` steps from init_step, every controlled
     vehicle driven by `policy_factory()` (a fresh `policy(sim)`), against the logged positions.
     ADE averages the steps where the log is valid; FDE counts agents valid at the horizon."""
-    env = full_horizon_env(env)
+    env = sized_for(full_horizon_env(env), scenes)  # every agent of the scenes gets a slot
     S, n = samples, len(scenes)
     sim = Simulator([sc for sc in scenes for _ in range(S)], env, device)  # world = scene * S + sample
     sim.reset()
@@ -144,7 +145,7 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
 def background_rates(driver, scenes, env: EngineConfig, *, steps: int | None = None, device: str = "cpu") -> dict:
     """Every eligible vehicle is a background vehicle driven by `driver(sim)` (or by the expert
     replay when driver is None) for one episode; rates of those that ever collide / go off-road."""
-    env = full_horizon_env(env)
+    env = sized_for(full_horizon_env(env), scenes)  # every agent of the scenes gets a slot
     bg = control_masks(scenes, env, "vehicles")
     sim = Simulator(scenes, env, device, controlled=[np.zeros_like(m) for m in bg], background=bg)
     sim.reset()
