@@ -61,6 +61,25 @@ def test_start_shift_cuts_the_first_steps(scene):
     assert shift_start(scene, 0) is scene
 
 
+def test_a_shifted_scene_carries_the_audit_it_would_get_afresh():
+    from tg_gpudrive.data.log_audit import audit, infeasible_reasons
+    from tg_gpudrive.scene import make_scene
+
+    t = np.arange(60) * 0.1
+    pos = np.zeros((3, 60, 2))
+    pos[0, :, 0] = 10 * t
+    pos[1, :, 0] = 10 * t + 3.0  # overlaps car 0 throughout
+    pos[2, :, 0], pos[2, :, 1] = 10 * t, 20.0
+    pos[2, 30:, 0] += 5.0  # a 5 m jump at step 30: inside the window from steps 10 and 25, not from 40
+    sc = make_scene(pos, np.zeros((3, 60)))
+    for k in (0, 15, 30):
+        shifted = shift_start(sc, k, 10, 2.0)
+        fresh = audit(shifted, 10, 2.0)
+        assert infeasible_reasons(shifted, 10, 2.0) == fresh
+    assert 2 in audit(shift_start(sc, 15), 10, 2.0) and 2 not in audit(shift_start(sc, 30), 10, 2.0)
+    assert "10:2" in sc.metadata["log_audit"] and "40:2" in sc.metadata["log_audit"]  # cached on the source
+
+
 def test_perturbation_moves_the_warm_up_only(scene):
     rng = np.random.default_rng(0)
     p = perturb_start(scene, 10, 2.0, 0.5, 0.1, rng)

@@ -200,3 +200,11 @@ def test_replay_events_are_put_in_their_class():
     assert classify(sc, 0, "collision", 5, 0.1, int(AgentType.PEDESTRIAN), 10, 2.0) == "with a pedestrian or cyclist"
     assert classify(sc, 0, "offroad", 5, 2.0, None, 10, 2.0).startswith("tracking")
     assert classify(sc, 0, "offroad", 5, 0.1, None, 10, 2.0).startswith("geometry")
+
+
+def test_audits_of_several_starts_equal_one_audit_each(womd):
+    from tg_gpudrive.data.log_audit import audits
+
+    for sc in womd:
+        many = audits(sc, [10, 20, 35, 60], 2.0)
+        assert many == {t: audit(sc, t, 2.0) for t in (10, 20, 35, 60)}

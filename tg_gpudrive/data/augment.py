@@ -17,8 +17,11 @@ the sampler drew, never changing the source's own:
                       the policy's with this probability, the others replay their logs; at least one
                       stays
 
-Geometry-preserving transforms (mirror, rotate) keep a scene's cached log audit; the others drop it, so
-the control rule's audit is recomputed on the new logs. Must not: touch the engine, or mutate its input.
+The control rule's log audit travels with the copies: mirror and rotate preserve it, a start shift
+takes the source's audit at the later init step (cached on the source, so each shift is audited once),
+and the perturbations keep the unperturbed log's (the rule's exclusions are those of the real log; a
+perturbation that makes two warm-up boxes meet is a collision the policy meets in training). Must not:
+touch the engine, or mutate its input.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from tg_gpudrive.config import AugmentConfig
-from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, candidates
+from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, candidates, carry_audit
 from tg_gpudrive.scene import Scene
 
 __all__ = ["augment_scene", "mirror", "rotate", "shift_start", "perturb_start", "subset_mask"]
@@ -59,8 +62,11 @@ def rotate(scene: Scene, angle: float) -> Scene:
     return _transform(scene, np.array([[c, -sn], [sn, c]]), lambda yaw: yaw + angle)
 
 
-def shift_start(scene: Scene, k: int) -> Scene:
-    """`scene` with its first `k` logged steps cut."""
+def shift_start(scene: Scene, k: int, init_step: int | None = None, goal_radius: float | None = None,
+                max_shift: int | None = None) -> Scene:
+    """`scene` with its first `k` logged steps cut. With `init_step` and `goal_radius` the new scene's
+    log audit is the source's at init_step + k (`log_audit.carry_audit`: audited once per shift, however
+    often the shift is drawn); without them it is dropped and recomputed on use."""
     if k <= 0:
         return scene
     s = scene.copy()
@@ -69,6 +75,8 @@ def shift_start(scene: Scene, k: int) -> Scene:
     s.tl_state = np.ascontiguousarray(s.tl_state[k:])
     s.metadata.pop("log_audit", None)
     s.metadata["start_shift"] = int(k)
+    if init_step is not None and goal_radius is not None:
+        carry_audit(scene, s, k, init_step, goal_radius, max_shift)
     return s
 
 
@@ -90,7 +98,6 @@ def perturb_start(scene: Scene, init_step: int, goal_radius: float, pos_std: flo
         v = s.log_vel[i, :init + 1][ok].astype(np.float64)
         s.log_vel[i, :init + 1][ok] = np.stack([c * v[:, 0] - sn * v[:, 1], sn * v[:, 0] + c * v[:, 1]], -1)
         s.log_yaw[i, :init + 1][ok] = (s.log_yaw[i, :init + 1][ok] + da + np.pi) % (2 * np.pi) - np.pi
-    s.metadata.pop("log_audit", None)
     return s
 
 
@@ -100,7 +107,8 @@ def augment_scene(scene: Scene, cfg: AugmentConfig, init_step: int, goal_radius:
     out = scene
     if cfg.start_shift > 0:
         room = scene.num_steps - (init_step + 1 + MIN_PLAY_STEPS)
-        out = shift_start(out, int(rng.integers(0, min(cfg.start_shift, max(room, 0)) + 1)))
+        top = min(cfg.start_shift, max(room, 0))
+        out = shift_start(out, int(rng.integers(0, top + 1)), init_step, goal_radius, top)
     if cfg.mirror > 0 and rng.random() < cfg.mirror:
         out = mirror(out)
     if cfg.rotate:

@@ -23,8 +23,8 @@ within `goal_radius` of its goal (where the engine takes a controlled agent out)
 step. Geometry is the engine's: boxes overlap by separating axes and touch without colliding; a box
 is off the road when a road-edge segment crosses it or has an end inside it.
 
-`audit(scene, init_step, goal_radius)` returns the reasons per agent; `infeasible_mask` caches it in
-`scene.metadata["log_audit"]` (stores keep it), keyed by the two parameters. Only the candidates of
+`audit(scene, init_step, goal_radius)` returns the reasons per agent; `cached_audit` keeps them in
+`scene.metadata["log_audit"]`, keyed by the two parameters. Only the candidates of
 the control rule are audited (vehicles valid at `init_step` and away from their goal): others are
 never the policy's. This module must not touch the engine: it is a function of a Scene.
 """
@@ -146,47 +146,63 @@ def candidates(scene: Scene, init: int, goal_radius: float) -> np.ndarray:
 
 def audit(scene: Scene, init_step: int, goal_radius: float) -> dict[int, list[str]]:
     """{agent index: reasons} of the log-infeasible candidates (`candidates`) of `scene`."""
-    init = min(init_step, scene.num_steps - 1)
-    cand = np.nonzero(candidates(scene, init, goal_radius))[0]
-    if len(cand) == 0:
-        return {}
-    first, last = _windows(scene, init, goal_radius)
+    return audits(scene, [init_step], goal_radius)[min(init_step, scene.num_steps - 1)]
+
+
+def audits(scene: Scene, init_steps, goal_radius: float) -> dict[int, dict[int, list[str]]]:
+    """`audit` for several start steps at once ({init: {agent: reasons}}, inits clipped to the log): the
+    overlap and road-edge tests, the costly part, run once per (agent, step) for every agent any of the
+    starts makes a candidate, and each start's windows then read them."""
+    inits = sorted({min(int(t), scene.num_steps - 1) for t in init_steps})
+    cands = {t: np.nonzero(candidates(scene, t, goal_radius))[0] for t in inits}
+    rows = np.unique(np.concatenate([c for c in cands.values()] + [np.zeros(0, np.int64)])).astype(np.int64)
     steps = np.arange(scene.num_steps)
-    # (C, T): the valid steps of each candidate's scoring window
-    window = scene.log_valid[cand] & (steps >= first[cand, None]) & (steps <= last[cand, None])
+    out: dict[int, dict[int, list[str]]] = {t: {} for t in inits}
+    if len(rows) == 0:
+        return out
+    # (R, T) per-step events of every row from the earliest start on
+    span = scene.log_valid[rows] & (steps >= inits[0])
     pos = scene.log_pos.astype(np.float64)
     yaw = scene.log_yaw.astype(np.float64)
     length, width = scene.length.astype(np.float64), scene.width.astype(np.float64)
-    found = {"overlap": _overlapping(scene, cand, window, pos, yaw, length, width)}
-    c, t = np.nonzero(window)
-    rows = cand[c]
-    off = _off_road(pos[rows, t], yaw[rows, t], length[rows], width[rows], *_edge_segments(scene))
-    found["offroad"] = {int(i) for i in np.unique(rows[off])}
-    found["jump"] = {int(i) for i in cand if _jumps(scene, i, int(first[i]), int(last[i]))}
-    found["kinematics"] = {int(i) for i in cand if _unfollowable(scene, i, int(first[i]), int(last[i]))}
-    out: dict[int, list[str]] = {}
-    for i in cand:
-        reasons = [r for r in REASONS if int(i) in found[r]]
-        if reasons:
-            out[int(i)] = reasons
+    overlap = _overlapping(scene, rows, span, pos, yaw, length, width)
+    offroad = np.zeros_like(span)
+    r, t = np.nonzero(span)
+    offroad[r, t] = _off_road(pos[rows[r], t], yaw[rows[r], t], length[rows[r]], width[rows[r]], *_edge_segments(scene))
+    row_of = {int(i): k for k, i in enumerate(rows)}
+    for init in inits:
+        first, last = _windows(scene, init, goal_radius)
+        for i in cands[init]:
+            k, t0, t1 = row_of[int(i)], int(first[i]), int(last[i])
+            if t1 < t0:
+                continue
+            reasons = [name for name, ev in (("overlap", overlap), ("offroad", offroad)) if ev[k, t0:t1 + 1].any()]
+            if _jumps(scene, i, t0, t1):
+                reasons.append("jump")
+            if _unfollowable(scene, i, t0, t1):
+                reasons.append("kinematics")
+            if reasons:
+                out[init][int(i)] = reasons
     return out
 
 
-def _overlapping(scene, cand, window, pos, yaw, length, width) -> set[int]:
-    """The candidates whose box overlaps another present agent's at a step of their window."""
+def _overlapping(scene, rows, span, pos, yaw, length, width) -> np.ndarray:
+    """(R, T) bool: the steps of `span` at which row r's box overlaps another present agent's."""
+    out = np.zeros_like(span)
     diag = np.hypot(length, width)
-    c, t = np.nonzero(window)  # candidate rows and steps
+    c, t = np.nonzero(span)  # rows and steps
     if len(c) == 0:
-        return set()
+        return out
     present = scene.log_valid[:, t].T.copy()  # (P, N): who is there at each of those steps
-    present[np.arange(len(c)), cand[c]] = False
-    d = np.linalg.norm(pos[:, t].transpose(1, 0, 2) - pos[cand[c], t][:, None], axis=-1)  # (P, N)
-    p, j = np.nonzero(present & (d < 0.5 * (diag[cand[c], None] + diag[None, :])))
+    present[np.arange(len(c)), rows[c]] = False
+    d = np.linalg.norm(pos[:, t].transpose(1, 0, 2) - pos[rows[c], t][:, None], axis=-1)  # (P, N)
+    p, j = np.nonzero(present & (d < 0.5 * (diag[rows[c], None] + diag[None, :])))
     if len(p) == 0:
-        return set()
-    i, tt = cand[c[p]], t[p]
+        return out
+    i, tt = rows[c[p]], t[p]
     hit = boxes_overlap(pos[i, tt], yaw[i, tt], length[i], width[i], pos[j, tt], yaw[j, tt], length[j], width[j])
-    return {int(v) for v in np.unique(i[hit])}
+    out[c[p][hit], tt[hit]] = True
+    return out
 
 
 def _off_road(c, yaw, length, width, ea, eb) -> np.ndarray:
@@ -248,22 +264,45 @@ def unplayable(scene: Scene, init_step: int = 10, goal_radius: float = 2.0) -> s
     return None
 
 
-def infeasible_mask(scene: Scene, init_step: int, goal_radius: float) -> np.ndarray:
-    """(N,) bool: the log-infeasible agents of `scene`, from the cached audit when its parameters match
-    (scene.metadata["log_audit"]: {"init_step", "goal_radius", "agents": {index: reasons}})."""
+def _key(init: int, goal_radius: float) -> str:
+    return f"{int(init)}:{float(goal_radius):g}"
+
+
+def cached_audit(scene: Scene, init_step: int, goal_radius: float) -> dict[str, list[str]]:
+    """{agent index (str): reasons} of `audit`, cached in scene.metadata["log_audit"] under its parameters
+    ("init:goal_radius"), so each (scene, parameters) pair is audited once."""
     init = min(init_step, scene.num_steps - 1)
-    cached = scene.metadata.get("log_audit")
-    if not (isinstance(cached, dict) and cached.get("init_step") == init
-            and cached.get("goal_radius") == float(goal_radius)):
-        cached = {"init_step": init, "goal_radius": float(goal_radius),
-                  "agents": {str(i): r for i, r in audit(scene, init, goal_radius).items()}}
-        scene.metadata["log_audit"] = cached
+    cache = scene.metadata.get("log_audit")
+    if not isinstance(cache, dict):
+        cache = scene.metadata["log_audit"] = {}
+    key = _key(init, goal_radius)
+    if key not in cache:
+        cache[key] = {str(i): r for i, r in audit(scene, init, goal_radius).items()}
+    return cache[key]
+
+
+def infeasible_mask(scene: Scene, init_step: int, goal_radius: float) -> np.ndarray:
+    """(N,) bool: the log-infeasible agents of `scene` (`cached_audit`)."""
     mask = np.zeros(scene.num_agents, bool)
-    mask[[int(i) for i in cached["agents"]]] = True
+    mask[[int(i) for i in cached_audit(scene, init_step, goal_radius)]] = True
     return mask
 
 
 def infeasible_reasons(scene: Scene, init_step: int, goal_radius: float) -> dict[int, list[str]]:
-    """{agent index: reasons} of the cached (or fresh) audit."""
-    infeasible_mask(scene, init_step, goal_radius)
-    return {int(i): list(r) for i, r in scene.metadata["log_audit"]["agents"].items()}
+    """{agent index: reasons} of the log-infeasible agents of `scene` (`cached_audit`)."""
+    return {int(i): list(r) for i, r in cached_audit(scene, init_step, goal_radius).items()}
+
+
+def carry_audit(source: Scene, shifted: Scene, k: int, init_step: int, goal_radius: float,
+                max_shift: int | None = None) -> None:
+    """Give `shifted` (`source` with its first `k` steps cut) its audit at `init_step` from the source's
+    audit at init_step + k: the same windows of the same logs. The source's audits at every shift up to
+    `max_shift` are computed together on first use (`audits`) and cached on it."""
+    cache = source.metadata.get("log_audit")
+    if not isinstance(cache, dict):
+        cache = source.metadata["log_audit"] = {}
+    if _key(min(init_step + k, source.num_steps - 1), goal_radius) not in cache:
+        inits = range(init_step, init_step + max(k, max_shift or k) + 1)
+        for init, found in audits(source, inits, goal_radius).items():
+            cache.setdefault(_key(init, goal_radius), {str(i): r for i, r in found.items()})
+    shifted.metadata["log_audit"] = {_key(init_step, goal_radius): cached_audit(source, init_step + k, goal_radius)}
