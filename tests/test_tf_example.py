@@ -388,3 +388,19 @@ def test_cli_simulates_the_example_file(capsys):
     rc = main(["simulate", "--scenes", str(EXAMPLE_FILE), "--worlds", "1", "--device", "cpu", "--json"])
     assert rc == 0
     assert '"goal_rate"' in capsys.readouterr().out
+
+
+def test_both_flavours_and_scenarionet_batch_together(tmp_path):
+    """WOMD's logged periods jitter (0.09964 s, 0.10025 s): every loader gives 0.1 s, so scenes of all
+    three forms fill one batch."""
+    import shutil
+
+    from tg_gpudrive import cli
+    from tg_gpudrive.data.sources import resolve_scenes
+
+    for f in RAW.glob("*.tfrecord"):
+        shutil.copy(f, tmp_path / f.name)
+    shutil.copy(next((pathlib.Path(__file__).parent / "data_scenarionet").glob("sd_*.pkl")), tmp_path)
+    src = resolve_scenes(str(tmp_path))
+    assert len(src) == 4 and {src.get(i).dt for i in range(4)} == {0.1}
+    assert cli.main(["simulate", "--scenes", str(tmp_path), "--worlds", "4", "--device", "cpu", "--json"]) == 0

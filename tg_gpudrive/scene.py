@@ -58,6 +58,17 @@ class SceneError(ValueError):
         super().__init__(f"{source}: field '{field}': {problem}")
 
 
+def log_period(step_seconds, default: float = 0.1) -> float:
+    """The period (s) of a log from the time steps between its samples: their median, to the
+    millisecond. WOMD logs are 10 Hz with tens of microseconds of jitter (0.09964 s in one file,
+    0.10025 s in another); to the millisecond, scenes of one dataset share one dt and batch together."""
+    steps = np.asarray(step_seconds, np.float64)
+    steps = steps[np.isfinite(steps) & (steps > 0)]
+    if len(steps) == 0:
+        return default
+    return round(float(np.median(steps)), 3) or default
+
+
 class FieldReader:
     """Typed access into a parsed source file (a JSON document, an unpickled dict) that raises
     SceneError naming the file and the field path; loaders add the value readers of their format."""

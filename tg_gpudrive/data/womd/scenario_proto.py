@@ -44,7 +44,7 @@ from tg_gpudrive.data.womd.protowire import DecodeError, EncodeError, Field as F
 from tg_gpudrive.data.womd.tf_example import is_tf_example, tf_example_to_scene
 from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
-from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.scene import Scene, SceneError, log_period
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 __all__ = ["SCENARIO", "scenario_to_scene", "scene_to_scenario", "read_tfrecord_scenes",
@@ -295,7 +295,7 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
     tl_stop_point = (np.asarray(stops) - origin) if stops else np.zeros((0, 2))
 
     ts = np.asarray(msg.get("timestamps_seconds", []), np.float64)
-    dt = round(float(np.median(np.diff(ts))), 6) if len(ts) >= 2 else 0.1
+    dt = log_period(np.diff(ts))
     sid = msg.get("scenario_id", "")
     scene = Scene(
         scene_id=sid,

@@ -90,7 +90,7 @@ import numpy as np
 
 from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
-from tg_gpudrive.scene import FieldReader, Scene, SceneError
+from tg_gpudrive.scene import FieldReader, Scene, SceneError, log_period
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 __all__ = ["load_scenarionet", "load_pickle", "is_dataset_file", "DATASET_FILES", "DEFAULT_HEIGHT"]
@@ -579,9 +579,7 @@ def load_scenarionet(path: str | os.PathLike, *, simplify_tolerance: float | Non
     ts = meta.get("ts")
     dt = 0.1
     if isinstance(ts, (np.ndarray, list, tuple)) and len(ts) >= 2:
-        step = np.diff(rd.numbers(ts, "metadata.ts").reshape(-1))
-        if np.isfinite(step).all() and np.median(step) > 0:
-            dt = round(float(np.median(step)), 3) or 0.1
+        dt = log_period(np.diff(rd.numbers(ts, "metadata.ts").reshape(-1)))
     dataset = meta.get("dataset")
     sid = raw.get("id") or meta.get("scenario_id") or meta.get("id")
     scene = Scene(

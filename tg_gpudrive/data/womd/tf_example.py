@@ -74,7 +74,7 @@ import numpy as np
 
 from tg_gpudrive.data.womd.gpudrive_json import WOMD_SUBTYPE_BY_MAP_ELEMENT, scene_origin
 from tg_gpudrive.data.womd.protowire import DecodeError, Field as F, Message, decode
-from tg_gpudrive.scene import Scene, SceneError
+from tg_gpudrive.scene import Scene, SceneError, log_period
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
 
 __all__ = ["EXAMPLE", "is_tf_example", "decode_example", "tf_example_to_scene", "PARTS"]
@@ -262,10 +262,7 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
     ts = state["timestamp_micros"].astype(np.float64)
     ts = np.where(state["valid"] != 0, ts, -1).max(0)  # one timestamp per step, from any valid agent
     known = np.nonzero(ts >= 0)[0]
-    dt = 0.1
-    if len(known) >= 2:
-        d = np.median(np.diff(ts[known]) / np.diff(known)) * 1e-6
-        dt = round(float(d), 6) if d > 0 else 0.1
+    dt = log_period(np.diff(ts[known]) / np.diff(known) * 1e-6) if len(known) >= 2 else 0.1
 
     # ----- road graph
     rv = fx.array("roadgraph_samples/valid", "int64_list")
