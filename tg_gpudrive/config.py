@@ -217,8 +217,8 @@ class TrainConfig:
     # bookkeeping
     time_limit_s: float = 0.0  # stop (and save) once this much training wall-clock has passed (0: off)
     target_goal_rate: float = 0.0  # stop once the goal rate over the last 10 updates' episodes reaches it (0: off)
-    # ... and, over the same episodes, the collision and off-road rates are at most these (issue 12's
-    # quality: a goal reached through a crash or off the road is not quality); 1.0: goal rate alone
+    # ... and, over the same episodes, the collision and off-road rates are at most these (a goal
+    # reached through a crash or off the road is not quality); 1.0: goal rate alone
     target_max_collision: float = 1.0
     target_max_offroad: float = 1.0
     # ... and, each time the training window meets that bar, held-out scenes must too: `target_heldout`

@@ -121,7 +121,7 @@ class WorldModelPrior(BehaviourPrior):
     (accel m/s^2, curvature 1/m), continuous only: each component is widened to at least this
     standard deviation (Laplace scale std / sqrt 2). A model trained on the GPU predicts the
     logged action to 0.02 m/s^2, and the KL of any Gaussian policy to so sharp a target is about
-    10 nats, which swamped the advantage (BENCHMARKS.md, issue 12); the discrete magnet can be no
+    10 nats, which swamped the advantage (BENCHMARKS.md); the discrete magnet can be no
     sharper than a grid bin, and this gives the continuous one a like floor."""
 
     def __init__(self, model: WorldModel, sim=None, kl_samples: int | None = None, top_component: bool = True,
