@@ -471,3 +471,16 @@ def test_training_on_dense_real_scenes_drops_no_agent_and_replays_beyond_its_cap
     assert int(tr.sim.policy_agents.sum(1).max()) <= 4
     out = tr.train()
     assert tr.left_to_replay > 0 and out["scenes_unplayable"] == 0
+
+
+@pytest.mark.parametrize("steps, ended", [(4, False), (100, True)])
+def test_the_final_line_reads_the_windowed_rates_never_nan(tmp_path, capsys, steps, ended):
+    """A run whose last update ended no episode still reports the window's rates (or says none ended)."""
+    assert cli.main(["train", "--config", str(SMALL), "--out", str(tmp_path / "run"), "--set", "updates=1",
+                     "--set", "num_worlds=2", "--set", f"rollout_steps={steps}", "--set", "hidden=16",
+                     "--set", "quantiles=4"]) == 0
+    line = capsys.readouterr().out.strip().splitlines()[-1]
+    assert "nan" not in line and line.startswith("run: ")
+    assert ("no episode ended yet" in line) != ended
+    if ended:
+        assert "(the last 10 updates' episodes)" in line

@@ -328,9 +328,10 @@ def cmd_train(args) -> int:
     if args.json:
         print(json.dumps(out))
     else:
-        print(f"run: {out['out_dir']}  goal {out.get('goal_rate', float('nan')):.3f}  "
-              f"collision {out.get('collision_rate', float('nan')):.3f}  "
-              f"offroad {out.get('offroad_rate', float('nan')):.3f}  lambda {out['lambda']:.3f}")
+        w = out.get("window_rates")
+        rates = (f"goal {w['goal_rate']:.3f}  collision {w['collision_rate']:.3f}  offroad {w['offroad_rate']:.3f} "
+                 "(the last 10 updates' episodes)" if w else "no episode ended yet")
+        print(f"run: {out['out_dir']}  {rates}  lambda {out['lambda']:.3f}")
     return 0
 
 

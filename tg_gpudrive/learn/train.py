@@ -613,6 +613,8 @@ class Trainer:
 
     def _window_rates(self) -> dict | None:
         """Goal, collision and off-road rates over the episodes of the window (None before one ended)."""
+        if not self._recent:
+            return None
         goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
         if eps <= 0:
             return None
@@ -764,5 +766,8 @@ def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> di
     last = trainer.train()
     return {k: v for k, v in last.items() if not (isinstance(v, float) and math.isnan(v))} | {
         "out_dir": str(trainer.out), "checkpoint": str(trainer.out / "checkpoint.pt"),
-        "agents_left_to_replay": trainer.left_to_replay}
+        "agents_left_to_replay": trainer.left_to_replay,
+        # episode-weighted over the last RATE_WINDOW updates (the window the quality target reads); None
+        # before any episode ended
+        "window_rates": trainer._window_rates()}
 
