@@ -309,3 +309,19 @@ def test_bad_store_errors_name_path_and_file(tmp_path):
     (tmp_path / "st" / "manifest.json").write_text("{")
     with pytest.raises(StoreError, match="manifest.json: unreadable"):
         open_store(tmp_path / "st")
+
+
+def test_convert_stores_a_scene_id_once_and_counts_the_duplicates(tmp_path):
+    store = tmp_path / "store"
+    first = convert([DATA / "womd_1c365f15b70ebdbf.json"], store, progress=False)
+    assert first.converted == 1 and first.duplicates == []
+    again = tmp_path / "again"
+    again.mkdir()
+    copy = again / "renamed.json"  # the same scenario under another name: a new input, the same scene id
+    copy.write_bytes((DATA / "womd_1c365f15b70ebdbf.json").read_bytes())
+    (again / "other.json").write_bytes((DATA / "womd_db4edc9bd0c9d18c.json").read_bytes())
+    rep = convert([again], store, progress=False)
+    assert rep.converted == 1 and [sid for _, sid in rep.duplicates] == [open_store(store)[0].scene_id]
+    assert rep.duplicates[0][0] == str(copy) and rep.num_scenes == 2
+    ids = open_store(store).scene_ids
+    assert len(ids) == len(set(ids)) == 2

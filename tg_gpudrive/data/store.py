@@ -136,6 +136,8 @@ class ConvertReport:
     unplayable        (path, scene id, reason) of every scene that cannot be played (`log_audit.unplayable`:
                       too short, or no vehicle the control rule would drive); stored, listed in the
                       manifest, and skipped by the store's scene source
+    duplicates        (path, scene id) of every scene not stored because the store (or an earlier input
+                      of this run) already holds a scene of that id
     defaults          fields an older format revision lacked, filled in by the loaders: how many
                       objects, roads or files each default was used for (`sources.scene_defaults`)
     seconds           wall time of the run
@@ -149,6 +151,7 @@ class ConvertReport:
     skipped_existing: int = 0
     failed: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     unplayable: list[tuple[str, str, str]] = dataclasses.field(default_factory=list)
+    duplicates: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     defaults: dict[str, int] = dataclasses.field(default_factory=dict)
     seconds: float = 0.0
     scenes_per_s: float = 0.0
@@ -221,6 +224,9 @@ class _Writer:
         self.buf_sources: list[str] = []
         self.buf_inputs: dict[str, int] = {}
         self.buf_unplayable: dict[int, str] = {}  # buffer index -> why the scene cannot be played
+        # scene ids the store holds (its committed shards) or this run added: a scene id is stored once
+        self.ids: set[str] = {sid for sh in self.manifest["shards"]
+                              for sid in _shard_scene_ids(self.out / sh["name"])}
 
     def _remove_store_files(self) -> None:
         for p in self.out.iterdir():
@@ -237,6 +243,13 @@ class _Writer:
 
     def done(self, key: str) -> bool:
         return key in self.manifest["inputs"]
+
+    def claim(self, scene_id: str) -> bool:
+        """True (and remembered) when no scene of this id is stored yet."""
+        if scene_id in self.ids:
+            return False
+        self.ids.add(scene_id)
+        return True
 
     def add(self, scenes: list[Scene], source: str, input_key: str | None = None,
             unplayable: list[str | None] | None = None) -> None:
@@ -270,6 +283,13 @@ class _Writer:
 
     def commit(self) -> None:
         _atomic_write_text(self.out / MANIFEST, json.dumps(self.manifest, indent=1))
+
+
+def _shard_scene_ids(shard: Path) -> list[str]:
+    try:
+        return [str(v) for v in json.loads((shard / SHARD_SCENES).read_text(encoding="utf-8"))["scene_ids"]]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise StoreError(shard.parent, f"{shard.name}/{SHARD_SCENES}", f"unreadable: {e}") from e
 
 
 def _write_shard(final: Path, scenes: list[Scene], sources: list[str]) -> None:
@@ -467,6 +487,10 @@ def convert(inputs: list[str | Path], out: str | Path, *, resume: bool = True, p
                 if scenes is None:
                     report.failed.append((str(f), reason))
                 else:
+                    new = [w.claim(str(sc.scene_id)) for sc in scenes]
+                    report.duplicates.extend((str(f), sc.scene_id) for sc, ok in zip(scenes, new) if not ok)
+                    scenes = [sc for sc, ok in zip(scenes, new) if ok]
+                    reason = [r for r, ok in zip(reason, new) if ok]
                     report.unplayable.extend((str(f), sc.scene_id, why) for sc, why in zip(scenes, reason) if why)
                     for key, v in scene_defaults(scenes).items():
                         report.defaults[key] = report.defaults.get(key, 0) + v
