@@ -233,6 +233,7 @@ def test_a_scene_too_short_to_play_is_skipped_and_counted(tmp_path):
     for o in raw["objects"]:
         for key in ("position", "velocity", "heading", "valid"):
             o[key] = o[key][:11]
+    raw["scenario_id"] = "short"  # another scenario than full.json's (convert stores a scene id once)
     (tmp_path / "short.json").write_text(json.dumps(raw))
     with pytest.raises(ValueError, match="short.json.*too short to play"):
         resolve_scenes(str(tmp_path / "short.json"))  # alone: an error naming the file
