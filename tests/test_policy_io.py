@@ -158,3 +158,21 @@ def test_evaluate_repeats_with_its_seed(capsys):
         return [out[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "mean_return")]
 
     assert rates(90000) == rates(90000)
+
+
+def test_a_checkpoint_of_the_other_kind_is_a_one_line_error(capsys):
+    """A world model given where a policy goes, and a policy where a world model goes, name both kinds."""
+    from tg_gpudrive.worldmodel.prior import world_model_file
+
+    wm = world_model_file("shipped")
+    assert cli.main(["evaluate", "--checkpoint", str(wm), "--scenes", "procedural:merge", "--episodes", "1",
+                     "--device", "cpu"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a world model checkpoint, expected a policy checkpoint" in err[0], err
+    assert "--background-model" in err[0]
+    policy = checkpoint_path("shipped", "--checkpoint")
+    assert cli.main(["simulate", "--scenes", "procedural:merge", "--worlds", "1", "--device", "cpu",
+                     "--control", "nearest_conflict", "--control-k", "1", "--background", "world_model",
+                     "--background-model", str(policy)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a policy checkpoint, expected a world model checkpoint" in err[0], err

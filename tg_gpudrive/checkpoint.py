@@ -97,19 +97,49 @@ def _read(path: Path, option: str, map_location) -> dict:
     return ck
 
 
-def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cpu", fallback: bool = False) -> dict:
-    """The checkpoint at `path` (see checkpoint_path); CheckpointError naming the file if it is
-    damaged. `fallback`: a damaged checkpoint.pt falls back, with a warning, to the previous one
-    kept beside it (checkpoint.prev.pt), as `--resume` wants."""
+POLICY, WORLD_MODEL = "policy", "world model"
+KIND_USE = {POLICY: "--checkpoint, --policy, --resume or init_policy",
+            WORLD_MODEL: "--background-model, prior_model or init_model"}
+
+
+def checkpoint_kind(ck: dict) -> str | None:
+    """What a checkpoint holds: its `kind` field, or (files written before it existed) what its keys show:
+    a CCE-MAPPO policy (an actor and its training config) or a world model (its hyper-parameters, alone
+    or inside a world-model training checkpoint); None for neither."""
+    if ck.get("kind") in KIND_USE:
+        return ck["kind"]
+    if "actor" in ck and "config" in ck:
+        return POLICY
+    if "hparams" in ck or isinstance(ck.get("model"), dict) and "hparams" in ck["model"]:
+        return WORLD_MODEL
+    return None
+
+
+def check_kind(ck: dict, want: str, path, option: str) -> dict:
+    """`ck` itself when it holds a `want`; else a one-line CheckpointError naming both kinds and where the
+    one it holds goes."""
+    have = checkpoint_kind(ck)
+    if have != want:
+        what = f"a {have} checkpoint" if have else "not a tg_gpudrive checkpoint"
+        where = f" (a {have} goes to {KIND_USE[have]})" if have else ""
+        raise CheckpointError(f"{option}: {path} is {what}, expected a {want} checkpoint{where}")
+    return ck
+
+
+def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cpu", fallback: bool = False,
+                    kind: str = POLICY) -> dict:
+    """The `kind` checkpoint at `path` (see checkpoint_path); CheckpointError naming the file if it is
+    damaged or holds another kind. `fallback`: a damaged checkpoint.pt falls back, with a warning, to
+    the previous one kept beside it (checkpoint.prev.pt), as `--resume` wants."""
     path = checkpoint_path(path, option)
     try:
-        return _read(path, option, map_location)
+        return check_kind(_read(path, option, map_location), kind, path, option)
     except CheckpointError as e:
         prev = previous_path(path)
-        if not (fallback and prev.is_file()):
+        if not (fallback and prev.is_file()) or "expected a" in str(e):
             raise
         log.warning("%s; resuming from the previous checkpoint %s", e, prev)
-        return _read(prev, option, map_location)
+        return check_kind(_read(prev, option, map_location), kind, prev, option)
 
 
 POLICY_DIR = "policies"  # a run's kept policies (TrainConfig.keep_policy_every), update_NNNNNN.pt

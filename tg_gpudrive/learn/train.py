@@ -40,7 +40,7 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
+from tg_gpudrive.checkpoint import POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.augment import augment_scene, subset_mask
@@ -695,7 +695,7 @@ class Trainer:
         if torch.cuda.is_available():
             rng["cuda"] = torch.cuda.get_rng_state_all()
         return {
-            "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "kind": POLICY, "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
             "opt": self.opt.state_dict(),
             "lagrange": self.lagrange.state_dict(), "cost_budget": float(self.budget),
             "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "elapsed": self.elapsed,
@@ -714,7 +714,7 @@ class Trainer:
     def save_policy(self) -> Path:
         """The policy alone (config and actor weights, about a megabyte) as policies/update_NNNNNN.pt:
         what load_policy and the report read, so the CCE-gap can be followed over training."""
-        snap = {"config": to_dict(self.cfg), "actor": self.actor.state_dict(), "update": self.update,
+        snap = {"kind": POLICY, "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "update": self.update,
                 "agent_steps": self.agent_steps, "wall": self.wall}
         (self.out / POLICY_DIR).mkdir(exist_ok=True)
         return save_atomic(snap, self.out / POLICY_DIR / f"update_{self.update:06d}.pt")

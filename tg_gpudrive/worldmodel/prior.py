@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from tg_gpudrive.checkpoint import save_atomic
+from tg_gpudrive.checkpoint import WORLD_MODEL, check_kind, save_atomic
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.policy import BehaviourPrior
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
@@ -62,7 +62,7 @@ def grid_of(cfg) -> dict:
 
 def save_world_model(model: WorldModel, path: str | Path, env_cfg, extra: dict | None = None) -> Path:
     """Weights + hyper-parameters + action grid; written atomically."""
-    return save_atomic({"hparams": model.hparams, "grid": grid_of(env_cfg),
+    return save_atomic({"kind": WORLD_MODEL, "hparams": model.hparams, "grid": grid_of(env_cfg),
                         "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
                         **(extra or {})}, path)
 
@@ -84,7 +84,7 @@ def load_world_model(path: str | Path, sim=None, device: str | None = None) -> W
     """A WorldModel from `path` (see `world_model_file`), laid out for `sim`'s observation rows and on
     its device, in eval mode."""
     path = world_model_file(path)
-    ck = torch.load(path, map_location="cpu", weights_only=False)
+    ck = check_kind(torch.load(path, map_location="cpu", weights_only=False), WORLD_MODEL, path, "world model")
     if "model" in ck and "state_dict" not in ck:  # a training checkpoint
         ck = ck["model"]
     model = WorldModel(**ck["hparams"])

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import load_checkpoint, save_atomic
+from tg_gpudrive.checkpoint import WORLD_MODEL, load_checkpoint, save_atomic
 from tg_gpudrive.config import ConfigError, EngineConfig, to_dict
 from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.worldmodel.closed_loop import closed_loop_samples, rounds_schedule
@@ -154,7 +154,7 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
     device = resolve_device(cfg.device, flag="device")  # before anything is written or built
     out.mkdir(parents=True, exist_ok=True)
     random.seed(cfg.seed), np.random.seed(cfg.seed), torch.manual_seed(cfg.seed)
-    ck = None if resume is None else load_checkpoint(resume)
+    ck = None if resume is None else load_checkpoint(resume, kind=WORLD_MODEL)
     t0 = time.perf_counter()
     train_scenes, val_scenes = load_scene_split(cfg)
     kw = dict(history=cfg.history, max_partners=cfg.max_partners, max_roads=cfg.max_roads,
@@ -194,7 +194,7 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
     state = {"loss": 0.0, "n": 0, "t": time.perf_counter(), "wall": wall, "last": {}}
 
     def save_checkpoint(step: int, closed_loop_done: bool = False) -> None:
-        ckpt = {"model": {"hparams": model.hparams, "grid": grid_of(cfg.env),
+        ckpt = {"kind": WORLD_MODEL, "model": {"hparams": model.hparams, "grid": grid_of(cfg.env),
                           "state_dict": model.state_dict()},
                 "opt": opt.state_dict(), "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
                 "step": step, "wall": state["wall"], "config": to_dict(cfg), "closed_loop_done": closed_loop_done}
