@@ -381,14 +381,24 @@ def test_evaluate_names_agent_and_scene_episodes(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("damage", ["truncated", "flipped", "text", "empty"])
-def test_a_damaged_checkpoint_is_a_one_line_error_naming_the_file(tmp_path, capsys, damage):
+def test_a_damaged_checkpoint_is_a_one_line_error_naming_the_file(tmp_path, capsys, caplog, damage):
     run = tmp_path / "run"
-    Trainer(tiny(run, updates=1, checkpoint_every=1), run, progress=False).train()
+    Trainer(tiny(run, updates=2, checkpoint_every=1), run, progress=False).train()  # two saves: a previous one
     ck = run / "checkpoint.pt"
     data = ck.read_bytes()
     ck.write_bytes({"truncated": data[: len(data) // 2], "flipped": data[:200] + bytes(b ^ 0xFF for b in data[200:400])
                     + data[400:], "text": b"not a checkpoint\n", "empty": b""}[damage])
     capsys.readouterr()
+    prev = run / "checkpoint.prev.pt"
+    assert prev.is_file()
+    # the previous checkpoint kept beside it stands in, with a warning naming both files
+    assert cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "1",
+                     "--json"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "previous checkpoint" in r.getMessage()]
+    assert len(warned) == 1 and str(ck) in warned[0] and "damaged" in warned[0], warned
+    assert f"using the previous checkpoint {prev} instead" in warned[0]
+    capsys.readouterr()
+    prev.unlink()  # without it: one line naming the damaged file
     assert cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "1",
                      "--json"]) == 2
     err = capsys.readouterr().err.strip()

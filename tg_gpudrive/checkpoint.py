@@ -11,7 +11,6 @@ every agent of the scenes it is evaluated or rendered on.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -126,6 +125,23 @@ def check_kind(ck: dict, want: str, path, option: str) -> dict:
     return ck
 
 
+def usable_checkpoint(path: str | Path, option: str) -> Path:
+    """The file to read for the checkpoint `path` names: checkpoint.pt itself, or, when it is damaged and
+    the previous one kept beside it (checkpoint.prev.pt) reads, that one, with a warning naming both.
+    How evaluate and render read a run, as `--resume` does."""
+    path = checkpoint_path(path, option)
+    try:
+        _read(path, option, "cpu")
+        return path
+    except CheckpointError as e:
+        prev = previous_path(path)
+        if not prev.is_file():
+            raise
+        _read(prev, option, "cpu")
+        log.warning("%s; using the previous checkpoint %s instead", e, prev)
+        return prev
+
+
 def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cpu", fallback: bool = False,
                     kind: str = POLICY) -> dict:
     """The `kind` checkpoint at `path` (see checkpoint_path); CheckpointError naming the file if it is
@@ -138,7 +154,7 @@ def load_checkpoint(path: str | Path, option: str = "--resume", map_location="cp
         prev = previous_path(path)
         if not (fallback and prev.is_file()) or "expected a" in str(e):
             raise
-        log.warning("%s; resuming from the previous checkpoint %s", e, prev)
+        log.warning("%s; using the previous checkpoint %s instead", e, prev)
         return check_kind(_read(prev, option, map_location), kind, prev, option)
 
 

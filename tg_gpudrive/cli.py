@@ -34,7 +34,7 @@ from pathlib import Path
 import torch.multiprocessing as mp
 
 from tg_gpudrive.benchmark import main as benchmark_main
-from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_engine_config
+from tg_gpudrive.checkpoint import load_checkpoint, policy_engine_config, usable_checkpoint
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import (
     REPO_CONFIGS,
@@ -368,7 +368,8 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
 def cmd_evaluate(args) -> int:
     _check_background_args(args)
     if args.checkpoint:
-        path = checkpoint_path(args.checkpoint, "--checkpoint")  # a file, a run directory or "shipped"
+        # a file, a run directory or "shipped"; a damaged checkpoint.pt: the previous one, with a warning
+        path = usable_checkpoint(args.checkpoint, "--checkpoint")
         ck = load_checkpoint(path, "--checkpoint")
         trained = from_dict(TrainConfig, ck["config"], str(path))
     else:
@@ -447,7 +448,7 @@ def cmd_render(args) -> int:
     checkpoint = None
     if args.policy not in ("expert", "random", "constant"):
         try:  # a file, a run directory or "shipped"
-            checkpoint = checkpoint_path(args.policy, "--policy")
+            checkpoint = usable_checkpoint(args.policy, "--policy")
         except FileNotFoundError as e:
             raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") \
                 from None
