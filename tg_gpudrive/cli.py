@@ -24,6 +24,7 @@ option of a command with its default.
 from __future__ import annotations
 
 import argparse
+import csv
 import dataclasses
 import json
 import logging
@@ -410,8 +411,6 @@ def cmd_evaluate(args) -> int:
 
 def _write_csv(path: str, rows: list[dict]) -> None:
     """Rows as CSV at `path` (a header only when there are none); its folder is made if missing."""
-    import csv
-
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     with p.open("w", newline="") as f:

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
 
@@ -247,21 +248,41 @@ def segment_distance(p, a, b) -> np.ndarray:
 MIN_PLAY_STEPS = 10  # logged steps a scene must offer after init_step (1 s at 10 Hz) to be played
 
 
-def unplayable(scene: Scene, init_step: int = 10, goal_radius: float = 2.0) -> str | None:
-    """Why `scene` cannot be played (None: it can): its log ends within MIN_PLAY_STEPS of `init_step`,
-    or it has no vehicle the control rule would drive (every candidate marked or log-infeasible).
-    Sources skip such scenes and count them, so they never fill worlds. The defaults are the engine's."""
-    need = init_step + 1 + MIN_PLAY_STEPS
-    if scene.num_steps < need:
-        return (f"too short to play: {scene.num_steps} logged steps, control starts at step {init_step} "
-                f"and needs {MIN_PLAY_STEPS} more")
-    cand = candidates(scene, init_step, goal_radius)
+def marked_expert(scene: Scene) -> np.ndarray:
+    """(N,) bool: the agents the source file marks `mark_as_expert` (metadata["mark_as_expert"])."""
     marked = np.zeros(scene.num_agents, bool)
     marked[[int(i) for i in scene.metadata.get("mark_as_expert") or [] if 0 <= int(i) < scene.num_agents]] = True
-    if not (cand & ~marked & ~infeasible_mask(scene, init_step, goal_radius)).any():
+    return marked
+
+
+def too_short(num_steps: int, cfg: EngineConfig | None = None) -> str | None:
+    """Why a log of `num_steps` steps is too short to play (None: it is not): it ends within
+    MIN_PLAY_STEPS of `cfg`'s init_steps (default: the engine's)."""
+    init_step = (cfg or ENGINE_DEFAULTS).init_steps
+    if num_steps >= init_step + 1 + MIN_PLAY_STEPS:
+        return None
+    return (f"too short to play: {num_steps} logged steps, control starts at step {init_step} "
+            f"and needs {MIN_PLAY_STEPS} more")
+
+
+def unplayable(scene: Scene, cfg: EngineConfig | None = None) -> str | None:
+    """Why `scene` cannot be played (None: it can) with `cfg`'s init_steps and goal_radius (default: the
+    engine's defaults): its log ends within MIN_PLAY_STEPS of init_step, or it has no vehicle the control
+    rule would drive (every candidate marked or log-infeasible). Sources skip such scenes and count them,
+    so they never fill worlds."""
+    cfg = cfg or ENGINE_DEFAULTS
+    init_step, goal_radius = cfg.init_steps, cfg.goal_radius
+    short = too_short(scene.num_steps, cfg)
+    if short:
+        return short
+    cand = candidates(scene, init_step, goal_radius)
+    if not (cand & ~marked_expert(scene) & ~infeasible_mask(scene, init_step, goal_radius)).any():
         return (f"no controllable vehicle: none is present at step {init_step}, {goal_radius:g} m or more from "
                 f"its goal, unmarked and with a feasible log")
     return None
+
+
+ENGINE_DEFAULTS = EngineConfig()  # the init step and goal radius sources audit scenes with
 
 
 def _key(init: int, goal_radius: float) -> str:

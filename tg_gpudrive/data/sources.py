@@ -42,9 +42,9 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from tg_gpudrive.config import ConfigError, EngineConfig, coerce_field
+from tg_gpudrive.config import ConfigError, coerce_field
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene
-from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, infeasible_mask, unplayable
+from tg_gpudrive.data.log_audit import ENGINE_DEFAULTS, infeasible_mask, too_short, unplayable
 from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.store import (_is_json, _is_scenarionet, _is_tfrecord, expand_inputs, is_store, load_file,
                                     open_store)
@@ -175,11 +175,8 @@ def _generate(args: tuple) -> Scene:
     kind, seed, params = args
     scene = dense_scene(seed) if kind == "dense" else generate_scene(kind, seed, params)
     # the control rule's audit with the engine's defaults, here where get_many runs it in parallel
-    infeasible_mask(scene, _ENGINE_DEFAULTS.init_steps, _ENGINE_DEFAULTS.goal_radius)
+    infeasible_mask(scene, ENGINE_DEFAULTS.init_steps, ENGINE_DEFAULTS.goal_radius)
     return scene
-
-
-_ENGINE_DEFAULTS = EngineConfig()
 
 
 class StoreSource(SceneSource):
@@ -192,8 +189,9 @@ class StoreSource(SceneSource):
         # the scenes `convert` found unplayable, and any too short (a store written by `write_store`)
         steps = self.store.num_steps
         why = dict(self.store.unplayable)
-        for i in np.nonzero(steps < _ENGINE_DEFAULTS.init_steps + 1 + MIN_PLAY_STEPS)[0]:
-            why.setdefault(int(i), f"too short to play: {int(steps[i])} logged steps")
+        for i, t in enumerate(steps.tolist()):
+            if i not in why and too_short(t):
+                why[i] = too_short(t)
         short = np.zeros(len(steps), bool)
         short[list(why)] = True
         self._index = np.nonzero(~short)[0]

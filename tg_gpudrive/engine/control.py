@@ -39,7 +39,7 @@ from typing import Sequence
 import numpy as np
 
 from tg_gpudrive.config import EngineConfig
-from tg_gpudrive.data.log_audit import infeasible_mask
+from tg_gpudrive.data.log_audit import infeasible_mask, marked_expert
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import ENGINE_CONTROL, SELECT_CONTROL, AgentType, ControlMode
 
@@ -70,11 +70,9 @@ def exclusions(scene: Scene, cfg: EngineConfig) -> dict[str, np.ndarray]:
     """(N,) bool masks of the agents the rule keeps from the policy although present and away from
     their goal: "mark_as_expert" (marked by the source file) and "log_infeasible" (`data.log_audit`,
     not marked). Both empty without `cfg.replay_infeasible`."""
-    n = scene.num_agents
-    marked = np.zeros(n, bool)
     if not cfg.replay_infeasible:
-        return {"mark_as_expert": marked, "log_infeasible": np.zeros(n, bool)}
-    marked[[int(i) for i in scene.metadata.get("mark_as_expert") or [] if 0 <= int(i) < n]] = True
+        return {"mark_as_expert": np.zeros(scene.num_agents, bool), "log_infeasible": np.zeros(scene.num_agents, bool)}
+    marked = marked_expert(scene)
     infeasible = infeasible_mask(scene, init_index(scene, cfg), cfg.goal_radius) & ~marked
     return {"mark_as_expert": marked, "log_infeasible": infeasible}
 

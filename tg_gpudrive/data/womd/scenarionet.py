@@ -88,7 +88,6 @@ from typing import Any
 
 import numpy as np
 
-from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
 from tg_gpudrive.scene import FieldReader, Scene, SceneError, log_period
 from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
@@ -538,15 +537,13 @@ def _not_a_scene(src: str, kind: str) -> SceneError:
                                    "directory")
 
 
-def load_scenarionet(path: str | os.PathLike, *, simplify_tolerance: float | None = None) -> Scene:
+def load_scenarionet(path: str | os.PathLike) -> Scene:
     """Load one ScenarioNet scenario pickle (`sd_*.pkl`) as a validated Scene.
 
     The pickle is read by `load_pickle` (plain data and NumPy arrays only). Positions
     are shifted by `scene_origin` (stored in `Scene.origin`); goals are the last valid
-    positions; box sizes are the median over each track's valid steps. With
-    `simplify_tolerance` (metres) road polylines are simplified by
-    `simplify.simplify_scene` and its report is stored in metadata["simplify"].
-    `dataset_summary.pkl` / `dataset_mapping.pkl` raise a SceneError saying what they are.
+    positions; box sizes are the median over each track's valid steps (`convert --simplify`
+    simplifies the road polylines when packing). `dataset_summary.pkl` / `dataset_mapping.pkl` raise a SceneError saying what they are.
     """
     src = str(path)
     name = Path(src).name.lower()
@@ -582,7 +579,7 @@ def load_scenarionet(path: str | os.PathLike, *, simplify_tolerance: float | Non
         dt = log_period(np.diff(rd.numbers(ts, "metadata.ts").reshape(-1)))
     dataset = meta.get("dataset")
     sid = raw.get("id") or meta.get("scenario_id") or meta.get("id")
-    scene = Scene(
+    return Scene(
         scene_id=str(sid) if sid is not None else Path(src).stem,
         log_pos=(pos - origin).astype(np.float32),
         log_yaw=ag["yaw"].astype(np.float32),
@@ -629,9 +626,6 @@ def load_scenarionet(path: str | os.PathLike, *, simplify_tolerance: float | Non
             **({} if mp["ids_numeric"] else {"map_feature_ids": [str(k) for k in mp["keys"]]}),
         },
     ).validate(src)
-    if simplify_tolerance is not None:
-        scene, _ = simplify_scene(scene, simplify_tolerance)
-    return scene
 
 
 def _tracks(rd: _Reader, tracks: dict, defaults: dict) -> dict:
