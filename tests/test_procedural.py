@@ -190,6 +190,7 @@ def check_routes_and_goals(sc, tag=""):
     assert len(edges) and all(a in lanes and b in lanes for a, b in edges), tag
     routes = sc.metadata["routes"]
     kerb = set(sc.metadata["kerb_stops"])
+    changes = {i: (lane, done) for i, lane, done in sc.metadata["lane_changes"]}
     offsets = np.abs(sc.metadata["lane_offsets"])  # drivers off the lane centre (lane_offset)
     assert len(routes) == sc.num_agents - sc.metadata["num_parked"]
     for i, route in enumerate(routes):
@@ -199,6 +200,14 @@ def check_routes_and_goals(sc, tag=""):
         d_goal = point_polyline_distance(sc.goal[i].astype(np.float64), sc.polyline(route[-1]))
         if i in kerb:  # parked at the kerb: in the strip beside its last lane, off the lane centre
             assert 2.0 < d_goal < 4.5, tag
+            continue
+        if i in changes:  # changed onto the parallel lane `lane` (one lane width away), share `done` of it
+            lane, done = changes[i]
+            assert lane in lanes and lane not in route, tag
+            width = sc.metadata["params"]["lane_width"]
+            d_other = point_polyline_distance(sc.goal[i].astype(np.float64), sc.polyline(lane))
+            assert abs(d_goal - done * width) < 0.35 and abs(d_other - (1 - done) * width) < 0.35, tag
+            assert 0.0 < done <= 1.0 and d_goal + d_other == pytest.approx(width, abs=0.35), tag
             continue
         assert d_goal < offsets[i] + 0.05, tag
         assert point_polyline_distance(sc.log_pos[i, 0].astype(np.float64), sc.polyline(route[0])) < offsets[i] + 0.05, tag
@@ -395,6 +404,33 @@ def test_lane_offsets_move_drivers_and_goals_off_the_centre():
         check_kinematics(sc, kind)
     assert np.mean(offs) > 0.15 and max(offs) <= 0.65  # at most (4.5 - 1.8) / 2 - 0.25 m
     assert np.mean(goal_d) > 0.1
+
+
+def test_lane_changes_end_on_the_parallel_lane():
+    """With lane_changes, vehicles whose route ends on a straight lane beside a parallel one move onto
+    it (check_routes_and_goals puts their goal at the drawn share of a lane width between the two),
+    keeping every invariant; a straight path then ends a lane width or so to the side, as in the logs."""
+    params = ProceduralParams(lane_changes=1.0)
+    shifts = []
+    for kind in ("merge", "dual_lane_intersection", "t_junction", "y_junction"):
+        for seed in range(3):
+            sc = generate_scene(kind, seed, params)
+            tag = f"lane changes {kind} seed {seed}"
+            check_invariants(sc, tag)
+            check_kinematics(sc, tag)
+            check_routes_and_goals(sc, tag)
+            for i, _, done in sc.metadata["lane_changes"]:
+                fwd = np.array([np.cos(sc.log_yaw[i, 0]), np.sin(sc.log_yaw[i, 0])])
+                d = sc.goal[i] - sc.log_pos[i, 0]
+                if abs(np.sin(sc.log_yaw[i, -1] - sc.log_yaw[i, 0])) < 0.1:  # a straight path
+                    shifts.append(abs(fwd[0] * d[1] - fwd[1] * d[0]) / done)
+    assert len(shifts) >= 5
+    assert np.allclose(shifts, ProceduralParams().lane_width, atol=0.4)
+    plain = generate_scene("merge", 0)
+    assert plain.metadata["lane_changes"] == []
+    assert np.array_equal(plain.log_pos, generate_scene("merge", 0, ProceduralParams(lane_changes=0.0)).log_pos)
+    with pytest.raises(ValueError, match="lane_changes"):
+        ProceduralParams(lane_changes=1.5)
 
 
 def test_street_knobs_are_deterministic_and_off_by_default():

@@ -37,9 +37,27 @@ def test_features_of_a_hand_made_street():
     assert f["parked_share"][0] == pytest.approx(0.5)
     np.testing.assert_allclose(f["lane_width"], 3.5, atol=1e-6)
     assert f["lanes"][0] == 1
+    np.testing.assert_allclose(f["lateral_shift"], [0.0], atol=1e-6)  # straight down its lane
     # within 50 m of the car's init position (10, 0): both edges from x = -20 (their start) to 60, 2 x 80 m,
     # over a disc of pi 50^2 m^2 (sampled on a 5 m grid: a few per cent)
     assert f["edge_density"][0] == pytest.approx(160 / (np.pi * 2500 / 1e4), rel=0.05)
+
+
+def test_lateral_shift_of_a_lane_change_and_not_of_a_turn():
+    """A car that moves one lane (3.5 m) left after init_step ends 3.5 m to the side of its init heading;
+    one that turns a corner is not a straight path and gives no sample."""
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    pos[0, :, 0] = 10 * t
+    x = np.clip((t - 1.5) / 1.5, 0, 1)
+    pos[0, :, 1] = 3.5 * x * x * (3 - 2 * x)
+    yaw = np.zeros((2, T))
+    pos[1, :, 0] = np.minimum(10 * t, 20.0)  # turns left at x = 20
+    pos[1, :, 1] = np.maximum(10 * t - 20.0, 0.0)
+    yaw[1] = np.where(10 * t > 20.0, np.pi / 2, 0.0)
+    f = scene_features(make_scene(pos, yaw, roads=[(RoadType.LANE, [[-20, 0], [80, 0]])]))
+    np.testing.assert_allclose(f["lateral_shift"], [3.5], atol=1e-4)
+    assert len(f["goal_distance"]) == 2
 
 
 def test_w1_is_the_shift_of_a_shifted_sample_and_the_table_ranks_by_distance():

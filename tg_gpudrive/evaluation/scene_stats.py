@@ -14,6 +14,11 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
     goal_distance      m        candidates                  straight line from the init position to the goal
     route_length       m        candidates                  path length of the log from init_step to its last
                                                             valid step
+    lateral_shift      m        straight candidates         how far the goal lies to the side of the init
+                                                            heading (lane changes, kerb stops), over candidates
+                                                            whose log heading at its last valid step is within
+                                                            STRAIGHT_DEG of the init one and whose goal is at
+                                                            least STRAIGHT_MIN_M away
     agents             -        scenes                      agents valid at some step
     controlled         -        scenes                      the rule's eligible vehicles (engine.control)
     pedestrians        -        scenes                      pedestrians valid at some step
@@ -44,13 +49,16 @@ from tg_gpudrive.engine import control
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.types import AgentType, RoadType
 
-FEATURES = ("speed", "accel", "curvature", "goal_distance", "route_length", "agents", "controlled",
+FEATURES = ("speed", "accel", "curvature", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
             "pedestrians", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
 UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "goal_distance": "m", "route_length": "m",
+         "lateral_shift": "m",
          "edge_density": "m/ha", "lane_width": "m"}
 PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
 EDGE_REACH_M = 50.0  # m around the candidates' init positions where road-edge density is measured
 LANE_SIDE_M = 4.0  # m: a lane's bounding line or edge lies within this of its centre
+STRAIGHT_DEG = 10.0  # a log whose heading turns less than this from init to its end drives straight
+STRAIGHT_MIN_M = 15.0  # m: the goal of a straight log counted for lateral_shift is at least this far
 
 
 def _kinematics(scene: Scene, rows: np.ndarray, init: int) -> dict[str, np.ndarray]:
@@ -130,12 +138,17 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     init = min(cfg.init_steps, scene.num_steps - 1)
     cand = np.nonzero(candidates(scene, init, cfg.goal_radius))[0]
     out = _kinematics(scene, cand, init)
-    goal_d, route = [], []
+    goal_d, route, shift = [], [], []
     for i in cand:
         ok = np.nonzero(scene.log_valid[i, init:])[0] + init
-        goal_d.append(float(np.linalg.norm(scene.goal[i] - scene.log_pos[i, init])))
+        to_goal = (scene.goal[i] - scene.log_pos[i, init]).astype(np.float64)
+        goal_d.append(float(np.linalg.norm(to_goal)))
         route.append(float(np.linalg.norm(np.diff(scene.log_pos[i, ok], axis=0), axis=-1).sum()))
+        yaw0, turn = float(scene.log_yaw[i, init]), float(scene.log_yaw[i, ok[-1]] - scene.log_yaw[i, init])
+        if goal_d[-1] >= STRAIGHT_MIN_M and abs(np.angle(np.exp(1j * turn))) < np.radians(STRAIGHT_DEG):
+            shift.append(abs(np.cos(yaw0) * to_goal[1] - np.sin(yaw0) * to_goal[0]))
     out["goal_distance"], out["route_length"] = np.asarray(goal_d), np.asarray(route)
+    out["lateral_shift"] = np.asarray(shift)
     present = scene.log_valid.any(1)
     vehicles = present & (scene.agent_type == AgentType.VEHICLE)
     moved = np.array([np.ptp(scene.log_pos[i][scene.log_valid[i]], axis=0).max() if present[i] else 0.0

@@ -14,9 +14,10 @@ is IDM (desired speed, time headway, minimum gap) against:
     `_decide`) and the second holds back behind the "frontier" that the first
     one's current position still leaves free (reservation of the zone),
   * the curve speed limit (lateral acceleration LAT_ACC) and the route end.
-Kerb stops and lane offsets (`Vehicles.lateral`) move a vehicle sideways off its centreline, only
-where its route is straight, after the 1-D rollout; a kerb-stopping vehicle stops leading its
-followers once it has left their lane. After the rollout every box pair is checked exactly
+Kerb stops, lane changes and lane offsets (`Vehicles.lateral`) move a vehicle sideways off its
+centreline, only where its route is straight, after the 1-D rollout; a vehicle that pulls in at the
+kerb or changes lanes stops leading its followers once it has left their lane (on its new lane it
+leads no one: a vehicle there that it would touch is dropped by the overlap check). After the rollout every box pair is checked exactly
 (separating axes with a safety margin); an overlapping later-spawned vehicle, or one that barely
 moves, is dropped and the rollout repeated, so the invariants hold by construction.
 Nothing here draws random numbers after spawning: the rollout is deterministic.
@@ -246,6 +247,13 @@ class Vehicles:
     # lane offset (`plan_lane_offsets`): the vehicle drives bias m to the right of the lane centre
     # (negative: left) wherever its route is straight, back on the centre through curves
     bias: np.ndarray | None = None  # m
+    # lane change (`plan_lane_changes`): on its route's last lane, which runs straight, the vehicle moves
+    # change_off m to the right (negative: left) over change_len m from route arc length change_s, onto
+    # the parallel lane change_lane, and keeps to it
+    change_s: np.ndarray | None = None  # m, inf: no lane change
+    change_len: np.ndarray | None = None  # m
+    change_off: np.ndarray | None = None  # m
+    change_lane: np.ndarray | None = None  # lane index, -1: none
 
     def __post_init__(self):
         n = len(self.routes)
@@ -257,6 +265,14 @@ class Vehicles:
             self.ramp_len = np.ones(n)
         if self.kerb_off is None:
             self.kerb_off = np.zeros(n)
+        if self.change_s is None:
+            self.change_s = np.full(n, np.inf)
+        if self.change_len is None:
+            self.change_len = np.ones(n)
+        if self.change_off is None:
+            self.change_off = np.zeros(n)
+        if self.change_lane is None:
+            self.change_lane = np.full(n, -1, np.int64)
 
     def __len__(self):
         return len(self.routes)
@@ -265,7 +281,7 @@ class Vehicles:
         idx = np.flatnonzero(keep)
         return Vehicles([self.routes[i] for i in idx], *(getattr(self, f)[idx] for f in (
             "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf",
-            "stop_s", "ramp_len", "kerb_off", "bias")))
+            "stop_s", "ramp_len", "kerb_off", "bias", "change_s", "change_len", "change_off", "change_lane")))
 
     def kerb_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset to the right of the lane centre, its derivative along s) of vehicle i's kerb stop at
@@ -276,23 +292,41 @@ class Vehicles:
         x = np.clip((s - (self.stop_s[i] - L)) / L, 0.0, 1.0)
         return self.kerb_off[i] * x * x * (3 - 2 * x), self.kerb_off[i] * 6 * x * (1 - x) / L
 
+    def change_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(offset to the right of the lane centre, its derivative along s) of vehicle i's lane change
+        at route arc lengths s: a smoothstep from 0 to change_off over change_len m from change_s, then
+        change_off (zero without)."""
+        if not np.isfinite(self.change_s[i]):
+            return np.zeros_like(s), np.zeros_like(s)
+        L = self.change_len[i]
+        x = np.clip((s - self.change_s[i]) / L, 0.0, 1.0)
+        return self.change_off[i] * x * x * (3 - 2 * x), self.change_off[i] * 6 * x * (1 - x) / L
+
     def lateral(self, i: int, s: np.ndarray, route: Route) -> tuple[np.ndarray, np.ndarray]:
         """Vehicle i's whole offset to the right of its lane centre and its derivative along s: the
-        lane offset (on straight road) plus the kerb stop. Both change only where the route is
-        straight, so the path's curvature is d'' there and the lane's own elsewhere."""
+        lane offset (on straight road) plus the kerb stop and the lane change. All change only where
+        the route is straight, so the path's curvature is d'' there and the lane's own elsewhere."""
         d, dd = self.kerb_lateral(i, s)
+        c, dc = self.change_lateral(i, s)
+        d, dd = d + c, dd + dc
         if self.bias[i]:
             w, dw = route.straight_weight(s)
             d, dd = d + self.bias[i] * w, dd + self.bias[i] * dw
         return d, dd
 
     def out_of_lane_s(self) -> np.ndarray:
-        """(N,) route s beyond which a kerb-stopping vehicle has left its lane for the kerb (offset
-        past its width plus the check margins): followers no longer queue behind it. inf otherwise."""
-        frac = np.clip((self.width + 2 * CHECK_MARGIN) / np.maximum(self.kerb_off, 1e-6), 0.0, 1.0)
+        """(N,) route s beyond which a vehicle has left its lane for the kerb or for the next lane
+        (offset past its width plus the check margins): followers no longer queue behind it. inf
+        for those that keep their lane."""
+        kerb = np.isfinite(self.stop_s) & (self.kerb_off > 0)
+        change = np.isfinite(self.change_s) & (self.change_off != 0)
+        off = np.where(kerb, self.kerb_off, np.abs(self.change_off))
+        start = np.where(kerb, self.stop_s - self.ramp_len, self.change_s)
+        length = np.where(kerb, self.ramp_len, self.change_len)
+        frac = np.clip((self.width + 2 * CHECK_MARGIN) / np.maximum(off, 1e-6), 0.0, 1.0)
         # smoothstep^-1 of frac (x = 1/2 - sin(asin(1 - 2 frac) / 3))
         x = 0.5 - np.sin(np.arcsin(1.0 - 2.0 * frac) / 3.0)
-        return np.where(np.isfinite(self.stop_s) & (self.kerb_off > 0), self.stop_s - self.ramp_len * (1 - x), np.inf)
+        return np.where(kerb | change, start + length * x, np.inf)
 
 
 def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_mean: float,
@@ -409,6 +443,64 @@ def plan_kerb_stops(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: np.
         veh.kerb_off[i] = off
         veh.bias[i] = 0.0  # the ramp's clearance was worked out from the lane centre
         count += 1
+    return count
+
+
+LANE_CHANGE_RAMP = (25.0, 40.0)  # m over which a vehicle moves onto the parallel lane
+LANE_CHANGE_RUNWAY = 5.0  # m the change's DONE point lies short of where the vehicle gets to in the episode
+LANE_CHANGE_DONE = 0.6  # share of the ramp the vehicle covers at least: an episode may end mid-change
+PARALLEL_TOL = 0.3  # m a point shifted by one lane width may lie from the parallel lane's centre line
+
+
+def parallel_lane(m: RoadMap, route: Route, s: np.ndarray, off: float, exclude) -> int:
+    """The lane whose centre line runs `off` m to the right of the route (negative: left), in its
+    direction, at every route arc length of `s`; -1 if there is none."""
+    xy, yaw, _ = route.path.eval(s)
+    pts = xy + off * np.stack([np.sin(yaw), -np.cos(yaw)], 1)
+    for k, lane in enumerate(m.lanes):
+        if k in exclude:
+            continue
+        lxy, lh, _ = lane.path.sample(0.5)
+        d = np.linalg.norm(pts[:, None] - lxy[None], axis=-1)
+        j = np.argmin(d, 1)
+        if (d[np.arange(len(s)), j] < PARALLEL_TOL).all() and (np.cos(lh[j] - yaw) > math.cos(0.05)).all():
+            return k
+    return -1
+
+
+def plan_lane_changes(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: np.random.Generator, prob: float,
+                      lane_width: float) -> int:
+    """Each vehicle whose route's last lane runs straight beside a parallel lane of the same direction,
+    over a stretch it drives in the episode (`reach`: (N,) route arc length each vehicle reached in a
+    rollout without changes), changes onto that lane with probability `prob`, as logged drivers change
+    lanes before their goal: the change starts on that last lane, ahead of the vehicle's start, and
+    the vehicle covers at least LANE_CHANGE_DONE of it LANE_CHANGE_RUNWAY m short of `reach` (an
+    episode may end mid-change, its goal then lying between the lanes, as logged ones do). A kerb-stopping vehicle keeps its lane. Vehicles drawn are
+    updated in place (their lane offset is dropped); returns how many."""
+    if prob <= 0:
+        return 0
+    count = 0
+    for i, lanes in enumerate(veh.routes):
+        if np.isfinite(veh.stop_s[i]) or rng.random() >= prob:
+            continue
+        r = tm.route(lanes)
+        ramp = float(rng.uniform(*LANE_CHANGE_RAMP))
+        side = float(rng.choice((-1.0, 1.0)))
+        lo = max(r.starts[-2], veh.s0[i] + 2.0)
+        hi = min(reach[i], r.length) - LANE_CHANGE_RUNWAY - LANE_CHANGE_DONE * ramp
+        if hi <= lo:
+            continue
+        start = float(rng.uniform(lo, hi))
+        stretch = np.linspace(start, min(reach[i] + 2.0, r.length), 12)
+        if (r.straight_weight(stretch)[0] < 1.0).any():
+            continue
+        for off in (side * lane_width, -side * lane_width):
+            k = parallel_lane(tm.map, r, stretch, off, set(lanes))
+            if k >= 0:
+                veh.change_s[i], veh.change_len[i], veh.change_off[i], veh.change_lane[i] = start, ramp, off, k
+                veh.bias[i] = 0.0
+                count += 1
+                break
     return count
 
 
@@ -631,8 +723,8 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_
         xy[i, :, 0] = np.interp(s[i], g, r.grid_xy[:, 0])
         xy[i, :, 1] = np.interp(s[i], g, r.grid_xy[:, 1])
         yaw[i] = np.interp(s[i], g, r.grid_yaw)
-        if np.isfinite(veh.stop_s[i]) or veh.bias[i]:
-            # kerb ramps and lane offsets change only on straight road (`Vehicles.lateral`): the path
+        if np.isfinite(veh.stop_s[i]) or np.isfinite(veh.change_s[i]) or veh.bias[i]:
+            # kerb ramps, lane changes and lane offsets change only on straight road (`Vehicles.lateral`): the path
             # is the lane offset d(s) to the right, its heading turned by atan(d'), its speed scaled
             # by sqrt(1 + d'^2)
             d, dd = veh.lateral(i, s[i], r)
