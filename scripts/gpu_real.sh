@@ -1,41 +1,70 @@
 #!/usr/bin/env bash
-# Fine-tune the shipped policy on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml),
-# with and without the 120-degree view cone, side by side on one GPU; then evaluate them, the shipped policy and
-# the expert replay on held-out real scenes in every collision mode, and the policies on held-out procedural
-# scenes (seed 90000, the procedural bar).
-#   (cd /tmp && bash REPO/scripts/gpu_real.sh TRAIN_STORE HELDOUT_STORE OUT_DIR [TIME_LIMIT_S])
-# Run it outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl
-# (one evaluation per line), the runs' curves and a tarball of their metrics and configs.
+# Fine-tune the shipped policy on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml)
+# for the data-scaling curve: one run per number of real training scenes (0 = procedural alone, then the
+# nested subsets of scripts/split_dev.py --subsets 5,15,30 and the whole training split), plus the whole
+# split with the 120-degree view cone; runs are spread over the GPUs the machine has. Then evaluate every
+# run on the held-out real scenes and on held-out procedural scenes (seed 90000, the procedural bar), and
+# the whole-split run, the shipped policy and the expert replay in every collision mode.
+#   (cd /tmp && PHASE=train bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
+#   (cd /tmp && PHASE=eval bash REPO/scripts/gpu_real.sh STORES OUT_DIR)
+# STORES holds womd_dev_train, womd_dev_train_{5,15,30} and womd_dev_heldout (scripts/split_dev.py). Run it
+# outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl (one
+# evaluation per line), the runs' curves and a tarball of their metrics and configs.
 set -uo pipefail
-train=$1 held=$2 out=$3 tl=${4:-270}
+stores=$1 out=$2 updates=${3:-300}
 repo=$(cd "$(dirname "$0")/.." && pwd)
 runs=${RUNS:-/tmp/runs}
-phase=${PHASE:-all}  # train | eval | all: the two halves fit one device call each
+phase=${PHASE:-train}
 tg="python3 -m tg_gpudrive.cli"
-mix="mix:procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5]=0.5,$train=0.5"
-mkdir -p "$out"
-[ "$phase" = eval ] || for v in 360 120; do
-  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$mix" --set time_limit_s="$tl" \
-    --set env.view_angle=$v --out "$runs/real_$v" --overwrite --json > "$out/train_$v.json" 2> "$out/train_$v.log" &
-done
-wait
-[ "$phase" = train ] && { tail -n 3 "$out"/train_*.log; exit 0; }
-rates() {  # who scenes extra...
-  local who=$1 scenes=$2; shift 2
-  $tg evaluate $who --scenes "$scenes" --device cuda --seed 0 --json "$@" 2>/dev/null | tail -1 |
+held=$stores/womd_dev_heldout
+proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5]"
+ngpu=$(nvidia-smi -L | wc -l)
+# name  real store (- for none)  view angle
+plan="real0 - 360
+real5 $stores/womd_dev_train_5 360
+real15 $stores/womd_dev_train_15 360
+real30 $stores/womd_dev_train_30 360
+real44 $stores/womd_dev_train 360
+real44_v120 $stores/womd_dev_train 120"
+mkdir -p "$out" "$runs"
+if [ "$phase" = train ]; then
+  k=0
+  while read -r name store view; do
+    scenes=$proc
+    [ "$store" = - ] || scenes="mix:$proc=0.5,$store=0.5"
+    CUDA_VISIBLE_DEVICES=$((k % ngpu)) $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$scenes" \
+      --set updates="$updates" --set time_limit_s=520 --set env.view_angle="$view" --out "$runs/$name" --overwrite \
+      --json > "$out/train_$name.json" 2> "$out/train_$name.log" &
+    k=$((k + 1))
+  done <<< "$plan"
+  wait
+  tail -n 2 "$out"/train_*.log
+  exit 0
+fi
+rates() {  # gpu who scenes extra...
+  local gpu=$1 who=$2 scenes=$3; shift 3
+  CUDA_VISIBLE_DEVICES=$gpu $tg evaluate $who --scenes "$scenes" --device cuda --json "$@" 2>/dev/null | tail -1 |
     python3 -c "import json,sys; d=json.load(sys.stdin); print(json.dumps({'who': '$who', 'scenes': '$scenes', 'args': '$*', **{k: d.get(k) for k in ('collision_mode','agent_episodes','goal_rate','collision_rate','offroad_rate','score_rate','ci95','agents_dropped','agents_log_infeasible','max_agents')}}))" >> "$out/rates.jsonl"
 }
-for mode in ignore stop remove; do
-  rates "--policy expert" "$held" --episodes 17 --collision-mode $mode
-  for who in shipped "$runs/real_360" "$runs/real_120"; do
-    rates "--checkpoint $who" "$held" --episodes 17 --collision-mode $mode
+k=0
+while read -r name store view; do
+  ( rates $((k % ngpu)) "--checkpoint $runs/$name" "$held" --episodes 17 --seed 0
+    rates $((k % ngpu)) "--checkpoint $runs/$name" procedural:all --num-scenes 256 --episodes 256 --seed 90000 ) &
+  k=$((k + 1))
+done <<< "$plan"
+( for mode in ignore stop remove; do
+    rates 0 "--policy expert" "$held" --episodes 17 --seed 0 --collision-mode $mode
+    rates 0 "--checkpoint shipped" "$held" --episodes 17 --seed 0 --collision-mode $mode
   done
+  rates 0 "--checkpoint shipped" procedural:all --num-scenes 256 --episodes 256 --seed 90000 ) &
+( for mode in stop remove; do
+    rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --collision-mode $mode
+  done
+  rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --deterministic ) &
+wait
+for name in $(cut -d' ' -f1 <<< "$plan"); do
+  cp "$runs/$name/curves.png" "$out/curves_$name.png" 2>/dev/null
 done
-for who in shipped "$runs/real_360" "$runs/real_120"; do
-  rates "--checkpoint $who" procedural:all --num-scenes 256 --episodes 256
-done
-for v in 360 120; do
-  cp "$runs/real_$v/curves.png" "$out/curves_$v.png"
-done
-tar czf "$out/runs.tgz" -C "$runs" real_360/metrics.csv real_120/metrics.csv real_360/config.json real_120/config.json
+(cd "$runs" && tar czf "$out/runs.tgz" */metrics.csv */config.json)
+cp "$runs/real44/checkpoint.pt" "$out/real44.pt" 2>/dev/null
 ls -la "$out"
