@@ -5,8 +5,9 @@
 # split with the 120-degree view cone; runs are spread over the GPUs the machine has. Then evaluate every
 # run on the held-out real scenes and on held-out procedural scenes (seed 90000, the procedural bar), and
 # the whole-split run, the shipped policy and the expert replay in every collision mode.
-#   (cd /tmp && PHASE=train bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
-#   (cd /tmp && PHASE=eval bash REPO/scripts/gpu_real.sh STORES OUT_DIR)
+#   (cd /tmp && [PHASE=train|eval|all] [ONLY="real0 real44"] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
+# PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
+# ONLY picks some of the runs below; TIME_LIMIT (s, default 470) bounds each training.
 # STORES holds womd_dev_train, womd_dev_train_{5,15,30} and womd_dev_heldout (scripts/split_dev.py). Run it
 # outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl (one
 # evaluation per line), the runs' curves and a tarball of their metrics and configs.
@@ -14,7 +15,7 @@ set -uo pipefail
 stores=$1 out=$2 updates=${3:-300}
 repo=$(cd "$(dirname "$0")/.." && pwd)
 runs=${RUNS:-/tmp/runs}
-phase=${PHASE:-train}
+phase=${PHASE:-all}
 tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
 proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5]"
@@ -26,20 +27,20 @@ real15 $stores/womd_dev_train_15 360
 real30 $stores/womd_dev_train_30 360
 real44 $stores/womd_dev_train 360
 real44_v120 $stores/womd_dev_train 120"
+[ -z "${ONLY:-}" ] || plan=$(grep -wE "^($(tr ' ' '|' <<< "$ONLY"))" <<< "$plan")
 mkdir -p "$out" "$runs"
-if [ "$phase" = train ]; then
+if [ "$phase" != eval ]; then
   k=0
   while read -r name store view; do
     scenes=$proc
     [ "$store" = - ] || scenes="mix:$proc=0.5,$store=0.5"
     CUDA_VISIBLE_DEVICES=$((k % ngpu)) $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$scenes" \
-      --set updates="$updates" --set time_limit_s=520 --set env.view_angle="$view" --out "$runs/$name" --overwrite \
+      --set updates="$updates" --set time_limit_s="${TIME_LIMIT:-470}" --set env.view_angle="$view" --out "$runs/$name" --overwrite \
       --json > "$out/train_$name.json" 2> "$out/train_$name.log" &
     k=$((k + 1))
   done <<< "$plan"
   wait
-  tail -n 2 "$out"/train_*.log
-  exit 0
+  [ "$phase" = train ] && exit 0
 fi
 rates() {  # gpu who scenes extra...
   local gpu=$1 who=$2 scenes=$3; shift 3
@@ -61,6 +62,7 @@ done <<< "$plan"
     rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --collision-mode $mode
   done
   rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --deterministic ) &
+for f in "$out"/train_*.log; do tail -c 300 "$f" > "$f.tail" && mv "$f.tail" "$f"; done
 wait
 for name in $(cut -d' ' -f1 <<< "$plan"); do
   cp "$runs/$name/curves.png" "$out/curves_$name.png" 2>/dev/null
