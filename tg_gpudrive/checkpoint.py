@@ -11,6 +11,7 @@ every agent of the scenes it is evaluated or rendered on.
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 from pathlib import Path
@@ -18,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from tg_gpudrive.config import ConfigError, apply_overrides, from_dict, parse_override, to_dict
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import agents_needed, sized_for
 
@@ -49,10 +51,16 @@ def save_atomic(obj, path: str | Path, keep_previous: bool = False) -> Path:
     damaged."""
     path = Path(path)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+    except (OSError, RuntimeError) as e:  # a full disk, a quota: torch.save may wrap the OSError
+        tmp.unlink(missing_ok=True)
+        kept = f"; {path} is the last good one" if path.exists() else ""
+        raise OSError(getattr(e, "errno", None) or errno.EIO,
+                      f"could not save {path} ({getattr(e, 'strerror', None) or e}){kept}") from None
     if keep_previous and path.exists():
         os.replace(path, previous_path(path))
     os.replace(tmp, path)
@@ -188,6 +196,49 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
                         "are dropped (scenes need up to %d slots)", cfg.heads, env.max_agents, need)
         return env
     return sized_for(env, scenes)
+
+
+# what a trained network fixes: its observation sizes and its action space (the meaning of its outputs);
+# every other engine key may change when it is evaluated (collision mode, control, max_agents, radii, view)
+FIXED_ENGINE_KEYS = ("dynamics", "action_space", "accel_bins", "curvature_bins", "max_accel", "max_curvature",
+                     "delta_max", "partner_k", "road_k")
+# ... and, for --resume, the shapes of its networks
+FIXED_TRAIN_KEYS = ("hidden", "heads", "actor_history", "quantiles")
+
+
+def _fixed_change(key: str, was, now, path, where: str) -> ConfigError:
+    return ConfigError(f"--set {key}={now}: fixed by the network trained in {path} ({key}={was} there); "
+                       f"{where}")
+
+
+def evaluation_engine(env: EngineConfig, overrides: list[str], path) -> EngineConfig:
+    """`env` (a checkpoint's engine, sized for the scenes) with the --set overrides of an evaluation:
+    an unknown key is an error, as without a checkpoint, and so is a change of a key the network fixes
+    (FIXED_ENGINE_KEYS); every other key is applied."""
+    if not overrides:
+        return env
+    current = to_dict(env)
+    for text in overrides:  # a fixed key first, before it can fail in combination with others
+        path_, value = parse_override(text)
+        key, was = path_[0], current.get(path_[0])
+        if len(path_) == 1 and key in FIXED_ENGINE_KEYS and not (
+                list(was) == list(value) if isinstance(value, (list, tuple)) else was == value):
+            raise _fixed_change(key, was, value, path, "train a new policy to change it")
+    new = from_dict(type(env), apply_overrides(current, overrides), "--set")
+    for key in FIXED_ENGINE_KEYS:
+        if getattr(new, key) != getattr(env, key):
+            raise _fixed_change(key, getattr(env, key), getattr(new, key), path,
+                                "train a new policy to change it")
+    return new
+
+
+def check_resume_config(old: TrainConfig, new: TrainConfig, path) -> None:
+    """A --resume's config (the run's, with new --set overrides) keeps what the saved networks fix."""
+    pairs = [(f"env.{k}", getattr(old.env, k), getattr(new.env, k)) for k in FIXED_ENGINE_KEYS]
+    pairs += [(k, getattr(old, k), getattr(new, k)) for k in FIXED_TRAIN_KEYS]
+    for key, was, now in pairs:
+        if was != now:
+            raise _fixed_change(key, was, now, path, "a new run (without --resume) can change it")
 
 
 def policy_worlds(cfg: TrainConfig, scenes) -> tuple[EngineConfig, list]:

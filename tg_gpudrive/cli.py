@@ -24,10 +24,12 @@ option of a command with its default.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import dataclasses
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -35,7 +37,8 @@ from pathlib import Path
 import torch.multiprocessing as mp
 
 from tg_gpudrive.benchmark import main as benchmark_main
-from tg_gpudrive.checkpoint import load_checkpoint, policy_engine_config, usable_checkpoint
+from tg_gpudrive.checkpoint import (check_resume_config, evaluation_engine, load_checkpoint, policy_engine_config,
+                                    usable_checkpoint)
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import (
     REPO_CONFIGS,
@@ -56,6 +59,7 @@ from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.scene import scene_defaults
 from tg_gpudrive.evaluation.report import main as report_main
 from tg_gpudrive.learn import distributed
+from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
 from tg_gpudrive.learn.train import train_main
 from tg_gpudrive.policy import load_policy
 from tg_gpudrive.rollout import background_masks, builtin_policy, expert_policy, make_background_driver, run_rollout
@@ -152,7 +156,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
     p = sub.add_parser("train", help="CCE-MAPPO training (TrafficGamer)")
-    p.add_argument("--config", required=True, help="configs/train/<name>.yaml (required)")
+    p.add_argument("--config", default=None,
+                   help="configs/train/<name>.yaml (required, except with --resume: the run's own config.json)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a train config key, e.g. --set alpha=0.25 --set env.beta=3 "
                         "(repeatable; default: none)")
@@ -307,14 +312,33 @@ def cmd_train(args) -> int:
         if not (Path(args.resume) / "checkpoint.pt").is_file() and not Path(args.resume).is_file():
             raise FileNotFoundError(f"--resume: no run to continue at {args.resume} (no checkpoint.pt)")
         cfg_path = Path(args.resume) / "config.json"
+        if not cfg_path.exists() and not args.config:
+            raise FileNotFoundError(f"--resume {args.resume}: no config.json there; give the run's --config")
         data = json.loads(cfg_path.read_text()) if cfg_path.exists() else load_yaml(args.config)
+    elif not args.config:
+        raise ValueError("--config is required (a YAML of configs/train/, e.g. configs/train/small_cpu.yaml)")
     else:
         data = load_yaml(args.config)
     cfg = from_dict(TrainConfig, apply_overrides(data, args.set), args.config)
+    if args.resume:
+        check_resume_config(from_dict(TrainConfig, data, str(cfg_path)), cfg, args.resume)
     resolve_device(cfg.device, flag="device")  # CUDA without one: a one-line error before any process starts
-    out_dir = args.out or args.resume
-    if not args.resume:
-        out_dir = str(_fresh_run_dir(Path(out_dir or cfg.out_dir), args.overwrite))
+    # under torchrun only rank 0 writes (and locks) the run directory; the others are told it below
+    lead = int(os.environ.get("RANK", "0")) == 0
+    if args.resume:
+        run = Path(args.resume) if Path(args.resume).is_dir() else Path(args.resume).parent
+        out_dir, lock = args.resume, RunLock(run) if lead else contextlib.nullcontext()
+    elif lead:
+        out_dir, lock = claim_run_dir(Path(args.out or cfg.out_dir), args.overwrite)
+    else:
+        out_dir, lock = args.out or cfg.out_dir, contextlib.nullcontext()
+    with lock:
+        out = _train(args, cfg, str(out_dir))
+    return _train_report(args, out)
+
+
+def _train(args, cfg, out_dir) -> dict:
+    """The run in this process, in `args.nproc` spawned ones, or as this torchrun rank; its summary."""
     if args.nproc > 1:
         ctx = mp.get_context("spawn")
         result = ctx.SimpleQueue()
@@ -326,6 +350,13 @@ def cmd_train(args) -> int:
         out = train_main(cfg, out_dir=out_dir, resume=args.resume, progress=True)
         out.setdefault("device", distributed.local_device(cfg.device))  # the one that ran ("auto" resolved)
         distributed.cleanup()
+    return out
+
+
+def _train_report(args, out) -> int:
+    if out.get("interrupted"):
+        print(f"tg-gpudrive train: interrupted: the checkpoint of update {out.get('update', 0)} is in {out['out_dir']}; "
+              f"continue with: tg-gpudrive train --resume {out['out_dir']}", file=sys.stderr)
     if args.json:
         print(json.dumps(out))
     else:
@@ -333,29 +364,7 @@ def cmd_train(args) -> int:
         rates = (f"goal {w['goal_rate']:.3f}  collision {w['collision_rate']:.3f}  offroad {w['offroad_rate']:.3f} "
                  "(the last 10 updates' episodes)" if w else "no episode ended yet")
         print(f"run: {out['out_dir']}  {rates}  lambda {out['lambda']:.3f}")
-    return 0
-
-
-RUN_FILES = ("metrics.csv", "checkpoint.pt", "config.json", "curves.png", "target.json")
-
-
-def _fresh_run_dir(path: Path, overwrite: bool) -> Path:
-    """A run directory belongs to one run: `path` if it holds no run, else (without --overwrite)
-    the first free `path-2`, `path-3`, ... , said on stderr; with --overwrite the old run's files go."""
-    if not any((path / f).exists() for f in RUN_FILES):
-        return path
-    if overwrite:
-        for f in [*RUN_FILES, *(p.name for p in path.glob("events.out.tfevents.*"))]:
-            (path / f).unlink(missing_ok=True)
-        print(f"tg-gpudrive train: --overwrite: replacing the run in {path}", file=sys.stderr)
-        return path
-    k = 2
-    while any((path.with_name(f"{path.name}-{k}") / f).exists() for f in RUN_FILES):
-        k += 1
-    new = path.with_name(f"{path.name}-{k}")
-    print(f"tg-gpudrive train: {path} holds an earlier run; this run goes to {new} "
-          f"(--overwrite replaces it, --resume {path} continues it)", file=sys.stderr)
-    return new
+    return 130 if out.get("interrupted") else 0
 
 
 def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result) -> None:
@@ -378,7 +387,7 @@ def cmd_evaluate(args) -> int:
     worlds = args.worlds or min(args.episodes, 256)
     scenes, skipped = _load_scenes(args, worlds)
     if args.checkpoint:  # the engine it was trained in, with a slot for every agent of the scenes
-        cfg = policy_engine_config(trained, scenes)
+        cfg = evaluation_engine(policy_engine_config(trained, scenes), args.set, path)
         if args.collision_mode:
             cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
     else:
@@ -457,7 +466,7 @@ def cmd_render(args) -> int:
 
     scenes, _ = _load_scenes(args, worlds)
     if checkpoint is not None:  # the engine it was trained in, with a slot for every agent of the scenes
-        cfg = policy_engine_config(trained, scenes)
+        cfg = evaluation_engine(policy_engine_config(trained, scenes), args.set, checkpoint)
         if args.collision_mode:
             cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
     else:
@@ -511,6 +520,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, ValueError, FileNotFoundError) as e:
         print(f"tg-gpudrive {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # a second Ctrl-C, or one outside a training loop
+        print(f"tg-gpudrive {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except OSError as e:  # a full disk, a file where a folder should be, no permission: one line
+        where = f": {e.filename}" if e.filename else ""
+        print(f"tg-gpudrive {args.command}: error: {e.strerror or e}{where}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

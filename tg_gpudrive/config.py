@@ -14,6 +14,7 @@ turns members back into names. This module must not import the engine or Warp.
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from pathlib import Path
@@ -39,6 +40,27 @@ class ConfigError(ValueError):
     pass
 
 
+def _interval(text: str) -> tuple[float, float, bool, bool]:
+    """'(0, 1]' -> (0.0, 1.0, False, True): bounds and whether each is included; 'inf' allowed."""
+    lo, hi = (float(x) for x in text[1:-1].split(","))
+    return lo, hi, text[0] == "[", text[-1] == "]"
+
+
+def check_ranges(cfg, rules: dict[str, str], odd: tuple[str, ...] = ()) -> None:
+    """Every field of `rules` (name -> interval as '[0, inf)', '(0, 1]') lies in its interval (each
+    element of a tuple field does); the fields of `odd` are odd. A ConfigError names the first that
+    does not (from_dict adds the key's prefix and the file)."""
+    for name, text in rules.items():
+        lo, hi, lo_in, hi_in = _interval(text)
+        value = getattr(cfg, name)
+        for v in value if isinstance(value, tuple) else (value,):
+            if not ((v >= lo if lo_in else v > lo) and (v <= hi if hi_in else v < hi)):
+                raise ConfigError(f"{name}: expected a value in {text}, got {v}")
+    for name in odd:
+        if getattr(cfg, name) % 2 != 1:
+            raise ConfigError(f"{name}: expected an odd number (the middle bin is zero), got {getattr(cfg, name)}")
+
+
 def _set_mode(cfg, name: str, mode: type[NamedMode], allowed: tuple[NamedMode, ...] | None = None) -> None:
     """Field `name` of the frozen dataclass `cfg` as a member of `mode` (from a member or its name)."""
     try:
@@ -59,6 +81,11 @@ class RewardConfig:
     overspeed: float = -0.1  # per m/s above speed_limit
     speed_limit: float = 20.0  # m/s
     lane_cap: float = 5.0  # m, lane deviation is capped here
+
+    def __post_init__(self):
+        check_ranges(self, {"goal_progress": "(-inf, inf)", "goal_reached": "(-inf, inf)", "collision": "(-inf, inf)",
+                            "offroad": "(-inf, inf)", "lane_deviation": "(-inf, inf)", "overspeed": "(-inf, inf)",
+                            "speed_limit": "(0, 1000]", "lane_cap": "[0, 1000]"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,10 +130,16 @@ class EngineConfig:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
         if not 1 <= self.max_agents <= 1024:
             raise ConfigError(f"max_agents: expected 1..1024, got {self.max_agents}")
-        if self.init_steps < 0:
-            raise ConfigError("init_steps must be >= 0")
         if not 0 < self.view_angle <= 360:
             raise ConfigError(f"view_angle: expected degrees in (0, 360], got {self.view_angle}")
+        # sizes and search radii are bounded above too: beyond these the engine would allocate or
+        # search without end rather than fail
+        check_ranges(self, {
+            "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
+            "max_curvature": "(0, 10]", "delta_max": "(0, 100]", "init_steps": "[0, 10000]", "goal_radius": "(0, 1000]",
+            "beta": "[0, 1000]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
+            "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "max_segment_length": "[0.5, 1000]",
+            "road_cell_size": "[1, 1000]", "collision_cells": "[1, 1048576]"}, odd=("accel_bins", "curvature_bins"))
 
     @property
     def num_actions(self) -> int:
@@ -148,13 +181,8 @@ class AugmentConfig:
     control_fraction: float = 1.0  # each policy agent stays the policy's with this probability
 
     def __post_init__(self):
-        if not 0.0 <= self.mirror <= 1.0:
-            raise ConfigError(f"augment.mirror: expected a probability in [0, 1], got {self.mirror}")
-        if not 0.0 < self.control_fraction <= 1.0:
-            raise ConfigError(f"augment.control_fraction: expected (0, 1], got {self.control_fraction}")
-        for name in ("start_shift", "perturb_pos", "perturb_yaw"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"augment.{name}: expected >= 0, got {getattr(self, name)}")
+        check_ranges(self, {"mirror": "[0, 1]", "control_fraction": "(0, 1]", "start_shift": "[0, 10000]",
+                            "perturb_pos": "[0, 100]", "perturb_yaw": "[0, 6.3]"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -249,6 +277,20 @@ class TrainConfig:
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:
             raise ConfigError("rollout_steps, updates and num_worlds must be >= 1")
+        check_ranges(self, {
+            "num_scenes": "[1, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)", "epochs": "[1, inf)",
+            "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
+            "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
+            "heads": "[1, 1024]", "actor_history": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",
+            "quantiles": "[2, 4096]", "prior_sigma_accel": "(0, inf)", "prior_sigma_curvature": "(0, inf)",
+            "prior_floor": "[0, 1]", "time_limit_s": "[0, inf)", "target_goal_rate": "[0, 1]",
+            "target_max_collision": "[0, 1]", "target_max_offroad": "[0, 1]", "checkpoint_every": "[1, inf)",
+            "cost_limit": "[0, inf)", "lambda_init": "[0, inf)", "lambda_lr": "[0, inf)",
+            "keep_policy_every": "[0, inf)"})
+        if self.minibatches > self.num_worlds * self.rollout_steps:
+            raise ConfigError(f"minibatches: {self.minibatches} minibatches of a batch of {self.num_worlds} worlds x "
+                              f"{self.rollout_steps} steps would leave some with less than one step of each world; "
+                              f"expected at most {self.num_worlds * self.rollout_steps}")
         if self.target_heldout and (self.target_heldout_worlds < 1 or self.target_goal_rate <= 0):
             raise ConfigError("target_heldout: needs target_heldout_worlds >= 1 and a target_goal_rate > 0 "
                               "(the check runs when the training window meets that target)")
@@ -259,32 +301,34 @@ def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
     if isinstance(tp, type) and issubclass(tp, NamedMode):
         if not isinstance(value, (str, tp)):  # names only: an integer in YAML is a typo, not a mode
             names = ", ".join(str(m) for m in tp)
-            raise ConfigError(f"{source}: key '{key}': expected one of {names}, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected one of {names}, got {value!r}")
         return value  # the dataclass parses it (and checks the modes it allows)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
-            raise ConfigError(f"{source}: key '{key}': expected a mapping, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected a mapping, got {value!r}")
         return from_dict(tp, value, source, prefix=key + ".")
     if tp is bool:
         if not isinstance(value, bool):
-            raise ConfigError(f"{source}: key '{key}': expected true/false, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected true/false, got {value!r}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{source}: key '{key}': expected an integer, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected an integer, got {value!r}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ConfigError(f"{source}: key '{key}': expected a number, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected a number, got {value!r}")
+        if math.isnan(value):  # infinities are left to the field's range (eta2 may be inf: no proximal term)
+            raise ConfigError(f"{source}: {key}: expected a number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise ConfigError(f"{source}: key '{key}': expected a string, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected a string, got {value!r}")
         return value
     if origin is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, (list, tuple)) or len(value) != len(args):
-            raise ConfigError(f"{source}: key '{key}': expected a list of {len(args)} values, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected a list of {len(args)} values, got {value!r}")
         return tuple(_coerce(a, v, f"{key}[{n}]", source) for n, (a, v) in enumerate(zip(args, value)))
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in typing.get_args(tp):
@@ -294,7 +338,7 @@ def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
     if origin is list:
         (a,) = typing.get_args(tp)
         if not isinstance(value, list):
-            raise ConfigError(f"{source}: key '{key}': expected a list, got {value!r}")
+            raise ConfigError(f"{source}: {key}: expected a list, got {value!r}")
         return [_coerce(a, v, f"{key}[{n}]", source) for n, v in enumerate(value)]
     if origin is dict or tp is dict:
         return dict(value)
@@ -312,8 +356,8 @@ def from_dict(cls, data: dict, source: str = "<dict>", prefix: str = ""):
         kwargs[key] = _coerce(hints[key], value, prefix + key, source)
     try:
         return cls(**kwargs)
-    except ConfigError as e:
-        raise ConfigError(f"{source}: {e}") from None
+    except ConfigError as e:  # the field's message, its full key ("env.beta: ...") and the file
+        raise ConfigError(f"{source}: {prefix}{e}") from None
 
 
 def coerce_field(cls, key: str, value: Any, source: str = "<dict>") -> Any:

@@ -57,6 +57,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import re
 import shutil
@@ -206,7 +207,11 @@ class _Writer:
     def __init__(self, out: Path, *, resume: bool, shard_size: int, simplify_tolerance: float | None):
         self.out = Path(out)
         self.shard_size = int(shard_size)
+        if simplify_tolerance is not None and not (math.isfinite(simplify_tolerance) and simplify_tolerance >= 0):
+            raise ValueError(f"simplify tolerance: expected a finite number of metres >= 0, got {simplify_tolerance}")
         self.simplify_tolerance = simplify_tolerance
+        if self.out.exists() and not self.out.is_dir():
+            raise ValueError(f"scene store {self.out}: a file is there; the store is a folder (choose another --out)")
         self.out.mkdir(parents=True, exist_ok=True)
         manifest = _read_manifest(self.out) if resume and (self.out / MANIFEST).exists() else None
         if manifest is None:

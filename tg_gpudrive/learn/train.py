@@ -31,6 +31,9 @@ import json
 import logging
 import math
 import random
+import signal
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -59,6 +62,7 @@ from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
 log = logging.getLogger(__name__)
+SMALL_MINIBATCH = 16  # world-steps: a minibatch with fewer is warned about
 
 
 class TrainingError(RuntimeError):
@@ -118,6 +122,38 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
 
 
 # ------------------------------------------------------------------- trainer
+class StopRequest:
+    """Ctrl-C during training: the first SIGINT asks the loop to end the update under way and save it
+    (a checkpoint at the last finished update, so --resume continues exactly); a second one stops at
+    once. Outside the main thread (where no handler can be installed) Ctrl-C keeps its default."""
+
+    def __init__(self):
+        self._flag = False
+        self._old = None
+
+    def __enter__(self) -> "StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+
+    def _handle(self, signum, frame) -> None:
+        if self._flag:
+            raise KeyboardInterrupt
+        self._flag = True
+        print("\ntg-gpudrive train: Ctrl-C: finishing this update, then saving a checkpoint "
+              "(Ctrl-C again stops at once, keeping the last saved one)", file=sys.stderr)
+
+    def requested(self, device) -> bool:
+        """Whether a stop was asked for, on any rank (every rank must leave at the same update)."""
+        if dist_util.world_size() == 1:
+            return self._flag
+        return bool(dist_util.all_reduce_mean(torch.tensor(float(self._flag), device=device)) > 0)
+
+
 def _append_csv(path: Path, rows: list[dict]) -> None:
     """Append `rows` (dicts with the same keys) to the CSV file `path`, with a header when it is new."""
     new = not path.exists()
@@ -139,6 +175,11 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
+        per_mb = cfg.num_worlds * cfg.rollout_steps // cfg.minibatches
+        if self.lead and cfg.minibatches > 1 and per_mb < SMALL_MINIBATCH:
+            log.warning("minibatches=%d: each minibatch holds %d world-steps (of %d worlds x %d steps), so an update "
+                        "takes %d small optimiser steps an epoch: slow and noisy (4-8 minibatches is usual)",
+                        cfg.minibatches, per_mb, cfg.num_worlds, cfg.rollout_steps, cfg.minibatches)
         torch.backends.cuda.matmul.allow_tf32 = True
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.rank)
@@ -507,8 +548,24 @@ class Trainer:
         bar = None
         if self.progress:
             bar = tqdm(total=cfg.updates, initial=self.update, desc="train", unit="update")
-        last = {}
         t_start, elapsed0 = time.perf_counter(), self.elapsed
+        try:
+            with StopRequest() as stop:
+                last = self._loop(bar, stop, t_start, elapsed0)
+        finally:  # an error's message then comes after the bar, not inside it
+            if bar is not None:
+                bar.close()
+        if self.lead:
+            self.plot()
+            if getattr(self, "_tb", None) is not None:
+                self._tb.close()
+        return last
+
+    def _loop(self, bar, stop: "StopRequest", t_start: float, elapsed0: float) -> dict:
+        """Updates until cfg.updates, the time limit, the quality target or a Ctrl-C (which ends the
+        update under way and saves it); the last update's metrics row."""
+        cfg = self.cfg
+        last = {}
         while self.update < cfg.updates:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
@@ -569,9 +626,13 @@ class Trainer:
             if reached and cfg.target_heldout:
                 reached = self._heldout_check(bar)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
+            interrupted = stop.requested(self.device)
             if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
-                              or out_of_time):
+                              or out_of_time or interrupted):
                 self.save()
+            if interrupted:
+                last["interrupted"] = True
+                break
             if self.lead and cfg.keep_policy_every and self.update % cfg.keep_policy_every == 0:
                 self.save_policy()
             if out_of_time and not reached:
@@ -590,12 +651,6 @@ class Trainer:
                                   f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
                                   f"(update {self.update}, {self.agent_steps:,} agent steps)")
                 break
-        if bar is not None:
-            bar.close()
-        if self.lead:
-            self.plot()
-            if getattr(self, "_tb", None) is not None:
-                self._tb.close()
         return last
 
     def _reached_target(self, stats: dict) -> bool:

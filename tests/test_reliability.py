@@ -1,0 +1,251 @@
+"""Runs that cannot corrupt each other, and every mistake named: the run-directory lock, Ctrl-C and a
+full disk during training, --set applied or refused with a checkpoint, ranges of config values, and a
+fuzz of every --set key with random values (a config or one ConfigError naming the key; an accepted
+engine config builds and steps)."""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import typing
+
+import numpy as np
+import pytest
+import torch
+
+from tg_gpudrive import checkpoint as ckpt_mod
+from tg_gpudrive import cli
+from tg_gpudrive.checkpoint import save_atomic
+from tg_gpudrive.config import REPO_CONFIGS, ConfigError, EngineConfig, TrainConfig, from_dict
+from tg_gpudrive.data.procedural import generate_scene
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.learn.rundir import LOCK, RunLock
+from tg_gpudrive.learn.train import Trainer
+
+SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
+TINY = ["--config", str(SMALL), "--set", "num_worlds=2", "--set", "num_scenes=2", "--set", "rollout_steps=4",
+        "--set", "epochs=1", "--set", "minibatches=1", "--set", "hidden=16", "--set", "quantiles=4"]
+
+
+def dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+# ----------------------------------------------------------------------------- one run per directory
+def test_a_run_directory_held_by_a_live_run_refuses_a_second(tmp_path, capsys):
+    run = tmp_path / "run"
+    with RunLock(run):  # this process writes there, as a first `train` would
+        assert cli.main(["train", "--out", str(run), *TINY, "--set", "updates=1"]) == 2
+        err = capsys.readouterr().err
+        assert f"PID {os.getpid()}" in err and len(err.strip().splitlines()) == 1
+        assert cli.main(["train", "--out", str(run), "--overwrite", *TINY, "--set", "updates=1"]) == 2
+    assert not (run / "metrics.csv").exists() and not (run / LOCK).exists()  # nothing written, lock released
+
+
+def test_a_stale_lock_is_taken_over_with_a_warning(tmp_path, capsys, caplog):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / LOCK).write_text(f"{dead_pid()} {socket.gethostname()}\n")
+    assert cli.main(["train", "--out", str(run), *TINY, "--set", "updates=1", "--json"]) == 0
+    assert "no longer running" in caplog.text
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["out_dir"] == str(run)
+    assert not (run / LOCK).exists()
+
+
+def test_two_runs_started_together_do_not_share_a_directory(tmp_path):
+    """Two `train` processes into one --out at once: one runs, the other fails at once naming it."""
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--out", str(run), *TINY, "--set", "updates=3",
+           "--set", "device=cpu"]
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    codes = sorted(p.returncode for p in procs)
+    runs = [d for d in tmp_path.iterdir() if (d / "metrics.csv").exists()]
+    if codes == [0, 0]:  # the second started after the first had finished: it went to run-2
+        assert len(runs) == 2, (outs, list(tmp_path.iterdir()))
+    else:
+        assert codes == [0, 2], outs
+        loser = next(err for (_, err), p in zip(outs, procs) if p.returncode == 2)
+        assert "is being written by another run (PID" in loser
+        assert runs == [run]
+    for d in runs:  # each metrics.csv holds one run: updates 1, 2, 3 once
+        lines = (d / "metrics.csv").read_text().strip().splitlines()[1:]
+        assert len(lines) == 3
+
+
+# ----------------------------------------------------------------------------- Ctrl-C and a full disk
+def test_ctrl_c_saves_the_last_finished_update_and_says_how_to_resume(tmp_path, capsys, monkeypatch):
+    run = tmp_path / "run"
+    real = Trainer.rollout
+    calls = {"n": 0}
+
+    def rollout(self):
+        calls["n"] += 1
+        if calls["n"] == 2:  # during the second update
+            os.kill(os.getpid(), signal.SIGINT)
+        return real(self)
+
+    monkeypatch.setattr(Trainer, "rollout", rollout)
+    assert cli.main(["train", "--out", str(run), *TINY, "--set", "updates=5", "--set", "checkpoint_every=10"]) == 130
+    err = capsys.readouterr().err
+    assert "Ctrl-C" in err and f"tg-gpudrive train --resume {run}" in err
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ck["update"] == 2  # the update under way finished, then was saved
+    assert not (run / LOCK).exists()
+    monkeypatch.setattr(Trainer, "rollout", real)
+    assert cli.main(["train", "--resume", str(run)]) == 0
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["update"] == 5
+
+
+def test_a_full_disk_leaves_the_last_good_checkpoint_and_no_tmp(tmp_path, monkeypatch):
+    path = tmp_path / "checkpoint.pt"
+    save_atomic({"update": 1}, path, keep_previous=True)
+
+    def full(obj, f):
+        f.write(b"x" * 100)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ckpt_mod.torch, "save", full)
+    with pytest.raises(OSError, match=f"could not save {path} .No space left on device.; {path} is the last good"):
+        save_atomic({"update": 2}, path, keep_previous=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]
+    assert torch.load(path, weights_only=False)["update"] == 1
+
+
+def test_train_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
+    def full(obj, f):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(ckpt_mod.torch, "save", full)
+    assert cli.main(["train", "--out", str(tmp_path / "run"), *TINY, "--set", "updates=1"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("tg-gpudrive train: error: could not save") and "No space left" in err[-1]
+    assert not list((tmp_path / "run").glob("*.tmp"))
+
+
+# ----------------------------------------------------------------------------- --set with a checkpoint
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    run = tmp_path_factory.mktemp("ck") / "run"
+    assert cli.main(["train", "--out", str(run), *TINY, "--set", "updates=1", "--set", "env.partner_k=4"]) == 0
+    return run
+
+
+def _evaluate(run, *extra):
+    return cli.main(["evaluate", "--checkpoint", str(run), "--scenes", "procedural:merge", "--episodes", "2",
+                     "--json", *extra])
+
+
+def test_evaluate_applies_the_keys_a_network_allows(trained, capsys):
+    assert _evaluate(trained, "--set", "collision_mode=remove", "--set", "beta=2", "--set", "view_angle=120") == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["collision_mode"] == "remove"
+    assert _evaluate(trained, "--set", "max_agents=3") == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["max_agents"] == 3
+
+
+@pytest.mark.parametrize("key,value,words", [
+    ("partner_k", "8", "partner_k=8: fixed by the network trained in"),
+    ("dynamics", "delta_local", "dynamics"),
+    ("bogus_key", "3", "unknown key 'bogus_key'"),
+])
+def test_evaluate_refuses_fixed_and_unknown_keys(trained, capsys, key, value, words):
+    assert _evaluate(trained, "--set", f"{key}={value}") == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and len(err.splitlines()) == 1
+
+
+def test_resume_names_a_key_the_saved_networks_fix(trained, capsys):
+    assert cli.main(["train", "--resume", str(trained), "--set", "env.partner_k=3"]) == 2
+    err = capsys.readouterr().err
+    assert "env.partner_k=3: fixed by the network" in err and "without --resume" in err
+
+
+# ----------------------------------------------------------------------------- value ranges
+@pytest.mark.parametrize("text,key", [
+    ("env.beta=-1", "env.beta"), ("lr=0", "lr"), ("lr=-0.001", "lr"), ("gamma=1.5", "gamma"),
+    ("minibatches=1000", "minibatches"), ("env.partner_k=0", "env.partner_k"), ("env.goal_radius=.nan", "env.goal_radius"),
+    ("env.accel_bins=4", "env.accel_bins"), ("epochs=0", "epochs"), ("alpha=1", "alpha"),
+])
+def test_out_of_range_values_are_refused_naming_key_and_file(tmp_path, capsys, text, key):
+    assert cli.main(["train", "--out", str(tmp_path / "run"), *TINY, "--set", text]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(SMALL) in err and key in err
+    assert not (tmp_path / "run" / "metrics.csv").exists()
+
+
+def test_convert_refuses_a_nan_tolerance_and_a_file_as_store(tmp_path, capsys):
+    src = str(REPO_CONFIGS.parent / "tests" / "data")
+    assert cli.main(["convert", src, "--out", str(tmp_path / "s"), "--simplify", "nan"]) == 2
+    assert "simplify tolerance" in capsys.readouterr().err
+    (tmp_path / "f").write_text("x")
+    assert cli.main(["convert", src, "--out", str(tmp_path / "f")]) == 2
+    assert "a file is there" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- fuzz of --set keys
+VALUES = [-1, 0, 1, 2, 3, 7, 0.5, -0.25, 1e9, float("nan"), float("inf"), "x", "stop", [1, 2], True, None]
+
+
+def leaf_keys(cls, prefix="") -> list[tuple[str, typing.Any]]:
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            out += leaf_keys(tp, prefix + f.name + ".")
+        else:
+            out.append((prefix + f.name, tp))
+    return out
+
+
+def nest(key: str, value) -> dict:
+    d: dict = {}
+    node = d
+    parts = key.split(".")
+    for p in parts[:-1]:
+        node[p] = {}
+        node = node[p]
+    node[parts[-1]] = value
+    return d
+
+
+def test_fuzz_every_set_key_gives_a_config_or_one_error_naming_it():
+    """Every leaf key of TrainConfig (engine, reward and augmentation keys included) with every value
+    of VALUES (and 3 random draws of up to 3 keys at once, 150 times): either a config or a ConfigError
+    naming a key given; engine configs accepted with a single key build a Simulator that steps."""
+    rng = np.random.default_rng(0)
+    keys = [k for k, _ in leaf_keys(TrainConfig)]
+    scene = generate_scene("merge", 0)
+    stepped = 0
+    trials = [[(k, v)] for k in keys for v in VALUES]
+    trials += [[(keys[i], VALUES[j]) for i, j in zip(rng.integers(len(keys), size=3), rng.integers(len(VALUES), size=3))]
+               for _ in range(150)]
+    for trial in trials:
+        data: dict = {}
+        for k, v in trial:
+            for top, sub in nest(k, v).items():
+                data[top] = {**data.get(top, {}), **sub} if isinstance(sub, dict) else sub
+        try:
+            cfg = from_dict(TrainConfig, data, "fuzz.yaml")
+        except ConfigError as e:
+            msg = str(e)
+            assert msg.startswith("fuzz.yaml: ") and "\n" not in msg, msg
+            assert any(k in msg or k.split(".")[-1] in msg for k, _ in trial), (trial, msg)
+            continue
+        if len(trial) == 1 and trial[0][0].startswith("env.") and trial[0][0] not in (
+                "env.use_graph", "env.max_agents") and stepped < 60:
+            env = dataclasses.replace(cfg.env, max_agents=max(cfg.env.max_agents, scene.num_agents))
+            sim = Simulator([scene], env, "cpu")
+            sim.reset()
+            for _ in range(3):
+                sim.step()  # the action buffers as they are
+            stepped += 1
+    assert stepped >= 20
