@@ -42,6 +42,7 @@ def cases(work: Path, run: Path) -> list[tuple[str, list[str]]]:
         ("train --set env.partner_k=.nan", ["train", "--out", str(work / "r1"), *TINY, "--set", "env.partner_k=.nan"]),
         ("train --set bogus_key=3", ["train", "--out", str(work / "r1"), *TINY, "--set", "bogus_key=3"]),
         ("train --config <broken YAML>", ["train", "--config", str(work / "bad.yaml")]),
+        ("train --set lr=[1 (broken YAML value)", ["train", *TINY, "--set", "lr=[1"]),
         ("train without --config", ["train", "--out", str(work / "r1")]),
         ("train --resume <run> --set env.partner_k=3", ["train", "--resume", str(run), "--set", "env.partner_k=3"]),
         ("train --resume <missing>", ["train", "--resume", str(work / "missing")]),

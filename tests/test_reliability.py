@@ -181,6 +181,17 @@ def test_out_of_range_values_are_refused_naming_key_and_file(tmp_path, capsys, t
     assert not (tmp_path / "run" / "metrics.csv").exists()
 
 
+def test_broken_yaml_in_a_file_or_a_set_value_is_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("lr: [1, 2\n")
+    assert cli.main(["train", "--config", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{bad}: invalid YAML at line 2" in err
+    assert cli.main(["train", *TINY, "--set", "lr=[1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--set lr=[1: the value is not valid YAML" in err
+
+
 def test_convert_refuses_a_nan_tolerance_and_a_file_as_store(tmp_path, capsys):
     src = str(REPO_CONFIGS.parent / "tests" / "data")
     assert cli.main(["convert", src, "--out", str(tmp_path / "s"), "--simplify", "nan"]) == 2
