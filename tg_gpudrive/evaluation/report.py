@@ -976,6 +976,10 @@ def main(argv: list[str] | None = None) -> int:
                          br_scenes=args.br_scenes, br_rounds=args.br_rounds,
                          br_gamma=args.br_gamma, top=args.top, device=args.device,
                          grid_scene=args.grid_scene, grid_gifs=args.grid_gifs, baselines=not args.no_baselines)
+    if opts.cce_gap:  # the slow part: say so before it starts, and how to skip it
+        print(f"tg-gpudrive report: the CCE-gap trains a PPO best response for every agent of each policy "
+              f"({len(opts.br_seeds)} seed(s), up to {opts.br_iters} iterations each): minutes per policy on a GPU, "
+              f"about 20 minutes for one small run on a 2-core CPU; --no-cce-gap leaves it out", file=sys.stderr)
     try:
         report_main(args.runs, args.out, opts)
     except (ValueError, FileNotFoundError) as e:

@@ -566,6 +566,7 @@ class Trainer:
         update under way and saves it); the last update's metrics row."""
         cfg = self.cfg
         last = {}
+        first = True
         while self.update < cfg.updates:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
@@ -618,7 +619,12 @@ class Trainer:
             last = row
             reached = self._reached_target(stats)  # also moves the window of rates the bar shows
             if bar is not None:
-                bar.update(1)
+                if first:  # the first update compiles kernels and warms caches: the ETA starts after it
+                    bar.reset(total=cfg.updates)
+                    bar.initial = bar.n = self.update
+                    first = False
+                else:
+                    bar.update(1)
                 rates = self._window_rates()  # None until an episode has ended
                 shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
