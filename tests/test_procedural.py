@@ -219,6 +219,13 @@ def check_routes_and_goals(sc, tag=""):
             assert np.linalg.norm(np.diff(p, axis=0), axis=-1).max() <= 2.0 + 1e-3, tag
 
 
+def check_all(sc, tag=""):
+    """Every invariant of a scene: boxes, kinematics, routes and goals."""
+    check_invariants(sc, tag)
+    check_kinematics(sc, tag)
+    check_routes_and_goals(sc, tag)
+
+
 # ----------------------------------------------------------------------------- invariants per type
 @pytest.mark.parametrize("kind", SCENARIO_TYPES)
 def test_invariants(kind):
@@ -315,11 +322,7 @@ def test_urban_scenes_keep_every_invariant(kind):
     """Parked cars, stop-line queues and kerb stops: no box overlap (parked cars included), no box on
     a kerb, kinematic logs, legal routes; goals on the lane except for kerb stops."""
     for seed in range(4):
-        sc = generate_scene(kind, seed, URBAN)
-        tag = f"urban {kind} seed {seed}"
-        check_invariants(sc, tag)
-        check_kinematics(sc, tag)
-        check_routes_and_goals(sc, tag)
+        check_all(generate_scene(kind, seed, URBAN), f"urban {kind} seed {seed}")
 
 
 def test_parked_cars_stand_in_strips_beside_the_lanes():
@@ -373,10 +376,7 @@ def test_park_reach_puts_parked_cars_over_the_lane_edge_and_drivers_give_room():
     for kind in JUNCTIONS:
         for seed in range(3):
             sc = generate_scene(kind, seed, NARROW)
-            tag = f"park_reach {kind} seed {seed}"
-            check_invariants(sc, tag)  # no overlap with the parked boxes at any step
-            check_kinematics(sc, tag)
-            check_routes_and_goals(sc, tag)
+            check_all(sc, f"park_reach {kind} seed {seed}")  # no overlap with the parked boxes at any step
             left += sum(b < -0.2 for b in sc.metadata["lane_offsets"])
     assert left > 20
     with pytest.raises(ValueError, match="park_reach"):
@@ -415,10 +415,7 @@ def test_lane_changes_end_on_the_parallel_lane():
     for kind in ("merge", "dual_lane_intersection", "t_junction", "y_junction"):
         for seed in range(3):
             sc = generate_scene(kind, seed, params)
-            tag = f"lane changes {kind} seed {seed}"
-            check_invariants(sc, tag)
-            check_kinematics(sc, tag)
-            check_routes_and_goals(sc, tag)
+            check_all(sc, f"lane changes {kind} seed {seed}")
             for i, _, done in sc.metadata["lane_changes"]:
                 fwd = np.array([np.cos(sc.log_yaw[i, 0]), np.sin(sc.log_yaw[i, 0])])
                 d = sc.goal[i] - sc.log_pos[i, 0]

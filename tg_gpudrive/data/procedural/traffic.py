@@ -223,6 +223,15 @@ def _frontier(s_win: np.ndarray, s_lose: np.ndarray, n: int) -> np.ndarray:
     return np.minimum.accumulate(best[::-1])[::-1]
 
 
+def _ramp(s: np.ndarray, start: float, length: float, off: float) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, its derivative along s) of a smoothstep from 0 at `start` to `off` at `start + length`,
+    `off` beyond; zero everywhere when `start` is not finite (no ramp)."""
+    if not np.isfinite(start):
+        return np.zeros_like(s), np.zeros_like(s)
+    x = np.clip((s - start) / length, 0.0, 1.0)
+    return off * x * x * (3 - 2 * x), off * 6 * x * (1 - x) / length
+
+
 # ----------------------------------------------------------------------------- vehicles
 @dataclass
 class Vehicles:
@@ -286,21 +295,13 @@ class Vehicles:
     def kerb_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset to the right of the lane centre, its derivative along s) of vehicle i's kerb stop at
         route arc lengths s: a smoothstep from 0 to kerb_off over the ramp before stop_s (zero without)."""
-        if not np.isfinite(self.stop_s[i]):
-            return np.zeros_like(s), np.zeros_like(s)
-        L = self.ramp_len[i]
-        x = np.clip((s - (self.stop_s[i] - L)) / L, 0.0, 1.0)
-        return self.kerb_off[i] * x * x * (3 - 2 * x), self.kerb_off[i] * 6 * x * (1 - x) / L
+        return _ramp(s, self.stop_s[i] - self.ramp_len[i], self.ramp_len[i], self.kerb_off[i])
 
     def change_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset to the right of the lane centre, its derivative along s) of vehicle i's lane change
         at route arc lengths s: a smoothstep from 0 to change_off over change_len m from change_s, then
         change_off (zero without)."""
-        if not np.isfinite(self.change_s[i]):
-            return np.zeros_like(s), np.zeros_like(s)
-        L = self.change_len[i]
-        x = np.clip((s - self.change_s[i]) / L, 0.0, 1.0)
-        return self.change_off[i] * x * x * (3 - 2 * x), self.change_off[i] * 6 * x * (1 - x) / L
+        return _ramp(s, self.change_s[i], self.change_len[i], self.change_off[i])
 
     def lateral(self, i: int, s: np.ndarray, route: Route) -> tuple[np.ndarray, np.ndarray]:
         """Vehicle i's whole offset to the right of its lane centre and its derivative along s: the
