@@ -410,6 +410,8 @@ def _fig():
 # bounds of the report's pictures (inches at 100 dpi): they stay readable and bounded at any number of runs;
 # each plot_* function saves `path` and returns its Figure
 MAX_FIG_W, MAX_FIG_H = 26.0, 20.0
+GRID_MIN_SIDE = 6.0  # in: the grid's cells together span at least this (one run: one 6-inch cell)
+GRID_LEGEND_IN = 0.6  # in below the grid's cells for the legend of what the frames draw
 
 
 def _wrapped(text: str, width_in: float, fontsize: float) -> str:
@@ -426,18 +428,22 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     across the columns. More than `max_rows` betas wrap into further blocks side by side (each block
     all the alphas); cells shrink (from 2.4 in) and labels with them, so the picture stays within
     MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
+    from tg_gpudrive.render.draw import legend_handles  # the render extra, as the cells' frames
+
     betas = sorted({b for b, _ in cells}) or [0.0]
     alphas = sorted({a for _, a in cells}) or [0.0]
     blocks = [betas[i:i + max_rows] for i in range(0, len(betas), max_rows)]
     nrows, ncols = len(blocks[0]), len(blocks) * len(alphas)
-    cell = min(2.4, (MAX_FIG_W - 0.8 - 0.3 * len(blocks)) / ncols, (MAX_FIG_H - 1.2) / nrows)
+    # a few cells are drawn large (GRID_MIN_SIDE in across the picture), many shrink towards the bounds
+    cell = min(max(2.4, GRID_MIN_SIDE / max(nrows, ncols)), (MAX_FIG_W - 0.8 - 0.3 * len(blocks)) / ncols,
+               (MAX_FIG_H - 1.2 - GRID_LEGEND_IN) / nrows)
     fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits beside a cell
     width = max(4.0, ncols * cell + 0.3 * len(blocks) + 0.8)
     where = f" on scene {scene}" if scene else ""
     title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); whole "
                      "trajectories, controlled vehicles blue", width - 0.2, 9)
     head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title
-    height = nrows * cell + 0.4 + head
+    height = nrows * cell + 0.4 + head + GRID_LEGEND_IN
     fig = _fig()
     fig.set_size_inches(width, height)
     for k, block in enumerate(blocks):
@@ -455,7 +461,10 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     if not cells:
         fig.axes[0].text(0.5, 0.5, "no CCE-MAPPO run", ha="center", va="center", fontsize=9)
     fig.suptitle(title, fontsize=9, y=1 - 0.1 / height, va="top")
-    fig.tight_layout(rect=(0, 0, 1, 1 - head / height))
+    handles = legend_handles()
+    fig.legend([h for h, _ in handles], [n for _, n in handles], loc="center", ncol=6 if width >= 5.5 else 4,
+               fontsize=7, frameon=False, bbox_to_anchor=(0.5, GRID_LEGEND_IN / 2 / height))
+    fig.tight_layout(rect=(0, GRID_LEGEND_IN / height, 1, 1 - head / height))
     fig.savefig(path)
     return fig
 

@@ -308,21 +308,7 @@ class FrameRenderer:
         self.ax.add_artist(bar)
 
     def _add_legend(self, strip_frac: float) -> None:
-        box = lambda face, edge, lw=0.6: Patch(facecolor=face, edgecolor=edge, linewidth=lw)  # noqa: E731
-        handles = [
-            (box(CONTROLLED, _darker(rgba(CONTROLLED))), "controlled"),
-            (box(REPLAYED, _darker(rgba(REPLAYED))), "log replay"),
-            (box(PEDESTRIAN, _darker(rgba(PEDESTRIAN))), "pedestrian"),
-            (box(CYCLIST, _darker(rgba(CYCLIST))), "cyclist"),
-            (box("white", COLLIDED, 2.0), "collided"),
-            (box("white", OFFROAD, 2.0), "off-road"),
-            (Line2D([], [], color=GOAL, marker="*", markersize=8, linestyle=(0, (2, 2)), lw=0.8), "goal"),
-            (Line2D([], [], color=CONTROLLED, alpha=0.55, lw=1.6), "trail"),
-            (Line2D([], [], color=ROAD_EDGE, lw=1.6), "road edge"),
-            (Line2D([], [], color=LANE, lw=1.0, linestyle=(0, (5, 4))), "lane centre"),
-            (Line2D([], [], color=ROAD_LINE, lw=1.0), "road line"),
-            (Patch(facecolor="none", edgecolor=CROSSWALK, hatch="////", linewidth=0.7), "crosswalk"),
-        ]
+        handles = legend_handles()
         self.fig.legend([h for h, _ in handles], [n for _, n in handles], loc="center",
                         bbox_to_anchor=(0.5, strip_frac / 2), ncol=self._legend_ncol, fontsize=self._legend_fs,
                         frameon=False, handlelength=2.0, handleheight=0.9, columnspacing=1.1, labelspacing=0.3,
@@ -428,6 +414,25 @@ class FrameRenderer:
     def close(self) -> None:
         self.fig.clear()
         self._background = None
+
+
+def legend_handles() -> list[tuple[object, str]]:
+    """(matplotlib handle, name) of everything a frame draws: the legend of frames and of the report's grid."""
+    box = lambda face, edge, lw=0.6: Patch(facecolor=face, edgecolor=edge, linewidth=lw)  # noqa: E731
+    return [
+        (box(CONTROLLED, _darker(rgba(CONTROLLED))), "controlled"),
+        (box(REPLAYED, _darker(rgba(REPLAYED))), "log replay"),
+        (box(PEDESTRIAN, _darker(rgba(PEDESTRIAN))), "pedestrian"),
+        (box(CYCLIST, _darker(rgba(CYCLIST))), "cyclist"),
+        (box("white", COLLIDED, 2.0), "collided"),
+        (box("white", OFFROAD, 2.0), "off-road"),
+        (Line2D([], [], color=GOAL, marker="*", markersize=8, linestyle=(0, (2, 2)), lw=0.8), "goal"),
+        (Line2D([], [], color=CONTROLLED, alpha=0.55, lw=1.6), "trail"),
+        (Line2D([], [], color=ROAD_EDGE, lw=1.6), "road edge"),
+        (Line2D([], [], color=LANE, lw=1.0, linestyle=(0, (5, 4))), "lane centre"),
+        (Line2D([], [], color=ROAD_LINE, lw=1.0), "road line"),
+        (Patch(facecolor="none", edgecolor=CROSSWALK, hatch="////", linewidth=0.7), "crosswalk"),
+    ]
 
 
 def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640), center_agent: int | None = None,
