@@ -207,7 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="episode.gif", help="episode.gif | episode.mp4 | frame.png")
     p.add_argument("--size", default="640", metavar="PX or WxH", help="picture size in pixels (default 640)")
     p.add_argument("--center-agent", type=int, default=None, metavar="SLOT",
-                   help="follow this agent slot of the world (default: none; the view fits the whole scene)")
+                   help="follow this agent slot of the world (default: none; the view fits --fit)")
+    p.add_argument("--fit", choices=["controlled", "all"], default="controlled",
+                   help="without --center-agent, the view fits the paths of the policy's vehicles (default) or of "
+                        "every agent, parked cars included")
     p.add_argument("--view-radius", type=float, default=None, metavar="METRES",
                    help="half the shorter side of the view (default 40 m with --center-agent)")
     p.add_argument("--fps", type=float, default=10.0, help="frames per second of a .gif / .mp4")
@@ -478,7 +481,7 @@ def cmd_render(args) -> int:
     t0 = time.perf_counter()
     frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
                             seed=args.seed, size=size, center_agent=args.center_agent, view_radius=args.view_radius,
-                            highlight=args.highlight)
+                            highlight=args.highlight, fit=args.fit)
     seconds = time.perf_counter() - t0
     scene = sim.model.scenes[args.world]
     print(f"wrote {out}: {len(frames)} frame(s) of {size[0]}x{size[1]}, scene {scene.scene_id}, "
