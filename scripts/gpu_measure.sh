@@ -242,7 +242,7 @@ for d in sorted(pathlib.Path(sys.argv[1]).glob("scale*")):
 PY
   ;;
 urban)
-  # issue 12's real-scene transfer: a training mix with street furniture (parked cars, queues at stop
+  # real-scene transfer: a training mix with street furniture (parked cars, queues at stop
   # lines, kerb stops, drivers off the lane centre), the shipped world model fine-tuned on it as the magnet, CCE-MAPPO trained on it
   # for the shipped policy's time, then held-out rates per collision mode on plain procedural scenes,
   # urban ones (kerb stops apart) and the two real WOMD scenes, beside the shipped policy

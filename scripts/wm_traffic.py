@@ -8,7 +8,7 @@ sampling temperature (`:0` greedy; default: WorldModelDriver's, 1 discrete / 0.1
 scenes are generated for the model's action space and `env` (max_agents, partner_k, road_k from
 the checkpoint's training config when it has one, else --set). Prints one row per model and seed
 (collision and off-road rates of the vehicles it drives: `metrics.background_rates`) and the
-expert replay's row; issue 12 asks for a model within 0.02 of the replay on both.
+expert replay's row; the target is a model within 0.02 of the replay on both.
 """
 
 from __future__ import annotations

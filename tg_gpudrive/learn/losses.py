@@ -23,7 +23,7 @@ Shapes used below:
     K           number of discrete actions
     ==========  =====================================================
 
-Masks follow STYLE item 11: a mask is ``1``/``True`` for a valid entry and
+Masks: a mask is ``1``/``True`` for a valid entry and
 ``0``/``False`` for padding; masked entries are excluded from every mean and
 may hold any finite or non-finite garbage without affecting the result.
 

@@ -155,7 +155,7 @@ class WorldModel(nn.Module):
 
     def forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor | LaplaceMixture:
         # not cuDNN's attention: it builds a new plan for every batch size, and the number of live
-        # agents changes every step (measured on an H100: 7.0 s of a rollout's 7.5 s went there)
+        # agents changes every step, so planning would take most of a rollout (BENCHMARKS.md, World model)
         with sdpa_kernel(_SDPA_BACKENDS):
             return self._forward(obs, hist)
 

@@ -42,7 +42,7 @@ from tg_gpudrive.worldmodel.model import WorldModel, check_action_space
 SHIPPED = Path(__file__).resolve().parent / "shipped.pt"
 # world models that ship in the package, by the name a config or `--background-model` may give:
 # shipped    configs/worldmodel/gpu.yaml on one GPU (teacher forcing + closed-loop fine-tuning); the default
-# small_cpu  configs/worldmodel/small_cpu.yaml on a laptop CPU (the shipped model until 2026-11-25): the
+# small_cpu  configs/worldmodel/small_cpu.yaml on a laptop CPU (teacher forcing only): the
 #            magnet of configs/train/small_cpu.yaml, whose 30-update, 8-world run with a small
 #            observation learns from this softer model and not from the sharper GPU one (BENCHMARKS.md)
 # shipped_continuous  the same recipe with env.action_space continuous, then 9 closed-loop rounds at the
