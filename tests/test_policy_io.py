@@ -87,8 +87,8 @@ def test_shipped_resolves_to_the_packaged_file(tmp_path, monkeypatch):
 
 def test_earlier_shipped_policy_stays_loadable_by_name():
     """The policy shipped before the current one stays packaged as "shipped_v1": the current one was
-    fine-tuned from it (its config says so), and runs fine-tuned from "shipped" until 2026-11-25 name it,
-    so a report's CCE-gap over their training starts from the policy they really started from."""
+    fine-tuned from it (its config says so), and earlier fine-tuned runs name it as their start, so a
+    report's CCE-gap over their training starts from the policy they really started from."""
     v1 = checkpoint_path("shipped_v1", "--checkpoint")
     assert v1 == ckpt_mod.SHIPPED_EARLIER["shipped_v1"] and v1.is_file()
     assert v1.read_bytes() != ckpt_mod.SHIPPED_POLICY.read_bytes()
@@ -99,8 +99,8 @@ def test_earlier_shipped_policy_stays_loadable_by_name():
 
 def test_shipped_policy_drives_held_out_scenes(capsys):
     """The packaged policy on 32 procedural scenes never trained on (seed 90000), every vehicle, sampled:
-    the issue's bar (goal >= 0.95, collision <= 0.05, off-road <= 0.02; measured 2026-11-25 on 64 scenes:
-    0.976 / 0.008 / 0.001) with room for the smaller sample, and no agent dropped."""
+    the quality bar (goal >= 0.95, collision <= 0.05, off-road <= 0.02; 0.976 / 0.008 / 0.001 on 64
+    scenes, BENCHMARKS.md) with room for the smaller sample, and no agent dropped."""
     assert cli.main(["evaluate", "--checkpoint", "shipped", "--scenes", "procedural:all", "--seed", "90000",
                      "--num-scenes", "32", "--episodes", "32", "--device", "cpu", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
