@@ -16,7 +16,6 @@ numbers.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 import time
@@ -24,15 +23,12 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint, policy_worlds
+from tg_gpudrive.agents import BUILTIN, open_policy
+from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
 from tg_gpudrive.cli import CONTROL_CHOICES
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.policy import load_policy
-from tg_gpudrive.rollout import builtin_policy, run_rollout
-from tg_gpudrive.engine.simulator import Simulator
-
-BUILTIN = ("expert", "constant", "random")
+from tg_gpudrive.rollout import run_rollout
 
 
 def train_config(run: str, fallback: TrainConfig | None) -> TrainConfig:
@@ -69,17 +65,17 @@ def main(argv=None) -> int:
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
         trained = train_config(run, base)
         base = base or trained
-        if args.control:
-            trained = dataclasses.replace(trained, control=args.control)
-        # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5 nearest
-        # each conflict point) or --control's, the rest replayed
-        cfg, masks = policy_worlds(trained, scenes)
         for mode in args.modes:
-            c = dataclasses.replace(cfg, collision_mode=mode)
-            sim = Simulator(scenes, c, args.device, controlled=masks)
-            policy = builtin_policy(run, args.seed, sim.device) if run in BUILTIN else load_policy(run, sim)
+            # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5
+            # nearest each conflict point) or --control's, the rest replayed; a built-in policy drives
+            # those of the first run, in its engine
+            opened = open_policy(run, scenes, args.device, engine=base.env, collision_mode=mode,
+                                 control=args.control or (base.control if run in BUILTIN else None),
+                                 control_k=base.control_k if run in BUILTIN else None, seed=args.seed,
+                                 option="--runs")
+            sim = opened.sim
             # the same sampling draws for every run and mode
-            out = run_rollout(sim, policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
+            out = run_rollout(sim, opened.policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",

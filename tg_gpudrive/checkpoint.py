@@ -20,7 +20,6 @@ from typing import TYPE_CHECKING
 import torch
 
 from tg_gpudrive.config import ConfigError, apply_overrides, from_dict, parse_override, to_dict
-from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import agents_needed, sized_for
 
 if TYPE_CHECKING:
@@ -240,10 +239,3 @@ def check_resume_config(old: TrainConfig, new: TrainConfig, path) -> None:
         if was != now:
             raise _fixed_change(key, was, now, path, "a new run (without --resume) can change it")
 
-
-def policy_worlds(cfg: TrainConfig, scenes) -> tuple[EngineConfig, list]:
-    """The engine config (`policy_engine_config`) and, per scene, the (N,) mask of the agents a policy
-    trained with `cfg` drives there (its `control`: every vehicle, the k nearest each conflict point,
-    given ids; the rest replay their logs): how evaluation sets up worlds for a trained policy."""
-    env = policy_engine_config(cfg, scenes)
-    return env, control_masks(scenes, env, cfg.control, cfg.control_k, cfg.control_ids)

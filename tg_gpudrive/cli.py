@@ -37,8 +37,7 @@ from pathlib import Path
 import torch.multiprocessing as mp
 
 from tg_gpudrive.benchmark import main as benchmark_main
-from tg_gpudrive.checkpoint import (check_resume_config, evaluation_engine, load_checkpoint, policy_engine_config,
-                                    usable_checkpoint)
+from tg_gpudrive.checkpoint import check_resume_config
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import (
     REPO_CONFIGS,
@@ -53,16 +52,14 @@ from tg_gpudrive.config import (
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.sources import resolve_scenes, source_report
 from tg_gpudrive.data.store import convert
-from tg_gpudrive.engine.control import control_masks
-from tg_gpudrive.engine.model import sized_for
-from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.scene import scene_defaults
 from tg_gpudrive.evaluation.report import main as report_main
 from tg_gpudrive.learn import distributed
+from tg_gpudrive.agents import BUILTIN, open_policy
 from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
 from tg_gpudrive.learn.train import train_main
-from tg_gpudrive.policy import load_policy
-from tg_gpudrive.rollout import background_masks, builtin_policy, expert_policy, make_background_driver, run_rollout
+from tg_gpudrive.rollout import expert_policy, run_rollout
 from tg_gpudrive.types import CollisionMode, ControlMode
 from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args
 from tg_gpudrive.worldmodel.cli import run as run_world_model
@@ -254,33 +251,37 @@ def _check_background_args(args) -> None:
         raise ValueError(f"--control-k: expected >= 1, got {args.control_k}")
 
 
-def _simulator_with_background(args, cfg, scenes):
-    """The Simulator with the --control agents as the policy's and the --background driver (None: log)."""
-    ctrl = control_masks(scenes, cfg, args.control, args.control_k) if args.control else None
-    sim = Simulator(scenes, cfg, args.device, ctrl, background_masks(scenes, cfg, args.background, ctrl))
-    driver = make_background_driver(sim, args.background, args.background_model, args.seed, "--background-model")
-    if driver is not None and not bool((sim.background != 0).any()):
+def _open(args, spec: str, scenes, *, engine, auto_reset: bool = True, option: str = "--checkpoint"):
+    """`spec` in worlds of `scenes` with the command's options (agents.open_policy)."""
+    opened = open_policy(spec, scenes, args.device, engine=engine, overrides=args.set,
+                         collision_mode=args.collision_mode, control=getattr(args, "control", None),
+                         control_k=getattr(args, "control_k", None), background=getattr(args, "background", "log"),
+                         background_model=getattr(args, "background_model", None), seed=args.seed,
+                         deterministic=getattr(args, "deterministic", False), auto_reset=auto_reset, option=option)
+    if opened.background is not None and not bool((opened.sim.background != 0).any()):
         log.warning("--background world_model: no background vehicle (the policy drives every eligible one); "
                     "choose fewer with --control nearest_conflict --control-k K")
-    return sim, driver
+    return opened
 
 
-def _background_report(args, cfg) -> dict:
+def _background_report(args, opened) -> dict:
+    """Who drove: the background, its model, and the control rule open_policy applied."""
     model = (args.background_model or "shipped") if args.background == "world_model" else None
-    return {"background": args.background, "background_model": model, "control": str(args.control or cfg.control)}
+    control = args.control or (opened.trained.control if opened.trained is not None else opened.sim.cfg.control)
+    return {"background": args.background, "background_model": model, "control": str(control)}
 
 
 def cmd_simulate(args) -> int:
     _check_background_args(args)
+    engine = _engine_config(args)
     scenes, skipped = _load_scenes(args, args.worlds)
-    cfg = sized_for(_engine_config(args), scenes)  # a slot for every agent of the scenes
-    sim, background = _simulator_with_background(args, cfg, scenes)
+    opened = _open(args, args.policy, scenes, engine=engine)
+    sim, cfg = opened.sim, opened.sim.cfg
     steps = args.steps or sim.episode_length
     # progress goes to stderr, so --json keeps stdout to one line and a long run still shows it is alive
-    out = run_rollout(sim, builtin_policy(args.policy, args.seed, sim.device), steps, progress=True,
-                      background=background)
+    out = run_rollout(sim, opened.policy, steps, progress=True, background=opened.background)
     out.update({"policy": args.policy, "collision_mode": str(cfg.collision_mode), "scenes": args.scenes,
-                **skipped, **sim.report(), **_background_report(args, cfg)})
+                **skipped, **sim.report(), **_background_report(args, opened)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -380,24 +381,11 @@ def _train_worker(rank: int, world: int, port: int, cfg, out_dir, resume, result
 
 def cmd_evaluate(args) -> int:
     _check_background_args(args)
-    if args.checkpoint:
-        # a file, a run directory or "shipped"; a damaged checkpoint.pt: the previous one, with a warning
-        path = usable_checkpoint(args.checkpoint, "--checkpoint")
-        ck = load_checkpoint(path, "--checkpoint")
-        trained = from_dict(TrainConfig, ck["config"], str(path))
-    else:
-        cfg = _engine_config(args)
+    engine = None if args.checkpoint else _engine_config(args)  # a checkpoint brings its own
     worlds = args.worlds or min(args.episodes, 256)
     scenes, skipped = _load_scenes(args, worlds)
-    if args.checkpoint:  # the engine it was trained in, with a slot for every agent of the scenes
-        cfg = evaluation_engine(policy_engine_config(trained, scenes), args.set, path)
-        if args.collision_mode:
-            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
-    else:
-        cfg = sized_for(cfg, scenes)
-    sim, background = _simulator_with_background(args, cfg, scenes)
-    policy = (load_policy(path, sim, args.deterministic) if args.checkpoint
-              else builtin_policy(args.policy, args.seed, sim.device))
+    opened = _open(args, args.checkpoint or args.policy, scenes, engine=engine)
+    sim, policy, background, cfg = opened.sim, opened.policy, opened.background, opened.sim.cfg
     rounds = -(-args.episodes // worlds)
     out = run_rollout(sim, policy, rounds * sim.episode_length, progress=True, background=background,
                       desc="evaluate", episodes_per_world=rounds, seed=args.seed, tables=True)
@@ -413,7 +401,7 @@ def cmd_evaluate(args) -> int:
                                                      "score_rate")}
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
-                **sim.report(), **_background_report(args, cfg)})
+                **sim.report(), **_background_report(args, opened)})
     if args.json:
         print(json.dumps(out))
     else:
@@ -456,28 +444,13 @@ def cmd_render(args) -> int:
     if args.world >= worlds:
         raise ValueError(f"--world {args.world} needs --worlds > {args.world}, got {worlds}")
 
-    checkpoint = None
-    if args.policy not in ("expert", "random", "constant"):
-        try:  # a file, a run directory or "shipped"
-            checkpoint = usable_checkpoint(args.policy, "--policy")
-        except FileNotFoundError as e:
-            raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") \
-                from None
-        trained = from_dict(TrainConfig, load_checkpoint(checkpoint, "--policy")["config"], str(checkpoint))
-    else:
-        cfg = _engine_config(args)
-
+    engine = None if args.policy not in BUILTIN else _engine_config(args)
     scenes, _ = _load_scenes(args, worlds)
-    if checkpoint is not None:  # the engine it was trained in, with a slot for every agent of the scenes
-        cfg = evaluation_engine(policy_engine_config(trained, scenes), args.set, checkpoint)
-        if args.collision_mode:
-            cfg = dataclasses.replace(cfg, collision_mode=args.collision_mode)
-    else:
-        cfg = sized_for(cfg, scenes)
-    cfg = dataclasses.replace(cfg, auto_reset=False)  # keep the episode's final state for the last frame
-    sim = Simulator(scenes, cfg, args.device)
-    policy = (load_policy(checkpoint, sim, args.deterministic) if checkpoint is not None
-              else builtin_policy(args.policy, args.seed, sim.device))
+    try:  # a built-in name, a checkpoint file, a run directory or "shipped"
+        opened = _open(args, args.policy, scenes, engine=engine, auto_reset=False, option="--policy")
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") from None
+    sim, policy = opened.sim, opened.policy  # without auto-reset: the episode's final state is the last frame
     t0 = time.perf_counter()
     frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
                             seed=args.seed, size=size, center_agent=args.center_agent, view_radius=args.view_radius,

@@ -66,7 +66,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import checkpoint_path, kept_policies, load_checkpoint, policy_worlds
+from tg_gpudrive.agents import trained_sim
+from tg_gpudrive.checkpoint import checkpoint_path, kept_policies, load_checkpoint
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
@@ -153,17 +154,15 @@ def _eval_spec(cfg, opts: ReportOptions) -> tuple[str, int, bool]:
     return spec, cfg.seed if opts.scene_seed is None else opts.scene_seed, spec.startswith("procedural:")
 
 
-def _scenes(cfg, n: int, opts: ReportOptions):
-    """The first `n` evaluation scenes (ReportOptions.scene_seed / eval_scenes), the engine config of the
-    run's policy on them and their control masks (checkpoint.policy_worlds)."""
+def _scenes(cfg, n: int, opts: ReportOptions) -> list:
+    """The first `n` evaluation scenes (ReportOptions.scene_seed / eval_scenes) of a run trained with `cfg`."""
     spec, seed, procedural = _eval_spec(cfg, opts)
     if opts.scene_seed is not None and spec == cfg.scenes and procedural \
             and seed < cfg.seed + cfg.num_scenes and cfg.seed < seed + n:
         raise ValueError(f"scene_seed {seed}: procedural seeds {seed} .. {seed + n - 1} overlap the run's training "
                          f"scenes (seeds {cfg.seed} .. {cfg.seed + cfg.num_scenes - 1})")
     src = resolve_scenes(spec, n=n if opts.scene_seed is not None else cfg.num_scenes, seed=seed)
-    scenes = [src.get(i) for i in range(min(n, len(src)))]
-    return (scenes, *policy_worlds(cfg, scenes))
+    return [src.get(i) for i in range(min(n, len(src)))]
 
 
 def eval_scenes_text(cfg, opts: ReportOptions) -> str:
@@ -812,9 +811,9 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
             device = resolve_device(opts.device or cfg.device, flag="--device")
             if device == "cpu":
                 torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
-            scenes, env, masks = _scenes(cfg, opts.scenes, opts)
-            cfg = dataclasses.replace(cfg, env=env)  # a slot for every agent
-            sim = Simulator(scenes, cfg.env, device, controlled=masks)
+            scenes = _scenes(cfg, opts.scenes, opts)
+            sim, masks = trained_sim(cfg, scenes, device)  # the run's policy in worlds of them (agents)
+            cfg = dataclasses.replace(cfg, env=sim.cfg)  # a slot for every agent
             logged = logged_episodes(sim)
             copies = _br_copies(opts, device)
             nb = len(scenes) if opts.br_scenes is None else max(1, min(opts.br_scenes, len(scenes)))

@@ -43,7 +43,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, policy_worlds, save_atomic
+from tg_gpudrive.agents import trained_sim
+from tg_gpudrive.checkpoint import POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.augment import augment_scene, subset_mask
@@ -57,7 +58,6 @@ from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
-from tg_gpudrive.policy import load_policy  # noqa: F401  (its old home: scripts and the README's layout name it here)
 from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
@@ -691,8 +691,7 @@ class Trainer:
             if self._heldout_sim is None:  # built once, on first use
                 src = resolve_scenes(cfg.target_heldout, n=cfg.target_heldout_worlds, seed=cfg.target_heldout_seed)
                 scenes = [src.get(i) for i in range(min(cfg.target_heldout_worlds, len(src)))]
-                env, masks = policy_worlds(cfg, scenes)
-                self._heldout_sim = Simulator(scenes, env, self.device, controlled=masks)
+                self._heldout_sim = trained_sim(cfg, scenes, self.device)[0]
             hsim = self._heldout_sim
             rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length,
                                 episodes_per_world=1)

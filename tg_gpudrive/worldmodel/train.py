@@ -37,7 +37,6 @@ import dataclasses
 import json
 import math
 import random
-import sys
 import time
 from pathlib import Path
 
@@ -310,9 +309,3 @@ def _append_csv(path: Path, row: dict) -> None:
         if new:
             w.writeheader()
         w.writerow(row)
-
-
-if __name__ == "__main__":  # the module's old command line: python -m tg_gpudrive.worldmodel.train
-    from tg_gpudrive.worldmodel.cli import main
-
-    sys.exit(main())
