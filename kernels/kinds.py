@@ -1,14 +1,14 @@
 """The integer values of the engine's modes and kinds as Warp constants, declared once.
 
 Every kernel module that branches on a mode or a kind imports its constant from here; the
-values come from the IntEnums of tg_gpudrive.types, so Python and the kernels cannot disagree.
+values come from the IntEnums of tg_gpudrive.enums, so Python and the kernels cannot disagree.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from tg_gpudrive.types import CollisionMode, Dynamics, GoalBehaviour, RoadType
+from tg_gpudrive.enums import CollisionMode, Dynamics, GoalBehaviour, RoadType
 
 COLLISION_IGNORE = wp.constant(int(CollisionMode.IGNORE))
 COLLISION_STOP = wp.constant(int(CollisionMode.STOP))

@@ -7,11 +7,11 @@ the step counter and decides whether the episode ended; `reset_agents_kernel`
 restores the scene's state at `init_step`. `reset()` runs the last kernel with
 `force=1`.
 
-Collision modes (tg_gpudrive.types.CollisionMode): IGNORE counts the event
+Collision modes (tg_gpudrive.enums.CollisionMode): IGNORE counts the event
 and keeps driving; STOP freezes the agent and ends its episode; REMOVE takes
 it out of the scene (and of later collision checks) and ends its episode.
 The same response applies to off-road events. Goal behaviour
-(tg_gpudrive.types.GoalBehaviour): CONTINUE counts the goal, STOP and REMOVE also
+(tg_gpudrive.enums.GoalBehaviour): CONTINUE counts the goal, STOP and REMOVE also
 end the episode (default: remove, as GPUDrive does for agents at their goal).
 """
 

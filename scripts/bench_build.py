@@ -38,7 +38,7 @@ from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.store import is_store, write_store
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
-from tg_gpudrive.types import ControlMode
+from tg_gpudrive.enums import ControlMode
 
 
 def pack(spec: str, num_scenes: int, out: Path) -> float:

@@ -31,7 +31,7 @@ from tg_gpudrive.data.sampler import SceneSampler  # noqa: E402
 from tg_gpudrive.data.sources import StoreSource  # noqa: E402
 from tg_gpudrive.data.store import is_store, open_store, write_store  # noqa: E402
 from tg_gpudrive.scene import make_scene  # noqa: E402
-from tg_gpudrive.types import RoadType  # noqa: E402
+from tg_gpudrive.enums import RoadType  # noqa: E402
 
 
 def rss_mb(key: str = "VmRSS") -> float:

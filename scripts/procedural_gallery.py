@@ -23,7 +23,7 @@ import numpy as np  # noqa: E402
 
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene  # noqa: E402
 from tg_gpudrive.data.sources import resolve_scenes  # noqa: E402
-from tg_gpudrive.types import RoadType  # noqa: E402
+from tg_gpudrive.enums import RoadType  # noqa: E402
 
 
 def box_corners(c, yaw, length, width):

@@ -22,7 +22,7 @@ from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
 from tg_gpudrive.engine.model import State, StepState, view_shape
 from tg_gpudrive.engine.simulator import LOG_FIELDS, Simulator
-from tg_gpudrive.types import AgentType, CollisionMode, GoalBehaviour, RoadType
+from tg_gpudrive.enums import AgentType, CollisionMode, GoalBehaviour, RoadType
 
 T = 40
 

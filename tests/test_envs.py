@@ -23,7 +23,7 @@ from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
 from tg_gpudrive.envs.vector import TGVectorEnv, make_config
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import ActionSpace, CollisionMode
+from tg_gpudrive.enums import ActionSpace, CollisionMode
 
 SMALL = dict(max_agents=16, road_k=16, partner_k=4)
 TIME_LEFT = 9  # kernels/observation.py: last ego feature, time left (s)

@@ -28,7 +28,7 @@ from tg_gpudrive.evaluation.rollouts import (logged_episodes, path_kinematics, r
 from tg_gpudrive.rollout import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import RoadType
+from tg_gpudrive.enums import RoadType
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -18,7 +18,7 @@ from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 T = 16
 INIT = 2

@@ -17,7 +17,7 @@ from tg_gpudrive.engine.model import agents_needed
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.rollout import expert_policy, run_rollout
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 DATA = pathlib.Path(__file__).parent / "data"
 T = 40

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene, generate_scenes
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 SEEDS = range(5)
 MARGIN = 0.15  # m added to each half extent: boxes stay 0.3 m apart

@@ -14,7 +14,7 @@ from tg_gpudrive.render import EpisodeRecorder, render_episode, render_frame
 from tg_gpudrive.rollout import expert_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 
 def _rgb(colour: str) -> np.ndarray:

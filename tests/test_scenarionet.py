@@ -22,7 +22,7 @@ from tg_gpudrive.data.womd.scenarionet import load_pickle, load_scenarionet
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.rollout import expert_policy, run_rollout
 from tg_gpudrive.scene import SceneError
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 # outside tests/data: directory specs of tests/data count its scenes
 DATA = Path(__file__).parent / "data_scenarionet"

@@ -7,7 +7,7 @@ import pytest
 
 from tg_gpudrive.evaluation.scene_stats import gap_table, scene_features, set_features, w1
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 T = 41
 

@@ -10,7 +10,7 @@ import pytest
 from tg_gpudrive.data.simplify import DEFAULT_TOLERANCE_M, simplify_polyline, simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import make_scene
-from tg_gpudrive.types import RoadType
+from tg_gpudrive.enums import RoadType
 
 DATA = pathlib.Path(__file__).parent / "data"
 REAL = DATA / "womd_db4edc9bd0c9d18c.json"

@@ -15,7 +15,7 @@ import pytest
 from tg_gpudrive.data import store as store_mod
 from tg_gpudrive.data.store import StoreError, convert, open_store, write_store
 from tg_gpudrive.scene import Scene, SceneError, make_scene
-from tg_gpudrive.types import RoadType
+from tg_gpudrive.enums import RoadType
 
 DATA = Path(__file__).parent / "data"
 HAVE_JSON_LOADER = importlib.util.find_spec("tg_gpudrive.data.womd.gpudrive_json") is not None

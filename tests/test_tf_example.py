@@ -26,7 +26,7 @@ from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.rollout import expert_policy, run_rollout
 from tg_gpudrive.scene import SceneError
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 RAW = pathlib.Path(__file__).parent / "womd_raw"
 EXAMPLE_FILE = RAW / "motion_data_one_example.tfrecord"

@@ -18,7 +18,7 @@ from tg_gpudrive.data.womd.scenario_proto import (
 from tg_gpudrive.data.womd.tfrecord import _crc_loop, crc32c, iter_records, masked_crc32c, write_records
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import SceneError, make_scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 DATA = pathlib.Path(__file__).parent / "data"
 JSONS = sorted(DATA.glob("womd_*.json"))

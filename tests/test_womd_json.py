@@ -10,7 +10,7 @@ import pytest
 
 from tg_gpudrive.data.womd.gpudrive_json import SENTINEL, load_gpudrive_json
 from tg_gpudrive.scene import SceneError
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 DATA = pathlib.Path(__file__).parent / "data"
 SCENES = {

@@ -26,7 +26,7 @@ from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.rollout import constant_policy
-from tg_gpudrive.types import ControlMode
+from tg_gpudrive.enums import ControlMode
 
 
 def benchmark_one(scenes, worlds: int, cfg: EngineConfig, device: str, steps: int, warmup: int = 5) -> dict:

@@ -5,7 +5,7 @@ included) from a YAML file and `key.sub=value` overrides; an unknown key, or
 a value of the wrong kind, is an error naming the key and the file. Dataclass
 defaults equal configs/env/default.yaml (a test keeps them in step).
 
-Modes are `tg_gpudrive.types` IntEnums in Python and their lowercase names in YAML,
+Modes are `tg_gpudrive.enums` IntEnums in Python and their lowercase names in YAML,
 JSON and checkpoints: the dataclasses turn names into members in `__post_init__`
 (so `dataclasses.replace(cfg, collision_mode="stop")` works too) and `to_dict`
 turns members back into names. This module must not import the engine or Warp.
@@ -22,7 +22,7 @@ from typing import Any
 
 import yaml
 
-from tg_gpudrive.types import (
+from tg_gpudrive.enums import (
     ENGINE_CONTROL,
     SELECT_CONTROL,
     ActionSpace,

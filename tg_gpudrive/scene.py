@@ -44,7 +44,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 
 MAX_EXTENT = 1.0e6  # m: a coordinate farther than this from the scene's centre is a broken field, not a map

@@ -35,7 +35,7 @@ import numpy as np
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 REASONS = ("overlap", "offroad", "jump", "kinematics")
 JUMP_SPEED_CHANGE = 10.0  # m/s between consecutive steps: 100 m/s^2, ten times a car's hardest braking

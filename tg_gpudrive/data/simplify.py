@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import RoadType
+from tg_gpudrive.enums import RoadType
 
 __all__ = ["DEFAULT_TOLERANCE_M", "rdp_mask", "simplify_polyline", "simplify_scene", "point_segment_distance"]
 

@@ -13,7 +13,7 @@ log is feasible (`data.log_audit`: the logged box neither overlaps another agent
 road edge, nor jumps, over its scoring window). With `replay_infeasible` (the default) marked and
 log-infeasible agents replay their logs and are counted apart (`exclusions`), never in a policy's
 rates; rates count each agent's first episode only (the rollouts' `episodes_per_world`).
-The modes (tg_gpudrive.types.ControlMode):
+The modes (tg_gpudrive.enums.ControlMode):
 
     engine default (EngineConfig.control), over the agents that get slots:
         none              nobody
@@ -41,7 +41,7 @@ import numpy as np
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.log_audit import infeasible_mask, marked_expert
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import ENGINE_CONTROL, SELECT_CONTROL, AgentType, ControlMode
+from tg_gpudrive.enums import ENGINE_CONTROL, SELECT_CONTROL, AgentType, ControlMode
 
 
 def init_index(scene: Scene, cfg: EngineConfig) -> int:

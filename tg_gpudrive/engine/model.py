@@ -82,7 +82,7 @@ from tg_gpudrive.kernels.dynamics import launch_expert_actions
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.kernels.reward import NUM_TERMS, REWARD_TERMS
 from tg_gpudrive.scene import Scene, SceneError
-from tg_gpudrive.types import ActionSpace
+from tg_gpudrive.enums import ActionSpace
 
 log = logging.getLogger("tg_gpudrive")
 

@@ -42,7 +42,7 @@ from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_fin
 from tg_gpudrive.kernels.reward import REWARD_TERMS, launch_reward
 from tg_gpudrive.kernels.road import launch_road_query
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import ActionSpace, RoadType
+from tg_gpudrive.enums import ActionSpace, RoadType
 
 log = logging.getLogger("tg_gpudrive")
 

@@ -45,7 +45,7 @@ from tg_gpudrive.envs.vector import (
 )
 from tg_gpudrive.rollout import background_masks, builtin_policy, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import ControlMode
+from tg_gpudrive.enums import ControlMode
 
 
 class EpisodeWorld:

@@ -85,7 +85,7 @@ from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scene
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import ActionSpace
+from tg_gpudrive.enums import ActionSpace
 
 ConfigLike = EngineConfig | Mapping[str, Any] | str | Path | None
 OverridesLike = Sequence[str] | Mapping[str, Any] | None

@@ -30,7 +30,7 @@ import numpy as np
 from tg_gpudrive.data.womd.gpudrive_json import SENTINEL
 from tg_gpudrive.evaluation.rollouts import Trajectories
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 _TYPE_NAMES = {AgentType.VEHICLE: "vehicle", AgentType.PEDESTRIAN: "pedestrian", AgentType.CYCLIST: "cyclist"}
 # WOMD per-kind subtype -> GPUDrive map_element_id (inverse of gpudrive_json._map_element_subtype)

@@ -27,7 +27,7 @@ import numpy as np
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.log_audit import boxes_overlap, infeasible_reasons
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.types import AgentType
+from tg_gpudrive.enums import AgentType
 
 TRACKING_M = 0.5  # m off the log at the event: beyond it the replay, not the log, put the box there
 

@@ -47,7 +47,7 @@ from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.log_audit import segment_distance, candidates
 from tg_gpudrive.engine import control
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 FEATURES = ("speed", "accel", "curvature", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
             "pedestrians", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")

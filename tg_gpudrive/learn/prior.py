@@ -23,7 +23,7 @@ import torch
 
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.policy import BehaviourPrior, action_grid
-from tg_gpudrive.types import Dynamics
+from tg_gpudrive.enums import Dynamics
 
 
 class ExpertPrior(BehaviourPrior):

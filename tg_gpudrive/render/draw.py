@@ -30,7 +30,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 # ------------------------------------------------------------------ palette
 BACKGROUND = "#f4f3ef"

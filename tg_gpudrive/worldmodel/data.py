@@ -21,7 +21,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
-from tg_gpudrive.types import CollisionMode, GoalBehaviour
+from tg_gpudrive.enums import CollisionMode, GoalBehaviour
 from tg_gpudrive.worldmodel.model import require_bicycle
 
 

@@ -37,7 +37,7 @@ from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from tg_gpudrive.history import HIST_DIM, HIST_SCALE
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
-from tg_gpudrive.types import ActionSpace, Dynamics
+from tg_gpudrive.enums import ActionSpace, Dynamics
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 
 

@@ -39,7 +39,7 @@ from tg_gpudrive.data.procedural import geometry as geo
 from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_changes,
                                                  plan_lane_offsets, plan_park_clearance, settle, spawn)
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.types import AgentType, RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 _STREET_STREAM = 0x57EE7  # third seed word of the street-furniture stream
 PARK_FILL = (0.45, 0.95)  # fraction of a strip's spaces that hold a car, drawn per strip

@@ -62,7 +62,7 @@ import numpy as np
 
 from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.scene import FieldReader, Scene
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 log = logging.getLogger(__name__)
 

@@ -45,7 +45,7 @@ from tg_gpudrive.data.womd.tf_example import is_tf_example, tf_example_to_scene
 from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
 from tg_gpudrive.scene import Scene, SceneError, log_period
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 __all__ = ["SCENARIO", "scenario_to_scene", "scene_to_scenario", "read_tfrecord_scenes",
            "write_tfrecord_scenes", "decode_scenario", "encode_scenario"]

@@ -90,7 +90,7 @@ import numpy as np
 
 from tg_gpudrive.data.womd.gpudrive_json import scene_origin
 from tg_gpudrive.scene import FieldReader, Scene, SceneError, log_period
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 __all__ = ["load_scenarionet", "load_pickle", "is_dataset_file", "DATASET_FILES", "DEFAULT_HEIGHT"]
 

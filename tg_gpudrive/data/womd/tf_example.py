@@ -75,7 +75,7 @@ import numpy as np
 from tg_gpudrive.data.womd.gpudrive_json import WOMD_SUBTYPE_BY_MAP_ELEMENT, scene_origin
 from tg_gpudrive.data.womd.protowire import DecodeError, Field as F, Message, decode
 from tg_gpudrive.scene import Scene, SceneError, log_period
-from tg_gpudrive.types import AgentType, RoadType, TrafficLightState
+from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 
 __all__ = ["EXAMPLE", "is_tf_example", "decode_example", "tf_example_to_scene", "PARTS"]
 
