@@ -129,7 +129,7 @@ def bench_prior(args, device: str) -> dict:
             for i in range(args.warmup + args.updates):
                 _sync(device)
                 t0 = time.perf_counter()
-                buf, _ = tr.rollout()
+                buf, _ = tr.collect()
                 _sync(device)
                 t1 = time.perf_counter()
                 tr.learn(buf)

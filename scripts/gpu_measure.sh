@@ -63,7 +63,7 @@ PY
 summarize() {
   python3 - "$RES" <<'PY'
 import csv, pathlib, sys
-from tg_gpudrive.learn.plots import RATE_WINDOW, time_to_quality, windowed_rates
+from tg_gpudrive.learn.quality import RATE_WINDOW, time_to_quality, windowed_rates
 # goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
 # rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
 for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):

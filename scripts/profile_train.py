@@ -34,14 +34,14 @@ def main(argv=None) -> int:
         cuda = tr.sim.is_cuda
         sync = (lambda: torch.cuda.synchronize(tr.device)) if cuda else (lambda: None)  # noqa: E731
         for _ in range(args.warmup):
-            tr.learn(tr.rollout()[0])
+            tr.learn(tr.collect()[0])
         acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
         t_roll = t_learn = 0.0
         with profile(activities=acts) as prof:
             for _ in range(args.updates):
                 sync()
                 t0 = time.perf_counter()
-                buf, _ = tr.rollout()
+                buf, _ = tr.collect()
                 sync()
                 t1 = time.perf_counter()
                 tr.learn(buf)

@@ -14,7 +14,7 @@ from tg_gpudrive.config import REPO_CONFIGS, TrainConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.evaluation import exploitability as ex
-from tg_gpudrive.evaluation.rollouts import record_episodes
+from tg_gpudrive.evaluation.episodes import record_episodes
 from tg_gpudrive.history import HIST_DIM
 from tg_gpudrive.learn.networks import Actor
 from tg_gpudrive.learn.train import Trainer
@@ -50,7 +50,7 @@ def test_rollout_stores_the_window_the_actor_saw(tmp_path, device):
     """At the first step of a rollout the newest window entry is the agent's present state: its
     position and heading in its own frame are 0 and its speed is the observation's ego speed."""
     tr = Trainer(tiny(tmp_path, device=device), tmp_path, progress=False)
-    buf, _ = tr.rollout()
+    buf, _ = tr.collect()
     live = buf["mask"][0]
     h = buf["hist"][0][live].cpu()  # (n, H, HIST_DIM)
     assert h.shape[1:] == (3, HIST_DIM) and len(h) > 0

@@ -23,7 +23,7 @@ from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
 from tg_gpudrive.engine.control import control_masks
-from tg_gpudrive.evaluation.rollouts import (logged_episodes, path_kinematics, record_episodes, record_rollouts,
+from tg_gpudrive.evaluation.episodes import (logged_episodes, path_kinematics, record_episodes, record_rollouts,
                                              replay_episodes)
 from tg_gpudrive.rollout import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene

@@ -84,23 +84,23 @@ def test_two_runs_started_together_do_not_share_a_directory(tmp_path):
 # ----------------------------------------------------------------------------- Ctrl-C and a full disk
 def test_ctrl_c_saves_the_last_finished_update_and_says_how_to_resume(tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
-    real = Trainer.rollout
+    real = Trainer.collect
     calls = {"n": 0}
 
-    def rollout(self):
+    def collect(self):
         calls["n"] += 1
         if calls["n"] == 2:  # during the second update
             os.kill(os.getpid(), signal.SIGINT)
         return real(self)
 
-    monkeypatch.setattr(Trainer, "rollout", rollout)
+    monkeypatch.setattr(Trainer, "collect", collect)
     assert cli.main(["train", "--out", str(run), *TINY, "--set", "updates=5", "--set", "checkpoint_every=10"]) == 130
     err = capsys.readouterr().err
     assert "Ctrl-C" in err and f"tg-gpudrive train --resume {run}" in err
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ck["update"] == 2  # the update under way finished, then was saved
     assert not (run / LOCK).exists()
-    monkeypatch.setattr(Trainer, "rollout", real)
+    monkeypatch.setattr(Trainer, "collect", real)
     assert cli.main(["train", "--resume", str(run)]) == 0
     assert torch.load(run / "checkpoint.pt", weights_only=False)["update"] == 5
 

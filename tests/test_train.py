@@ -198,14 +198,14 @@ def test_small_cpu_config_learns(tmp_path):
 
 def test_nan_in_the_loss_itself_is_caught(tmp_path):
     tr = Trainer(tiny(tmp_path, updates=1, checkpoint_every=1), tmp_path, progress=False)
-    buf, _ = tr.rollout()
+    buf, _ = tr.collect()
     buf["reward"][0, 0, 0] = float("nan")
     with pytest.raises(TrainingError, match=r"non-finite loss in update 0.*last good checkpoint"):
         tr.learn(buf)
 
 
 def test_target_goal_rate_counts_the_last_window_of_updates_episodes():
-    from tg_gpudrive.learn.plots import RATE_WINDOW
+    from tg_gpudrive.learn.quality import RATE_WINDOW
     tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
     tr.cfg, tr._recent = TrainConfig(target_goal_rate=0.95), []  # what __init__ sets for it
     st = lambda g, n, c=0, o=0: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n)),  # noqa: E731
@@ -275,7 +275,7 @@ def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monke
 
 
 def test_time_to_quality_takes_the_first_full_window_meeting_all_three_bounds():
-    from tg_gpudrive.learn.plots import time_to_quality
+    from tg_gpudrive.learn.quality import time_to_quality
     row = lambda u, g, c, o, n=10: {"update": u, "wall_s": 2.0 * u, "episodes": n,  # noqa: E731
                                     "goal_rate": g, "collision_rate": c, "offroad_rate": o}
     rows = [row(1, 1.0, 0.0, 0.0), row(2, 1.0, 0.0, 0.0)]  # perfect, but shorter than the window
@@ -302,7 +302,7 @@ def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):
         torch.manual_seed(0)
         tr = Trainer(tiny(tmp_path / str(scale), eta1=0.0, entropy_coef=0.0), tmp_path / str(scale),
                      progress=False)
-        buf, _ = tr.rollout()
+        buf, _ = tr.collect()
         buf["reward"].mul_(scale)
         before = [p.detach().clone() for p in tr.actor.parameters()]
         tr.learn(buf)
@@ -353,7 +353,7 @@ def test_a_run_directory_holds_one_run(tmp_path, capsys):
 
 
 def test_windowed_rates_are_episode_weighted_and_never_nan():
-    from tg_gpudrive.learn.plots import windowed_rates
+    from tg_gpudrive.learn.quality import windowed_rates
 
     nan = float("nan")
     r = [{"episodes": 0, "goal_rate": nan, "collision_rate": nan, "offroad_rate": nan},

@@ -175,7 +175,7 @@ def test_magnet_kl_uses_the_world_model(shipped, tmp_path):
     tr = Trainer(cfg, progress=False)
     start = (tr.sim.snapshot(), copy.deepcopy(tr.actor.state_dict()), copy.deepcopy(tr.critic.state_dict()),
              copy.deepcopy(tr.opt.state_dict()), copy.deepcopy(tr.lagrange.state_dict()), tr.gen.get_state())
-    buf, _ = tr.rollout()  # with the ExpertPrior
+    buf, _ = tr.collect()  # with the ExpertPrior
     prior = WorldModelPrior(shipped, tr.sim)
     # the world-model context of the same rollout: replay its actions from the same engine state
     # (works whatever width the trainer's prior buffer has)
@@ -236,7 +236,7 @@ def test_magnet_kl_of_the_trainer_matches_a_hand_computed_case(tmp_path):
         tr.actor.head_w.zero_()
         tr.actor.head_b.zero_()  # uniform policy
     tr.prior = WorldModelPrior(wm.eval(), tr.sim)
-    buf, _ = tr.rollout()
+    buf, _ = tr.collect()
     assert bool(buf["mask"].any())
     got = tr.learn(buf)["kl/prior"]
     want = -np.log(91) - (np.log(0.5) + 90 * np.log(0.5 / 90)) / 91
@@ -498,7 +498,7 @@ def test_continuous_magnet_kl_is_the_mixture_estimate(wm_cfg, tmp_path):
     tr = Trainer(cfg, progress=False)
     assert isinstance(tr.prior, WorldModelPrior) and not tr.prior.model.discrete
     actor0 = copy.deepcopy(tr.actor.state_dict())
-    buf, _ = tr.rollout()
+    buf, _ = tr.collect()
     assert buf["prior"].shape[-1] == tr.prior.context_dim
     kl_reported = tr.learn(buf)["kl/prior"]
     tr.actor.load_state_dict(actor0)

@@ -1,6 +1,6 @@
 """Scenario-quality evaluation: fidelity, exploitability (CCE-gap), diversity, risk, export, report.
 
-    rollouts.py        record_episodes / logged_episodes -> Trajectories (host arrays every metric reads)
+    episodes.py        record_episodes / logged_episodes -> Trajectories (host arrays every metric reads)
     fidelity.py        histograms, Hellinger / KL / W1, realism score (ours, Sim-Agents style)
     exploitability.py  PPO best responses to a frozen profile until their return plateaus; CCE-gap per
                        agent and scenario type, with intervals

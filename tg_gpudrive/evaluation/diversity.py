@@ -15,7 +15,7 @@ from itertools import combinations
 
 import numpy as np
 
-from tg_gpudrive.evaluation.rollouts import Trajectories
+from tg_gpudrive.evaluation.episodes import Trajectories
 
 
 def pair_distance(tr: Trajectories, a: int, b: int) -> float:

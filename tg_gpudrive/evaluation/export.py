@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from tg_gpudrive.data.womd.gpudrive_json import SENTINEL
-from tg_gpudrive.evaluation.rollouts import Trajectories
+from tg_gpudrive.evaluation.episodes import Trajectories
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 

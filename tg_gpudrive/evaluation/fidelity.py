@@ -11,7 +11,7 @@ into the edge bins, so no sample is lost):
     curvature  [-0.3, 0.3]      0.005       1/m     as accel (path heading change / arc length)
 
 Acceleration and curvature come from the positions by finite differences, for
-logs and rollouts alike (evaluation/rollouts.py, `path_kinematics`): they
+logs and rollouts alike (evaluation/episodes.py, `path_kinematics`): they
 measure the path driven, not the action that produced it, so log replay scores
 near 0 and a discrete action grid shows only through the paths it drives.
 
@@ -39,7 +39,7 @@ import dataclasses
 
 import numpy as np
 
-from tg_gpudrive.evaluation.rollouts import Trajectories
+from tg_gpudrive.evaluation.episodes import Trajectories
 
 
 @dataclasses.dataclass(frozen=True)

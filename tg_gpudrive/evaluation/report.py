@@ -77,7 +77,7 @@ from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
-from tg_gpudrive.evaluation.rollouts import logged_episodes, record_rollouts, replay_episodes
+from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, replay_episodes
 from tg_gpudrive.evaluation.stats import spearman_ci
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import load_actor, load_policy

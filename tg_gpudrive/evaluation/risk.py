@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tg_gpudrive.evaluation.rollouts import Trajectories
+from tg_gpudrive.evaluation.episodes import Trajectories
 
 HARD_BRAKE = -4.0  # m/s^2
 TTC_HORIZON = 10.0  # s

@@ -55,7 +55,8 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.plots import RATE_KEYS, RATE_WINDOW, meets_quality, plot_curves
+from tg_gpudrive.learn.plots import plot_curves
+from tg_gpudrive.learn.quality import RATE_KEYS, RATE_WINDOW, meets_quality
 from tg_gpudrive.learn.prior import ExpertPrior
 from tg_gpudrive.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.rollout import run_rollout
@@ -302,7 +303,9 @@ class Trainer:
         return out.float() if self.head.discrete else (out[0].float(), out[1].float())
 
     @torch.no_grad()
-    def rollout(self) -> dict:
+    def collect(self) -> tuple[dict, dict]:
+        """Drive every world for `rollout_steps` steps under the current policy: (the buffers the update
+        reads, this rollout's episode and throughput stats)."""
         cfg, sim = self.cfg, self.sim
         T, W, C = cfg.rollout_steps, sim.num_worlds, max(sim.max_controlled, 1)
         dev = self.device
@@ -571,7 +574,7 @@ class Trainer:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
             t0 = time.perf_counter()
-            buf, stats = self.rollout()
+            buf, stats = self.collect()
             self._sync()
             t_own = time.perf_counter() - t0  # this rank's rollout
             dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
@@ -661,7 +664,7 @@ class Trainer:
 
     def _reached_target(self, stats: dict) -> bool:
         """Adds this update's episode outcomes (all ranks) to the window of the last RATE_WINDOW updates,
-        the one the progress bar, curves.png and `plots.time_to_quality` use; then whether the full
+        the one the progress bar, curves.png and `quality.time_to_quality` use; then whether the full
         window meets goal rate >= target_goal_rate, collision rate <= target_max_collision and
         off-road rate <= target_max_offroad."""
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))

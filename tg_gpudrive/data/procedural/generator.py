@@ -4,7 +4,7 @@ The six scenario types of the TrafficGamer paper (merge, dual-lane
 intersection, T-junction, dense-lane intersection, roundabout, Y-junction),
 generated from a seed with no dataset: road geometry (lane centrelines with
 their successor graph, curbs, lane dividers, crosswalks) and a 91-step, 10 Hz
-"log" of vehicles driven by a human-like rollout (lane following, IDM car
+"log" of vehicles driven by a human-like drive (lane following, IDM car
 following, yielding at conflict zones). Invariants of every scene, checked by
 tests/test_procedural.py: no two vehicle boxes come within 0.3 m of each other,
 no box touches a curb, trajectories obey a kinematic bicycle model (speed >= 0,
@@ -21,7 +21,7 @@ lane centre on straight road (`metadata["lane_offsets"]`, m to the right). A pol
 without them misses such goals: the shipped one reached 9 % of them against 94 % of the others
 (BENCHMARKS.md, "Real-scene transfer"), as it missed the kerbside goals of the real WOMD scenes.
 
-Geometry lives in `geometry.py`, the rollout in `traffic.py`, the invariant checks in
+Geometry lives in `geometry.py`, the drive in `traffic.py`, the invariant checks in
 `checks.py`; this module only picks per-type settings, retries and exports a `Scene`. Runtime
 code is NumPy only.
 """
@@ -214,7 +214,7 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
             plan_park_clearance(tm, veh, street, p.lane_width)
         veh, ro, dropped = settle(tm, veh, p.num_steps, p.dt, p.min_vehicles, hold)
         if veh is not None:
-            # kerb stops and lane changes are drawn where the free rollout shows a vehicle gets far
+            # kerb stops and lane changes are drawn where the free drive shows a vehicle gets far
             # enough, then the traffic is rolled out again with them (if that cannot settle, the scene
             # goes without)
             kerb = veh.subset(np.ones(len(veh), bool))
@@ -260,7 +260,7 @@ class Parked:
 
 def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int, reach: float = 0.0) -> Parked:
     """Fill the map's parking strips with cars, kerbside (or, with `reach` > 0, standing U(0, reach) m
-    over the lane edge), facing their side's traffic; drop any that would come within the rollout's
+    over the lane edge), facing their side's traffic; drop any that would come within the drive's
     check margin of a moving vehicle at any step (which leaves the space a kerb stop pulls into) or
     touch a kerb (by construction none should); keep the `max_parked` nearest to the conflict point."""
     rows = []

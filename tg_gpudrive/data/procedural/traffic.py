@@ -1,5 +1,5 @@
 """Traffic of the procedural generator: vehicles spawned on a RoadMap's approach
-lanes and a human-like rollout that becomes the scene's "log".
+lanes and a human-like drive that becomes the scene's "log".
 
 Each vehicle drives along its route's centreline in 1-D (arc length s), so
 heading, velocity and curvature follow the lanes exactly. Longitudinal control
@@ -15,12 +15,12 @@ is IDM (desired speed, time headway, minimum gap) against:
     one's current position still leaves free (reservation of the zone),
   * the curve speed limit (lateral acceleration LAT_ACC) and the route end.
 Kerb stops, lane changes and lane offsets (`Vehicles.lateral`) move a vehicle sideways off its
-centreline, only where its route is straight, after the 1-D rollout; a vehicle that pulls in at the
+centreline, only where its route is straight, after the 1-D drive; a vehicle that pulls in at the
 kerb or changes lanes stops leading its followers once it has left their lane (on its new lane it
-leads no one: a vehicle there that it would touch is dropped by the overlap check). After the rollout every box pair is checked exactly
+leads no one: a vehicle there that it would touch is dropped by the overlap check). After the drive every box pair is checked exactly
 (separating axes with a safety margin); an overlapping later-spawned vehicle, or one that barely
-moves, is dropped and the rollout repeated, so the invariants hold by construction.
-Nothing here draws random numbers after spawning: the rollout is deterministic.
+moves, is dropped and the drive repeated, so the invariants hold by construction.
+Nothing here draws random numbers after spawning: the drive is deterministic.
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ DS = 0.5  # m, route grid spacing for pose look-up and conflict tables
 DS_ZONE = 1.5  # m, lane sample spacing for conflict zones
 ZONE_INFLATE = 0.35  # m added to each half extent of the boxes that define conflict zones
 CHECK_MARGIN = 0.15  # m added to each half extent in the final overlap check (0.3 m between boxes)
-A_MIN, A_MAX_HARD = -4.0, 2.5  # m/s^2, hard acceleration bounds of the rollout
+A_MIN, A_MAX_HARD = -4.0, 2.5  # m/s^2, hard acceleration bounds of the drive
 B_HARD = 3.5  # m/s^2, braking a yielding vehicle may need
 LAT_ACC = 2.5  # m/s^2, lateral acceleration that sets the curve speed
 B_CURVE = 1.5  # m/s^2, deceleration ahead of curves
 GAP_ACCEPT = 1.0  # s, time a minor-road vehicle wants between clearing and the major's arrival
 # Holding a yielding vehicle at its stop line (instead of at the conflict zone inside the junction)
 # avoids some waiting in the junction box but roughly halves throughput and interactions, so it is
-# off unless a scene asks for it (`rollout(hold_at_stop_line=True)`, ProceduralParams.stop_lines):
+# off unless a scene asks for it (`drive(hold_at_stop_line=True)`, ProceduralParams.stop_lines):
 # then queues form at the stop lines, as at the stop-controlled junctions of WOMD.
 MIN_MOVE_AFTER_10 = 5.5  # m, a vehicle must travel this far after step 10 or be dropped
 
@@ -415,7 +415,7 @@ def plan_kerb_stops(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: np.
                     clear: float) -> int:
     """Each vehicle whose route runs along a lane beside a parking strip (before the junction or after
     it) and which drives far enough along it in the episode (`reach`: (N,) route arc length each
-    vehicle reached in a rollout without stops) ends its trip parked in that strip with probability
+    vehicle reached in a drive without stops) ends its trip parked in that strip with probability
     `prob`, as logged drivers pull in at the kerb: the stop is drawn beside the strip, within
     KERB_REACH m of the earliest possible one and at least KERB_RUNWAY m short of `reach` (room to slow
     down); the ramp lies on the lane's straight run, ahead of the vehicle's start; the box keeps `clear`
@@ -473,7 +473,7 @@ def plan_lane_changes(tm: TrafficModel, veh: Vehicles, reach: np.ndarray, rng: n
                       lane_width: float) -> int:
     """Each vehicle whose route's last lane runs straight beside a parallel lane of the same direction,
     over a stretch it drives in the episode (`reach`: (N,) route arc length each vehicle reached in a
-    rollout without changes), changes onto that lane with probability `prob`, as logged drivers change
+    drive without changes), changes onto that lane with probability `prob`, as logged drivers change
     lanes before their goal: the change starts on that last lane, ahead of the vehicle's start, and
     the vehicle covers at least LANE_CHANGE_DONE of it LANE_CHANGE_RUNWAY m short of `reach` (an
     episode may end mid-change, its goal then lying between the lanes, as logged ones do). A kerb-stopping vehicle keeps its lane. Vehicles drawn are
@@ -525,9 +525,9 @@ def _kerb_offset(want: float, limit: float, ramp: float, hl: float, hw: float) -
     return lo
 
 
-# ----------------------------------------------------------------------------- rollout
+# ----------------------------------------------------------------------------- drive
 @dataclass
-class Rollout:
+class TrafficLog:
     s: np.ndarray  # (N, T) m along the route
     v: np.ndarray  # (N, T) m/s
     xy: np.ndarray  # (N, T, 2)
@@ -592,7 +592,7 @@ def _travel_time(d, v, a, vmax):
     return np.where(d <= d_acc, t1, t2)
 
 
-def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> Rollout:
+def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> TrafficLog:
     """Integrate every vehicle along its route; see the module docstring for the rules.
     `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone."""
     n = len(veh)
@@ -733,7 +733,7 @@ def rollout(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_
             xy[i, :, 1] -= d * np.cos(yaw[i])
             yaw[i] -= np.arctan(dd)
             v[i] *= np.sqrt(1.0 + dd * dd)
-    return Rollout(s, v, xy, yaw)
+    return TrafficLog(s, v, xy, yaw)
 
 
 def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN) -> list[tuple[int, int, int]]:
@@ -758,7 +758,7 @@ def settle(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, min_keep:
     """Roll out, drop offending vehicles, repeat until no box overlap and everyone moves."""
     dropped = []
     while True:
-        ro = rollout(tm, veh, num_steps, dt, hold_at_stop_line)
+        ro = drive(tm, veh, num_steps, dt, hold_at_stop_line)
         bad = np.zeros(len(veh), bool)
         for _, i, j in overlapping_pairs(ro.xy, ro.yaw, veh.length, veh.width):
             if not bad[i] and not bad[j]:
