@@ -10,7 +10,7 @@ bounded max-heap, so the work per agent grows with the road density around
 it, not with the map size.
 
 Layout constants below are the single source of truth for the observation's
-shape: engine/model.py (obs_dim), engine/simulator.py (the views), learn/networks.py
+shape: engine/model.py (obs_dim), engine/simulator.py (the views), agents/networks.py
 and the world model (worldmodel/model.py, worldmodel/data.py) import them.
 """
 

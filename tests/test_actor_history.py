@@ -16,9 +16,9 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation.episodes import record_episodes
 from tg_gpudrive.history import HIST_DIM
-from tg_gpudrive.learn.networks import Actor
+from tg_gpudrive.agents.networks import Actor
 from tg_gpudrive.learn.train import Trainer
-from tg_gpudrive.policy import load_actor, load_policy
+from tg_gpudrive.agents.policy import load_actor, load_policy
 
 SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
 

@@ -312,7 +312,7 @@ def test_best_response_corrects_the_learned_actor():
     """With a learned actor each agent's response is a small network on the frozen actor's output: it
     starts exactly at the actor's distribution (discrete and continuous), and against an actor that
     mostly brakes on a free lane it learns to drive on (a positive gain)."""
-    from tg_gpudrive.policy import PolicyHead, build_actor
+    from tg_gpudrive.agents.policy import PolicyHead, build_actor
 
     for space in ("discrete", "continuous"):
         cfg = EngineConfig(max_agents=4, partner_k=2, road_k=8, action_space=space)

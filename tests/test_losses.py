@@ -13,15 +13,14 @@ import pytest
 import torch
 from scipy import stats
 
+from tg_gpudrive.agents.policy import categorical_kl, gaussian_kl
 from tg_gpudrive.learn.losses import (
     LagrangeMultiplier,
-    categorical_kl,
     cce_mappo_actor_loss,
     cost_quantile_targets,
     cvar_from_quantiles,
     cvar_gae,
     gae,
-    gaussian_kl,
     kl_estimate,
     masked_mean,
     normalize,

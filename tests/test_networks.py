@@ -8,7 +8,7 @@ import torch
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
-from tg_gpudrive.learn.networks import INIT_STD_FRACTION, Actor
+from tg_gpudrive.agents.networks import INIT_STD_FRACTION, Actor
 
 
 def test_initial_std_is_a_fifth_of_each_dimensions_range():

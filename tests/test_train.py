@@ -18,10 +18,9 @@ from tg_gpudrive.checkpoint import kept_policies
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
 from tg_gpudrive.engine.control import control_mask
 from tg_gpudrive.data.procedural import generate_scene
-from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.prior import ExpertPrior
+from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.learn.train import Trainer, TrainingError
-from tg_gpudrive.policy import load_policy
+from tg_gpudrive.agents.policy import categorical_kl, load_policy
 from tg_gpudrive.engine.simulator import Simulator
 
 from scenes import crossing_scene
@@ -99,8 +98,8 @@ def test_expert_prior_peaks_on_the_expert_action(closed_loop):
     # (The closed-loop prior centres on the unquantised action, at most halfway between two bins,
     # so the nearest bin holds about half its mass or more: KL <= ln 2 plus the far bins' share.)
     greedy = torch.full_like(logits, -20.0).scatter(-1, want.long()[None, :, None], 0.0)
-    assert L.categorical_kl(greedy, logits).max() < (0.8 if closed_loop else 0.2)
-    assert L.categorical_kl(torch.zeros_like(logits), logits).min() > 2.0
+    assert categorical_kl(greedy, logits).max() < (0.8 if closed_loop else 0.2)
+    assert categorical_kl(torch.zeros_like(logits), logits).min() > 2.0
     # the uniform floor bounds log p from below (so does the KL of any policy: <= -log(floor / N));
     # without it the far bins are practically impossible
     lp = torch.log_softmax(logits, -1)
@@ -172,7 +171,7 @@ def test_small_cpu_config_learns(tmp_path):
     beat the built-in constant and random policies on goal rate and on off-road; a policy collapsed
     to one action (entropy ~0, or the constant policy's rates) fails."""
     from tg_gpudrive.data.sources import resolve_scenes
-    from tg_gpudrive.policy import load_policy
+    from tg_gpudrive.agents.policy import load_policy
     from tg_gpudrive.rollout import builtin_policy, run_rollout
 
     cfg = dataclasses.replace(load_config(TrainConfig, SMALL), out_dir=str(tmp_path))

@@ -13,7 +13,7 @@ curves. Baselines on the first run's scenes: log replay (the engine replaying
 every agent's log, recorded like a policy: the floor of the divergences; no
 CCE-gap, nobody drives), the closed-loop inverse-dynamics expert in the run's
 action space, the behaviour prior alone (actions sampled from the expert
-prior, learn/prior.py, discrete action spaces) and the world model alone (the
+prior, agents/prior.py, discrete action spaces) and the world model alone (the
 first run's magnet, `prior_model`, default the shipped model, sampling every
 policy agent's action: the paper's baseline beside plain MAPPO; continuous runs
 need a continuous `prior_model`). A
@@ -79,8 +79,8 @@ from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
 from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, replay_episodes
 from tg_gpudrive.evaluation.stats import spearman_ci
-from tg_gpudrive.learn.prior import ExpertPrior
-from tg_gpudrive.policy import load_actor, load_policy
+from tg_gpudrive.agents.prior import ExpertPrior
+from tg_gpudrive.agents.policy import load_actor, load_policy
 from tg_gpudrive.rollout import expert_policy
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_world_model
 
@@ -177,7 +177,7 @@ def eval_scenes_text(cfg, opts: ReportOptions) -> str:
 
 
 def prior_policy(sim):
-    """Sample every slot's action from the expert prior (learn/prior.py): "the behaviour prior alone"."""
+    """Sample every slot's action from the expert prior (agents/prior.py): "the behaviour prior alone"."""
     prior = ExpertPrior(sim)
 
     def policy(sim_):

@@ -43,7 +43,6 @@ from __future__ import annotations
 import math
 
 import torch
-import torch.nn.functional as F
 
 __all__ = [
     "masked_mean",
@@ -56,8 +55,6 @@ __all__ = [
     "cvar_gae",
     "cost_quantile_targets",
     "LagrangeMultiplier",
-    "categorical_kl",
-    "gaussian_kl",
     "kl_estimate",
     "cce_mappo_actor_loss",
 ]
@@ -411,31 +408,7 @@ class LagrangeMultiplier(torch.nn.Module):
 
 
 # --------------------------------------------------------------------------- KL divergences
-
-
-def categorical_kl(logits_p: torch.Tensor, logits_q: torch.Tensor) -> torch.Tensor:
-    """Exact KL(p || q) of categorical distributions given by logits, shape (..., K) -> (...).
-
-    Logits need not be normalised. Actions masked with -inf logits in p
-    contribute 0; an action with p > 0 but q = 0 gives +inf, as it should.
-    """
-    logp = F.log_softmax(logits_p, dim=-1)
-    logq = F.log_softmax(logits_q, dim=-1)
-    p = logp.exp()
-    terms = torch.where(p > 0, p * (logp - logq), torch.zeros_like(p))
-    return terms.sum(-1)
-
-
-def gaussian_kl(
-    mu_p: torch.Tensor, logstd_p: torch.Tensor, mu_q: torch.Tensor, logstd_q: torch.Tensor
-) -> torch.Tensor:
-    """Exact KL(p || q) of diagonal Gaussians, summed over the action dim: (..., A) -> (...).
-
-    KL = sum_a [ log s_q - log s_p + (s_p^2 + (mu_p - mu_q)^2) / (2 s_q^2) - 1/2 ].
-    """
-    var_ratio = torch.exp(2.0 * (logstd_p - logstd_q))
-    mean_term = ((mu_p - mu_q) * torch.exp(-logstd_q)) ** 2
-    return (logstd_q - logstd_p + 0.5 * (var_ratio + mean_term) - 0.5).sum(-1)
+# the exact KLs of the policy head's distributions live with it (agents.policy: categorical_kl, gaussian_kl)
 
 
 def kl_estimate(

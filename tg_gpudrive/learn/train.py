@@ -57,8 +57,8 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.plots import plot_curves
 from tg_gpudrive.learn.quality import RATE_KEYS, RATE_WINDOW, meets_quality
-from tg_gpudrive.learn.prior import ExpertPrior
-from tg_gpudrive.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
+from tg_gpudrive.agents.prior import ExpertPrior
+from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 

@@ -13,7 +13,7 @@
     train.py        `train_world_model`: fitting, DAgger rounds, logging, checkpoints
     cli.py          `tg-gpudrive train-world-model`
 
-It depends on the engine and tg_gpudrive.policy (the BehaviourPrior interface), never on the
+It depends on the engine and tg_gpudrive.agents.policy (the BehaviourPrior interface), never on the
 learner (tg_gpudrive.learn), which imports it for the magnet.
 """
 

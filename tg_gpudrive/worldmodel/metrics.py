@@ -22,7 +22,7 @@ from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.policy import action_grid
+from tg_gpudrive.agents.policy import action_grid
 from tg_gpudrive.worldmodel.data import full_horizon_env
 from tg_gpudrive.worldmodel.model import WorldModel
 from tg_gpudrive.worldmodel.prior import WorldModelDriver

@@ -35,7 +35,7 @@ import torch
 
 from tg_gpudrive.checkpoint import WORLD_MODEL, check_kind, save_atomic
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
-from tg_gpudrive.policy import BehaviourPrior
+from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 from tg_gpudrive.worldmodel.model import WorldModel, check_action_space
 

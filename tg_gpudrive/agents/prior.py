@@ -2,7 +2,7 @@
 
 The interface (`context(sim)` -> a compact per-step tensor the learner stores,
 here the logged expert action; `distribution(context, obs)` -> logits or
-(mean, log_std) at update time) is `tg_gpudrive.policy.BehaviourPrior`.
+(mean, log_std) at update time) is `tg_gpudrive.agents.policy.BehaviourPrior`.
 
 `ExpertPrior` centres the distribution on the inverse-dynamics expert action
 of the log at the current step (kernels/dynamics.py), so the magnet is real
@@ -22,7 +22,7 @@ import math
 import torch
 
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.policy import BehaviourPrior, action_grid
+from tg_gpudrive.agents.policy import BehaviourPrior, action_grid
 from tg_gpudrive.enums import Dynamics
 
 

@@ -8,8 +8,8 @@ distribution head, building the networks from a config and loading a policy from
 
 It sits below the learner (learn.train), the world model and the evaluation, so that none of
 them reaches into another for these: it imports only the engine, the config, the checkpoint
-files and the learner's leaf modules (learn.networks, learn.losses: torch only). It must not
-import learn.train, worldmodel or evaluation.
+files and `agents.networks`; the exact KLs of its distributions live here. It must not import
+`learn`, `worldmodel` or `evaluation`.
 """
 
 from __future__ import annotations
@@ -22,8 +22,8 @@ from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer
-from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.networks import Actor, CentralCritic
+import torch.nn.functional as F
+from tg_gpudrive.agents.networks import Actor, CentralCritic
 
 
 class BehaviourPrior:
@@ -33,7 +33,7 @@ class BehaviourPrior:
     It works in two phases so the rollout buffer stays small: `context(sim)` returns a compact
     per-step tensor that the learner stores, and `distribution(context, obs)` rebuilds the
     distribution from it at update time: logits (..., num_actions) for discrete actions,
-    (mean, log_std) for continuous. Implementations: learn.prior.ExpertPrior (the logged expert)
+    (mean, log_std) for continuous. Implementations: agents.prior.ExpertPrior (the logged expert)
     and worldmodel.WorldModelPrior (the learned world model). The base class is also the
     stateless prior of plain MAPPO, which is never asked."""
 
@@ -50,6 +50,31 @@ class BehaviourPrior:
 
     def load_state_dict(self, sim: Simulator, state: dict) -> None:
         pass
+
+
+def categorical_kl(logits_p: torch.Tensor, logits_q: torch.Tensor) -> torch.Tensor:
+    """Exact KL(p || q) of categorical distributions given by logits, shape (..., K) -> (...).
+
+    Logits need not be normalised. Actions masked with -inf logits in p
+    contribute 0; an action with p > 0 but q = 0 gives +inf, as it should.
+    """
+    logp = F.log_softmax(logits_p, dim=-1)
+    logq = F.log_softmax(logits_q, dim=-1)
+    p = logp.exp()
+    terms = torch.where(p > 0, p * (logp - logq), torch.zeros_like(p))
+    return terms.sum(-1)
+
+
+def gaussian_kl(
+    mu_p: torch.Tensor, logstd_p: torch.Tensor, mu_q: torch.Tensor, logstd_q: torch.Tensor
+) -> torch.Tensor:
+    """Exact KL(p || q) of diagonal Gaussians, summed over the action dim: (..., A) -> (...).
+
+    KL = sum_a [ log s_q - log s_p + (s_p^2 + (mu_p - mu_q)^2) / (2 s_q^2) - 1/2 ].
+    """
+    var_ratio = torch.exp(2.0 * (logstd_p - logstd_q))
+    mean_term = ((mu_p - mu_q) * torch.exp(-logstd_q)) ** 2
+    return (logstd_q - logstd_p + 0.5 * (var_ratio + mean_term) - 0.5).sum(-1)
 
 
 class PolicyHead:
@@ -69,10 +94,10 @@ class PolicyHead:
 
     def kl(self, out_p, out_q) -> torch.Tensor:
         if self.discrete:
-            return L.categorical_kl(out_p, out_q)
+            return categorical_kl(out_p, out_q)
         if hasattr(out_q, "kl_from"):  # a prior without a closed form (worldmodel.mixture.LaplaceMixture)
             return out_q.kl_from(out_p)
-        return L.gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
+        return gaussian_kl(out_p[0], out_p[1], out_q[0], out_q[1])
 
 
 def action_grid(env, device=None) -> torch.Tensor:
