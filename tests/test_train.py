@@ -203,44 +203,48 @@ def test_nan_in_the_loss_itself_is_caught(tmp_path):
         tr.learn(buf)
 
 
+def _window_reached(win, cfg, stats) -> bool:
+    win.add(stats)
+    return win.reached(cfg)
+
+
 def test_target_goal_rate_counts_the_last_window_of_updates_episodes():
     from tg_gpudrive.learn.quality import RATE_WINDOW
-    tr = Trainer.__new__(Trainer)  # only the bookkeeping of _reached_target is exercised
-    tr.cfg, tr._recent = TrainConfig(target_goal_rate=0.95), []  # what __init__ sets for it
+    from tg_gpudrive.learn.targets import RateWindow
+    win, cfg = RateWindow(), TrainConfig(target_goal_rate=0.95)
     st = lambda g, n, c=0, o=0: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(float(n)),  # noqa: E731
                                  "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
     assert RATE_WINDOW == 10  # the hand-computed sums below
     for _ in range(9):
-        assert not tr._reached_target(st(10, 10))  # a window is not full before its 10th update
-    assert not tr._reached_target(st(0, 10))  # 90 / 100 = 0.90
-    assert not tr._reached_target(st(90, 100))  # (80 + 0 + 90) / 190 = 0.895
-    assert tr._reached_target(st(300, 300))  # (70 + 0 + 90 + 300) / 480 = 0.958
-    tr.cfg = TrainConfig(target_goal_rate=0.0)
-    assert not tr._reached_target(st(100, 100))  # 0 switches the target off
+        assert not _window_reached(win, cfg, st(10, 10))  # a window is not full before its 10th update
+    assert not _window_reached(win, cfg, st(0, 10))  # 90 / 100 = 0.90
+    assert not _window_reached(win, cfg, st(90, 100))  # (80 + 0 + 90) / 190 = 0.895
+    assert _window_reached(win, cfg, st(300, 300))  # (70 + 0 + 90 + 300) / 480 = 0.958
+    assert not _window_reached(win, TrainConfig(target_goal_rate=0.0), st(100, 100))  # 0 switches the target off
 
 
 def test_target_quality_needs_collision_and_offroad_within_bounds_too():
-    tr = Trainer.__new__(Trainer)
-    tr.cfg, tr._recent = TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02), []
+    from tg_gpudrive.learn.targets import RateWindow
+    win, cfg = RateWindow(), TrainConfig(target_goal_rate=0.95, target_max_collision=0.05, target_max_offroad=0.02)
     st = lambda g, c, o: {"goal": torch.tensor(float(g)), "episodes": torch.tensor(100.0),  # noqa: E731
                           "collided": torch.tensor(float(c)), "offroad": torch.tensor(float(o))}
     for _ in range(10):
-        assert not tr._reached_target(st(100, 6, 0))  # goal 1.0 but collision 0.06 > 0.05
-    tr._recent = []
+        assert not _window_reached(win, cfg, st(100, 6, 0))  # goal 1.0 but collision 0.06 > 0.05
+    win = RateWindow()
     for _ in range(9):
-        assert not tr._reached_target(st(96, 5, 2))
-    assert tr._reached_target(st(96, 5, 2))  # 0.96 / 0.05 / 0.02 over 10 updates: every bound inclusive
-    assert not tr._reached_target(st(96, 5, 12))  # off-road (9 x 2 + 12) / 1000 = 0.03 > 0.02
-    tr._recent = tr._recent[:-1]
-    assert not tr._reached_target(st(96, 15, 2))  # collision (9 x 5 + 15) / 1000 = 0.06 > 0.05
+        assert not _window_reached(win, cfg, st(96, 5, 2))
+    assert _window_reached(win, cfg, st(96, 5, 2))  # 0.96 / 0.05 / 0.02 over 10 updates: every bound inclusive
+    assert not _window_reached(win, cfg, st(96, 5, 12))  # off-road (9 x 2 + 12) / 1000 = 0.03 > 0.02
+    win.recent = win.recent[:-1]
+    assert not _window_reached(win, cfg, st(96, 15, 2))  # collision (9 x 5 + 15) / 1000 = 0.06 > 0.05
 
 
 def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monkeypatch):
     """With target_heldout, a training window that meets the quality bar stops training only once
     held-out scenes meet it too: every check is a row of heldout.csv, the deciding one in target.json."""
-    import tg_gpudrive.learn.train as train_mod
+    import tg_gpudrive.learn.targets as targets_mod
 
-    monkeypatch.setattr(Trainer, "_reached_target", lambda self, stats: True)  # the window always meets it
+    monkeypatch.setattr(targets_mod.RateWindow, "reached", lambda self, cfg: True)  # the window always meets it
     kw = dict(updates=6, target_goal_rate=0.5, target_heldout="procedural:merge", target_heldout_worlds=2,
               target_heldout_seed=777)
     # the held-out evaluation itself: one episode in each held-out world, all their policy agents counted
@@ -258,7 +262,7 @@ def test_the_heldout_check_decides_when_the_window_meets_the_bar(tmp_path, monke
         policy(sim)  # the current actor drives the held-out worlds
         return {"goal_rate": next(goals), "collision_rate": 0.0, "offroad_rate": 0.0, "episodes": 7}
 
-    monkeypatch.setattr(train_mod, "run_rollout", fake_rollout)
+    monkeypatch.setattr(targets_mod, "run_rollout", fake_rollout)
     b = tmp_path / "b"
     tr = Trainer(tiny(b, **kw), b, progress=False)
     tr.train()

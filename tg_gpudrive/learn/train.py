@@ -25,7 +25,6 @@ sampler position and the engine State mid-episode.
 
 from __future__ import annotations
 
-import csv
 import functools
 import json
 import logging
@@ -43,7 +42,6 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.agents import trained_sim
 from tg_gpudrive.checkpoint import POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, save_atomic
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
@@ -55,11 +53,11 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.plots import plot_curves
-from tg_gpudrive.learn.quality import RATE_KEYS, RATE_WINDOW, meets_quality
+from tg_gpudrive.learn.quality import RATE_KEYS
+from tg_gpudrive.learn.runlog import RunLog
+from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
 from tg_gpudrive.agents.prior import ExpertPrior
-from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
-from tg_gpudrive.rollout import run_rollout
+from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
 log = logging.getLogger(__name__)
@@ -155,16 +153,6 @@ class StopRequest:
         return bool(dist_util.all_reduce_mean(torch.tensor(float(self._flag), device=device)) > 0)
 
 
-def _append_csv(path: Path, rows: list[dict]) -> None:
-    """Append `rows` (dicts with the same keys) to the CSV file `path`, with a header when it is new."""
-    new = not path.exists()
-    with path.open("a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        if new:
-            w.writeheader()
-        w.writerows(rows)
-
-
 class Trainer:
     def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                  progress: bool = True):
@@ -227,8 +215,9 @@ class Trainer:
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
         self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
-        self._heldout_sim, self._heldout_rates = None, None  # target_heldout: its worlds and latest rates
-        self._recent: list[tuple[float, ...]] = []  # (goal, collided, off-road, episodes) of the last RATE_WINDOW updates
+        self.window = RateWindow()  # the last RATE_WINDOW updates' episodes: the bar, the final line, the stop
+        self.heldout = HeldoutCheck(cfg, self.device, self.lead)  # target_heldout
+        self.runlog = RunLog(self.out, self.lead)
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
@@ -237,7 +226,6 @@ class Trainer:
         self.sim.reset()
         if ck is not None:
             self._load(ck, exact)
-        self.csv_path = self.out / "metrics.csv"
 
     # ------------------------------------------------------------ setup bits
     # what a checkpoint's networks must share with this run's for their weights to load
@@ -558,10 +546,8 @@ class Trainer:
         finally:  # an error's message then comes after the bar, not inside it
             if bar is not None:
                 bar.close()
-        if self.lead:
-            self.plot()
-            if getattr(self, "_tb", None) is not None:
-                self._tb.close()
+        self.runlog.plot()
+        self.runlog.close()
         return last
 
     def _loop(self, bar, stop: "StopRequest", t_start: float, elapsed0: float) -> dict:
@@ -616,11 +602,11 @@ class Trainer:
             row["ranks"] = self.world
             if self.sim.is_cuda:
                 row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
-            if self.lead:
-                self._log(row)
-                self._log_timing(phases)
+            self.runlog.metrics(row)
+            self.runlog.timing(self.update, phases)
             last = row
-            reached = self._reached_target(stats)  # also moves the window of rates the bar shows
+            self.window.add(stats)  # the window of rates the bar shows and the stop reads
+            reached = self.window.reached(cfg)
             if bar is not None:
                 if first:  # the first update compiles kernels and warms caches: the ETA starts after it
                     bar.reset(total=cfg.updates)
@@ -628,7 +614,7 @@ class Trainer:
                     first = False
                 else:
                     bar.update(1)
-                rates = self._window_rates()  # None until an episode has ended
+                rates = self.window.rates()  # None until an episode has ended
                 shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
                 bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
                                 coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
@@ -654,7 +640,7 @@ class Trainer:
                     (self.out / "target.json").write_text(json.dumps(
                         {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
                          "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
-                         "agent_steps": self.agent_steps, "heldout": self._heldout_rates}, indent=1))
+                         "agent_steps": self.agent_steps, "heldout": self.heldout.rates}, indent=1))
                     if bar is not None:
                         bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
                                   f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
@@ -662,94 +648,18 @@ class Trainer:
                 break
         return last
 
-    def _reached_target(self, stats: dict) -> bool:
-        """Adds this update's episode outcomes (all ranks) to the window of the last RATE_WINDOW updates,
-        the one the progress bar, curves.png and `quality.time_to_quality` use; then whether the full
-        window meets goal rate >= target_goal_rate, collision rate <= target_max_collision and
-        off-road rate <= target_max_offroad."""
-        now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
-        self._recent = (self._recent + [now])[-RATE_WINDOW:]
-        cfg = self.cfg
-        rates = self._window_rates()
-        if cfg.target_goal_rate <= 0 or len(self._recent) < RATE_WINDOW or rates is None:
-            return False
-        return meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
-
-    def _window_rates(self) -> dict | None:
-        """Goal, collision and off-road rates over the episodes of the window (None before one ended)."""
-        if not self._recent:
-            return None
-        goals, coll, off, eps = (sum(x) for x in zip(*self._recent))
-        if eps <= 0:
-            return None
-        return {"goal_rate": goals / eps, "collision_rate": coll / eps, "offroad_rate": off / eps}
-
     def _heldout_check(self, bar=None) -> bool:
-        """Whether the current policy meets the quality bar on held-out scenes (`target_heldout`): rank 0
-        plays one episode in every held-out world and tells the others; the check is appended to
-        heldout.csv (update, wall_s, rates, episodes, met)."""
-        cfg = self.cfg
-        met = torch.zeros((), device=self.device)
+        """The held-out check (targets.HeldoutCheck), logged to heldout.csv and shown under the bar."""
+        ok = self.heldout(self.actor)
         if self.lead:
-            if self._heldout_sim is None:  # built once, on first use
-                src = resolve_scenes(cfg.target_heldout, n=cfg.target_heldout_worlds, seed=cfg.target_heldout_seed)
-                scenes = [src.get(i) for i in range(min(cfg.target_heldout_worlds, len(src)))]
-                self._heldout_sim = trained_sim(cfg, scenes, self.device)[0]
-            hsim = self._heldout_sim
-            rates = run_rollout(hsim, actor_policy(self.actor, hsim, cfg.actor_history), hsim.episode_length,
-                                episodes_per_world=1)
-            ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
-            self._heldout_rates = {k: rates[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "episodes")}
-            _append_csv(self.out / "heldout.csv",
-                        [{"update": self.update, "wall_s": self.wall, **self._heldout_rates, "met": int(ok)}])
+            self.runlog.heldout({"update": self.update, "wall_s": self.wall, **self.heldout.rates, "met": int(ok)})
             if bar is not None:
-                bar.write(f"held-out check after update {self.update} ({cfg.target_heldout}, seed "
-                          f"{cfg.target_heldout_seed}): goal {rates['goal_rate']:.3f}, collision "
-                          f"{rates['collision_rate']:.3f}, off-road {rates['offroad_rate']:.3f}"
-                          f"{'' if ok else ': not yet'}")
-            met.fill_(float(ok))
-        dist_util.all_reduce_sum_({"met": met})  # rank 0's answer to every rank
-        return bool(met > 0)
+                bar.write(self.heldout.describe(self.update, ok))
+        return ok
 
     def _sync(self) -> None:
         if self.sim.is_cuda:
             torch.cuda.synchronize(self.device)
-
-    # ------------------------------------------------------------ logging
-    def _log(self, row: dict) -> None:
-        _append_csv(self.csv_path, [row])
-        tb = self._tensorboard()
-        if tb is not None:  # the same names as metrics.csv: reward/<term>, kl/prior, lambda, goal_rate, ...
-            for k, v in row.items():
-                if isinstance(v, (int, float)) and k != "update" and math.isfinite(v):
-                    tb.add_scalar(k, v, row["update"])
-            tb.flush()
-
-    def _log_timing(self, phases: list[list[float]]) -> None:
-        """timing.csv: one row per rank and update (rollout, wait for the slowest rollout, update, s),
-        long format so a run resumed on another number of ranks appends cleanly."""
-        _append_csv(self.out / "timing.csv", [{"update": self.update, "rank": r, "rollout_s": f"{own:.6f}",
-                                                "wait_s": f"{wait:.6f}", "update_s": f"{upd:.6f}"}
-                                               for r, (own, wait, upd) in enumerate(phases)])
-
-    def _tensorboard(self):
-        """A SummaryWriter into the run directory when `tensorboard` is installed (the optional extra
-        `pip install tg_gpudrive[tensorboard]`), else None; metrics.csv is written either way."""
-        if not hasattr(self, "_tb"):
-            self._tb = None
-            try:
-                # optional (the tensorboard extra), and slow to import: only when a run logs
-                from torch.utils.tensorboard import SummaryWriter
-            except ImportError:
-                return None
-            self._tb = SummaryWriter(log_dir=str(self.out), purge_step=self.update or None)
-        return self._tb
-
-    def plot(self) -> Path | None:
-        """PNG of the training curves (metrics.csv -> curves.png)."""
-        if not self.csv_path.exists():
-            return None
-        return plot_curves(self.csv_path, self.out / "curves.png")
 
     # -------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
@@ -791,7 +701,7 @@ class Trainer:
             # another process count: weights, optimiser, lambda and counters carry over; episodes
             # start afresh on each rank's own scene shard
             self.gen.manual_seed(self.cfg.seed + self.rank + 7919 * self.update)
-            self._trim_csv()
+            self.runlog.trim(self.update)
             return
         rng = ck["rng"]
         torch.set_rng_state(rng["torch"])
@@ -804,24 +714,7 @@ class Trainer:
         self.prior.load_state_dict(self.sim, ck.get("prior", {}))
         if self.actor_hist is not None:
             self.actor_hist.load_state_dict(self.sim, ck.get("actor_history", {}))
-        self._trim_csv()
-
-    def _trim_csv(self) -> None:
-        # metrics.csv and timing.csv may hold rows written after this checkpoint: keep only those up to it
-        for path in (self.out / "metrics.csv", self.out / "timing.csv"):
-            if not (self.lead and path.exists()):
-                continue
-            rows = list(csv.DictReader(path.open()))
-            # a row cut short by a kill (missing fields, a partial number) is dropped with the rest
-            whole = [r for r in rows if None not in r.values() and str(r.get("update", "")).isdigit()]
-            if len(whole) != len(rows):
-                log.warning("%s: %d damaged row(s) dropped", path, len(rows) - len(whole))
-            keep = [r for r in whole if int(r["update"]) <= self.update]
-            if len(keep) != len(rows):
-                with path.open("w", newline="") as f:
-                    w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-                    w.writeheader()
-                    w.writerows(keep)
+        self.runlog.trim(self.update)
 
 
 def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> dict:
@@ -832,5 +725,5 @@ def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> di
         "agents_left_to_replay": trainer.left_to_replay,
         # episode-weighted over the last RATE_WINDOW updates (the window the quality target reads); None
         # before any episode ended
-        "window_rates": trainer._window_rates()}
+        "window_rates": trainer.window.rates()}
 
