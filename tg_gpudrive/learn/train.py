@@ -539,6 +539,7 @@ class Trainer:
         bar = None
         if self.progress:
             bar = tqdm(total=cfg.updates, initial=self.update, desc="train", unit="update")
+        self._bar_started = False  # the bar's clock restarts after this process's first update
         t_start, elapsed0 = time.perf_counter(), self.elapsed
         try:
             with StopRequest() as stop:
@@ -555,69 +556,13 @@ class Trainer:
         update under way and saves it); the last update's metrics row."""
         cfg = self.cfg
         last = {}
-        first = True
         while self.update < cfg.updates:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
-            t0 = time.perf_counter()
-            buf, stats = self.collect()
-            self._sync()
-            t_own = time.perf_counter() - t0  # this rank's rollout
-            dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
-            self._sync()
-            t_roll = time.perf_counter() - t0  # until the slowest rank's rollout is in
-            row = self.learn(buf)
-            self._sync()
-            dt = time.perf_counter() - t0
-            # where each rank's time went: its rollout, waiting for the slowest rollout, the update
-            # (backward's gradient all-reduce waits for the slowest backward inside it); every rank's
-            # row goes to timing.csv, rank 0's and the slowest rollout to metrics.csv
-            phases = dist_util.gather_floats([t_own, t_roll - t_own, dt - t_roll], self.device)
-            row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
-                        "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
-            self.wall += dt
-            self.elapsed = elapsed0 + time.perf_counter() - t_start
-            steps = int(stats["alive"])
-            self.agent_steps += steps
-            self.update += 1
-            n_ep = float(stats["episodes"])
-            row.update({
-                "update": self.update, "agent_steps": self.agent_steps, "wall_s": self.wall,
-                "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt,
-                "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
-                "episodes": n_ep,
-                "goal_rate": float(stats["goal"]) / n_ep if n_ep else float("nan"),
-                "collision_rate": float(stats["collided"]) / n_ep if n_ep else float("nan"),
-                "offroad_rate": float(stats["offroad"]) / n_ep if n_ep else float("nan"),
-                "mean_min_distance": float(stats["min_dist"]) / n_ep if n_ep else float("nan"),
-                "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
-                "mean_speed": float(stats["speed"]) / max(steps, 1),
-                "scenes_visited": self.sampler.visited,
-                **source_report(self.source),  # files that do not load, scenes that cannot be played
-            })
-            per_term = stats["terms"] / max(steps, 1)
-            for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
-                row[f"reward/{name}"] = v
-            row["reward"] = float(buf["reward"].sum() / max(int(buf["mask"].sum()), 1))
-            row["ranks"] = self.world
-            if self.sim.is_cuda:
-                row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
-            self.runlog.metrics(row)
-            self.runlog.timing(self.update, phases)
-            last = row
+            last, stats = self._step(elapsed0, t_start)
             self.window.add(stats)  # the window of rates the bar shows and the stop reads
             reached = self.window.reached(cfg)
-            if bar is not None:
-                if first:  # the first update compiles kernels and warms caches: the ETA starts after it
-                    bar.reset(total=cfg.updates)
-                    bar.initial = bar.n = self.update
-                    first = False
-                else:
-                    bar.update(1)
-                rates = self.window.rates()  # None until an episode has ended
-                shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
-                bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
-                                coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
+            self._show(bar, last)
             if reached and cfg.target_heldout:
                 reached = self._heldout_check(bar)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
@@ -636,17 +581,91 @@ class Trainer:
                 break
             if reached:
                 last["target_reached_s"] = self.wall
-                if self.lead:
-                    (self.out / "target.json").write_text(json.dumps(
-                        {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
-                         "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
-                         "agent_steps": self.agent_steps, "heldout": self.heldout.rates}, indent=1))
-                    if bar is not None:
-                        bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
-                                  f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
-                                  f"(update {self.update}, {self.agent_steps:,} agent steps)")
+                self._record_target(bar)
                 break
         return last
+
+    def _step(self, elapsed0: float, t_start: float) -> tuple[dict, dict]:
+        """One update: collect, reduce the stats over the ranks, learn, count, log. (metrics row, stats)."""
+        t0 = time.perf_counter()
+        buf, stats = self.collect()
+        self._sync()
+        t_own = time.perf_counter() - t0  # this rank's rollout
+        dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
+        self._sync()
+        t_roll = time.perf_counter() - t0  # until the slowest rank's rollout is in
+        row = self.learn(buf)
+        self._sync()
+        dt = time.perf_counter() - t0
+        # where each rank's time went: its rollout, waiting for the slowest rollout, the update
+        # (backward's gradient all-reduce waits for the slowest backward inside it); every rank's
+        # row goes to timing.csv, rank 0's and the slowest rollout to metrics.csv
+        phases = dist_util.gather_floats([t_own, t_roll - t_own, dt - t_roll], self.device)
+        row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
+                    "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
+        self.wall += dt
+        self.elapsed = elapsed0 + time.perf_counter() - t_start
+        steps = int(stats["alive"])
+        self.agent_steps += steps
+        self.update += 1
+        row.update(self._row(buf, stats, steps, dt, t_roll))
+        self.runlog.metrics(row)
+        self.runlog.timing(self.update, phases)
+        return row, stats
+
+    def _row(self, buf: dict, stats: dict, steps: int, dt: float, t_roll: float) -> dict:
+        """The counters, rates, reward terms and throughput of the update just done (metrics.csv)."""
+        n_ep = float(stats["episodes"])
+        per = lambda key: float(stats[key]) / n_ep if n_ep else float("nan")  # noqa: E731
+        row = {
+            "update": self.update, "agent_steps": self.agent_steps, "wall_s": self.wall,
+            "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt,
+            "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
+            "episodes": n_ep, "goal_rate": per("goal"), "collision_rate": per("collided"),
+            "offroad_rate": per("offroad"), "mean_min_distance": per("min_dist"),
+            "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
+            "mean_speed": float(stats["speed"]) / max(steps, 1),
+            "scenes_visited": self.sampler.visited,
+            **source_report(self.source),  # files that do not load, scenes that cannot be played
+        }
+        per_term = stats["terms"] / max(steps, 1)
+        for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
+            row[f"reward/{name}"] = v
+        row["reward"] = float(buf["reward"].sum() / max(int(buf["mask"].sum()), 1))
+        row["ranks"] = self.world
+        if self.sim.is_cuda:
+            row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
+        return row
+
+    def _show(self, bar, row: dict) -> None:
+        """The progress bar after an update: throughput, the window's rates, lambda. The first update of a
+        process compiles kernels and warms caches, so the bar's clock (its ETA) restarts after it."""
+        if bar is None:
+            return
+        if not self._bar_started:
+            bar.reset(total=self.cfg.updates)
+            bar.initial = bar.n = self.update
+            self._bar_started = True
+        else:
+            bar.update(1)
+        rates = self.window.rates()  # None until an episode has ended
+        shown = {k: f"{rates[k]:.2f}" if rates else "-" for k in RATE_KEYS}
+        bar.set_postfix(sps=f"{row['agent_steps_per_s']:.0f}", goal=shown["goal_rate"],
+                        coll=shown["collision_rate"], off=shown["offroad_rate"], lam=f"{row['lambda']:.2f}")
+
+    def _record_target(self, bar) -> None:
+        """target.json, and a line under the bar, once the quality target is reached."""
+        cfg = self.cfg
+        if not self.lead:
+            return
+        (self.out / "target.json").write_text(json.dumps(
+            {"target_goal_rate": cfg.target_goal_rate, "target_max_collision": cfg.target_max_collision,
+             "target_max_offroad": cfg.target_max_offroad, "update": self.update, "wall_s": self.wall,
+             "agent_steps": self.agent_steps, "heldout": self.heldout.rates}, indent=1))
+        if bar is not None:
+            bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
+                      f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
+                      f"(update {self.update}, {self.agent_steps:,} agent steps)")
 
     def _heldout_check(self, bar=None) -> bool:
         """The held-out check (targets.HeldoutCheck), logged to heldout.csv and shown under the bar."""
