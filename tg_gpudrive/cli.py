@@ -132,17 +132,32 @@ def build_parser() -> argparse.ArgumentParser:
                         help="log INFO messages too (engine build reports, timings; default: warnings only); "
                              "give it before the command: tg-gpudrive -v simulate ...")
     sub = parser.add_subparsers(dest="command", required=True)
+    _simulate_parser(sub)
+    _benchmark_parser(sub)
+    _train_parser(sub)
+    _train_world_model_parser(sub)
+    _evaluate_parser(sub)
+    _render_parser(sub)
+    _report_parser(sub)
+    _convert_parser(sub)
+    for command in sub.choices.values():  # every option's help shows its default
+        command.formatter_class = HelpFormatter
+    return parser
 
+
+def _simulate_parser(sub) -> None:
     p = sub.add_parser("simulate", help="roll out a built-in policy and report goal/collision/off-road rates")
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--worlds", type=positive_int, default=16, help="worlds simulated in parallel, one scene each")
     p.add_argument("--steps", type=positive_int, default=None, help="steps to run (default: one episode)")
-    p.add_argument("--policy", default="expert", choices=["expert", "random", "constant"], help=POLICY_HELP)
+    p.add_argument("--policy", default="expert", choices=BUILTIN, help=POLICY_HELP)
     p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     _background_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
+
+def _benchmark_parser(sub) -> None:
     p = sub.add_parser("benchmark", help="engine agent steps/s for several world counts")
     _scene_args(p, num_scenes_default="36")
     _engine_args(p)
@@ -152,6 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-graph", action="store_true", help="plain launches instead of a CUDA graph")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
+
+def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="CCE-MAPPO training (TrafficGamer)")
     p.add_argument("--config", default=None,
                    help="configs/train/<name>.yaml (required, except with --resume: the run's own config.json)")
@@ -167,14 +184,18 @@ def build_parser() -> argparse.ArgumentParser:
                    help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
 
+
+def _train_world_model_parser(sub) -> None:
     p = sub.add_parser("train-world-model", help="train the world model (behaviour prior / reactive traffic)")
     world_model_args(p)
 
+
+def _evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
                                           "(the policy packaged with tg_gpudrive; shipped_v1: the one before it); this or --policy is required")
-    who.add_argument("--policy", choices=["expert", "random", "constant"],
+    who.add_argument("--policy", choices=BUILTIN,
                      help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
     _engine_args(p)
@@ -190,6 +211,8 @@ def build_parser() -> argparse.ArgumentParser:
     _background_args(p)
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
+
+def _render_parser(sub) -> None:
     p = sub.add_parser("render", help="draw one world of an episode: .gif / .mp4, or its last frame as .png")
     _scene_args(p)
     _engine_args(p)
@@ -214,18 +237,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--highlight", choices=["controlled", "all", "none"], default="controlled",
                    help="whose collisions / off-road events are outlined")
 
+
+def _report_parser(sub) -> None:
     sub.add_parser("report", add_help=False,
                    help="scenario-quality report of training runs (tg-gpudrive report --runs DIR... --out DIR)")
 
+
+def _convert_parser(sub) -> None:
     p = sub.add_parser("convert", help="pack WOMD files (json / tfrecord) into a memory-mapped store")
     p.add_argument("inputs", nargs="+", help="files or directories")
     p.add_argument("--out", required=True, metavar="DIR", help="the store directory to write (required)")
     p.add_argument("--no-resume", action="store_true", help="start over instead of skipping converted files")
     p.add_argument("--simplify", type=float, default=None, metavar="METRES",
                    help="simplify road polylines with this tolerance (default: keep every point)")
-    for command in sub.choices.values():  # every option's help shows its default
-        command.formatter_class = HelpFormatter
-    return parser
 
 
 def _engine_config(args) -> EngineConfig:
