@@ -778,6 +778,30 @@ def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict
 
 
 # --------------------------------------------------------------------- main
+@dataclasses.dataclass
+class _Collected:
+    """What a report gathers over its policies before it writes: per policy its results and recorded
+    episodes, training curves, CCE-gaps and gap curves; the grid's frames; the logs of the first run's
+    scenes; the first run's worst scenes; the best-response settings used."""
+
+    results: list = dataclasses.field(default_factory=list)
+    generated: dict = dataclasses.field(default_factory=dict)
+    curves: dict = dataclasses.field(default_factory=dict)
+    gaps: dict = dataclasses.field(default_factory=dict)
+    gap_curves: dict = dataclasses.field(default_factory=dict)
+    cells: dict = dataclasses.field(default_factory=dict)
+    grid_scene: str = ""
+    logged: object = None
+    worst: dict | None = None
+    br: dict = dataclasses.field(default_factory=dict)
+
+    def keep(self, res: dict, gen) -> None:
+        self.results.append(res)
+        self.generated[res["label"]] = gen
+        if res["cce_gap"]:
+            self.gaps[res["label"]] = res["cce_gap"]
+
+
 def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOptions | None = None) -> dict:
     """Evaluate the runs and the baselines, write the report files (FILES) into `out`; return the summary."""
     opts = options or ReportOptions()
@@ -794,119 +818,127 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     bar = tqdm(total=len(runs) + n_base, desc="report", unit="policy", disable=not opts.progress)
     if not 0 <= opts.grid_scene < opts.scenes:
         raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
-    results, logged_all, generated_all, curves, gaps, cells = [], None, {}, {}, {}, {}
-    grid_scene = ""
-    gap_curves: dict[str, list[dict]] = {}
-
-    def keep(res: dict, gen) -> None:
-        results.append(res)
-        generated_all[res["label"]] = gen
-        if res["cce_gap"]:
-            gaps[res["label"]] = res["cce_gap"]
-
-    worst_meta = None  # the first run's worst scenes
+    got = _Collected()
     try:
         for i, run in enumerate(runs):
-            cfg, ckpt = _run_files(run)
-            device = resolve_device(opts.device or cfg.device, flag="--device")
-            if device == "cpu":
-                torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
-            scenes = _scenes(cfg, opts.scenes, opts)
-            sim, masks = trained_sim(cfg, scenes, device)  # the run's policy in worlds of them (agents)
-            cfg = dataclasses.replace(cfg, env=sim.cfg)  # a slot for every agent
-            logged = logged_episodes(sim)
-            copies = _br_copies(opts, device)
-            nb = len(scenes) if opts.br_scenes is None else max(1, min(opts.br_scenes, len(scenes)))
-            gsim = ex.deviation_sim(scenes[:nb], masks[:nb], cfg.env, device, copies)
-            label = run.name
-            if i == 0:
-                logged_all = logged
-            if i == 0 and opts.baselines:  # baselines on the first run's scenes and engine, keyed by its checkpoint
-
-                def replay():
-                    bar.set_postfix_str("log replay")
-                    replayed = replay_episodes(scenes, masks, cfg.env, device)
-                    bar.update(1)
-                    return _measure("log replay", replayed, logged, opts), replayed
-
-                def baseline(name, make):  # the baselines' best responses discount with the first run's gamma
-                    return _cached(out, name, [ckpt], opts, lambda: _evaluate(
-                        name, sim, make(sim), logged, opts, lambda s: ex.SimGame(gsim, make(gsim)), bar, cfg.gamma), bar)
-
-                keep(*_cached(out, "log replay", [ckpt], opts, replay, bar))
-                keep(*baseline("expert (inverse dynamics)", lambda s: expert_policy))
-                if discrete:
-                    keep(*baseline("behaviour prior", prior_policy))
-                if with_wm:
-                    keep(*baseline("world model", lambda s: world_model_policy(cfg, s)))
-            curves[label] = _read_metrics(run)
-            kept = kept_policies(run) if run.is_dir() else []
-
-            last_update = int(curves[label][-1]["update"]) if curves[label] else None
-
-            def evaluate_run():  # called at once, in this iteration
-                actor = load_actor(ckpt, gsim)[0]
-                res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
-                                     lambda s: ex.SimGame(gsim, actor=actor), bar, cfg.gamma)
-                if kept:
-                    bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
-                res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update) if opts.cce_gap else []
-                return res, gen
-
-            res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
-            keep(res, gen)
-            if i == 0:  # where the report's first policy fails most, drawn as its episodes end
-                worst = worst_scenes(gen)
-                frames = [_last_frame(cfg, scenes[w["scene"]], masks[w["scene"]], ckpt, device, opts.frame_size,
-                                      out / "frames" / f"worst_{k}.png") for k, w in enumerate(worst)]
-                if frames:
-                    plot_worst_scenes(frames, worst, label, out / "worst_scenes.png")
-                else:
-                    (out / "worst_scenes.png").unlink(missing_ok=True)
-                worst_meta = {"label": label, "scenes": worst}
-            # the starting policy's gap is shared by the runs that fine-tuned it, so the process that does
-            # the baselines does it (report parts: the first), and every run's curve reads it back
-            start = (start_gap(run, cfg, gsim, opts, out, bar)
-                     if run.is_dir() and opts.baselines and opts.cce_gap else None)
-            res["gap_curve"] = gap_curve(start, res.get("kept_gaps", []), res["cce_gap"], last_update)
-            if res["gap_curve"]:
-                gap_curves[label] = res["gap_curve"]
-            res["kind"] = run_kind(cfg)
-            res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
-            res["train_tail"] = _tail_means(curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
-            if res["kind"] == "CCE-MAPPO":
-                g = opts.grid_scene
-                cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[g], masks[g], ckpt, device,
-                                                               opts.frame_size, out / "frames" / f"{label}.png",
-                                                               gif=opts.grid_gifs)
-                grid_scene = scenes[g].scene_id
-            # the most critical scenarios, as GPUDrive JSON with their risk figures
-            crit = res["critical"]
-            files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
-            for c, f in zip(crit, files):
-                c["file"] = str(f.relative_to(out))
+            _report_run(i, run, got, opts, out, bar, discrete, with_wm)
     finally:
         torch.set_num_threads(threads)
         bar.close()
-    plot_grid(cells, out / "grid.png", scene=grid_scene)
-    plot_multipliers(curves, out / "multipliers.png")
-    fid.plot_histograms(logged_all, generated_all, out / "fidelity.png")
+    return _write_report(got, runs, first, opts, out)
+
+
+def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Path, bar, discrete: bool,
+                with_wm: bool) -> None:
+    """Evaluate run `i` (and, with the first, the baselines) into `got`: its scenes, rollouts, CCE-gaps,
+    worst scenes (the first run), grid frame and exported critical scenarios."""
+    cfg, ckpt = _run_files(run)
+    device = resolve_device(opts.device or cfg.device, flag="--device")
+    if device == "cpu":
+        torch.set_num_threads(1)  # per-step batches are tiny: a thread pool only adds overhead
+    scenes = _scenes(cfg, opts.scenes, opts)
+    sim, masks = trained_sim(cfg, scenes, device)  # the run's policy in worlds of them (agents)
+    cfg = dataclasses.replace(cfg, env=sim.cfg)  # a slot for every agent
+    logged = logged_episodes(sim)
+    copies = _br_copies(opts, device)
+    nb = len(scenes) if opts.br_scenes is None else max(1, min(opts.br_scenes, len(scenes)))
+    got.br = {"copies": copies, "scenes": nb}
+    gsim = ex.deviation_sim(scenes[:nb], masks[:nb], cfg.env, device, copies)
+    label = run.name
+    if i == 0:
+        got.logged = logged
+    if i == 0 and opts.baselines:  # baselines on the first run's scenes and engine, keyed by its checkpoint
+        _baselines(got, opts, out, bar, cfg, ckpt, sim, gsim, scenes, masks, logged, discrete, with_wm)
+    got.curves[label] = _read_metrics(run)
+    kept = kept_policies(run) if run.is_dir() else []
+    last_update = int(got.curves[label][-1]["update"]) if got.curves[label] else None
+
+    def evaluate_run():  # called at once, in this iteration
+        actor = load_actor(ckpt, gsim)[0]
+        res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
+                             lambda s: ex.SimGame(gsim, actor=actor), bar, cfg.gamma)
+        if kept:
+            bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
+        res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update) if opts.cce_gap else []
+        return res, gen
+
+    res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
+    got.keep(res, gen)
+    if i == 0:  # where the report's first policy fails most, drawn as its episodes end
+        worst = worst_scenes(gen)
+        frames = [_last_frame(cfg, scenes[w["scene"]], masks[w["scene"]], ckpt, device, opts.frame_size,
+                              out / "frames" / f"worst_{k}.png") for k, w in enumerate(worst)]
+        if frames:
+            plot_worst_scenes(frames, worst, label, out / "worst_scenes.png")
+        else:
+            (out / "worst_scenes.png").unlink(missing_ok=True)
+        got.worst = {"label": label, "scenes": worst}
+    # the starting policy's gap is shared by the runs that fine-tuned it, so the process that does
+    # the baselines does it (report parts: the first), and every run's curve reads it back
+    start = start_gap(run, cfg, gsim, opts, out, bar) if run.is_dir() and opts.baselines and opts.cce_gap else None
+    res["gap_curve"] = gap_curve(start, res.get("kept_gaps", []), res["cce_gap"], last_update)
+    if res["gap_curve"]:
+        got.gap_curves[label] = res["gap_curve"]
+    res["kind"] = run_kind(cfg)
+    res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
+    res["train_tail"] = _tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
+    if res["kind"] == "CCE-MAPPO":
+        g = opts.grid_scene
+        got.cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
+                                                           out / "frames" / f"{label}.png", gif=opts.grid_gifs)
+        got.grid_scene = scenes[g].scene_id
+    # the most critical scenarios, as GPUDrive JSON with their risk figures
+    crit = res["critical"]
+    files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
+    for c, f in zip(crit, files):
+        c["file"] = str(f.relative_to(out))
+
+
+def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, sim, gsim, scenes, masks, logged,
+               discrete: bool, with_wm: bool) -> None:
+    """The log replay, the expert, the behaviour prior (discrete) and the world model alone, in the first
+    run's worlds; cached under its checkpoint. Their best responses discount with that run's gamma."""
+
+    def replay():
+        bar.set_postfix_str("log replay")
+        replayed = replay_episodes(scenes, masks, cfg.env, sim.device)
+        bar.update(1)
+        return _measure("log replay", replayed, logged, opts), replayed
+
+    def baseline(name, make):
+        return _cached(out, name, [ckpt], opts, lambda: _evaluate(
+            name, sim, make(sim), logged, opts, lambda s: ex.SimGame(gsim, make(gsim)), bar, cfg.gamma), bar)
+
+    got.keep(*_cached(out, "log replay", [ckpt], opts, replay, bar))
+    got.keep(*baseline("expert (inverse dynamics)", lambda s: expert_policy))
+    if discrete:
+        got.keep(*baseline("behaviour prior", prior_policy))
+    if with_wm:
+        got.keep(*baseline("world model", lambda s: world_model_policy(cfg, s)))
+
+
+def _write_report(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOptions, out: Path) -> dict:
+    """The pictures, report.md and summary.json of what `got` gathered; returns the summary."""
+    plot_grid(got.cells, out / "grid.png", scene=got.grid_scene)
+    plot_multipliers(got.curves, out / "multipliers.png")
+    fid.plot_histograms(got.logged, got.generated, out / "fidelity.png")
     # the CCE-gap pictures this pass has, and no earlier report's beside this one's text
-    for name, plot, data in (("cce_gap.png", plot_gaps, gaps if opts.cce_gap else None),
-                             ("cce_gap_curve.png", plot_gap_curves, gap_curves or None)):
+    for name, plot, data in (("cce_gap.png", plot_gaps, got.gaps if opts.cce_gap else None),
+                             ("cce_gap_curve.png", plot_gap_curves, got.gap_curves or None)):
         if data is None:
             (out / name).unlink(missing_ok=True)
         else:
             plot(data, out / name)
     meta = {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
-            "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap, "worst_scenes": worst_meta,
+            "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap, "worst_scenes": got.worst,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,
-                              "copies": copies, "scenes": nb, "lr": opts.br_lr, "eval_rounds": opts.br_rounds,
+                              "copies": got.br["copies"], "scenes": got.br["scenes"], "lr": opts.br_lr,
+                              "eval_rounds": opts.br_rounds,
                               "gamma": "the run's" if opts.br_gamma is None else opts.br_gamma}}
-    write_markdown(out, results, meta, fid.histograms(logged_all) if logged_all is not None else None)
-    summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in results]}
+    write_markdown(out, got.results, meta, fid.histograms(got.logged) if got.logged is not None else None)
+    summary = {"meta": meta, "results": [{k: v for k, v in r.items() if k != "figures"} for r in got.results]}
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default))
     return summary
 
