@@ -694,6 +694,34 @@ def _gap_sections(results: list[dict], computed: bool = True) -> list[str]:
     return L
 
 
+def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[str]:
+    """The report's beta x alpha section: the cells' training and evaluation means, and (three cells or
+    more) the direction of every figure with each knob; nothing without CCE-MAPPO cells."""
+    out: list[str] = []
+    cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
+    if cce:
+        out.append("\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
+                   "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
+                   "alpha (less risk-averse) -> faster, smaller gaps.\n\n")
+        rows = [[r["beta"], r["alpha"], r["train_tail"]["lambda"], r["train_tail"]["mean_min_distance"],
+                 r["train_tail"]["mean_speed"], r["train_tail"]["cost"], r["risk"].get("mean_min_gap_m"),
+                 r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
+                 r["risk"].get("collision_rate")] for r in cce]
+        out.append(_table(["beta [m]", "alpha", "lambda (train)", "min distance (train) [m]", "speed (train) [m/s]",
+                           "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"],
+                          rows))
+        if len(cce) >= 3 and all("figures" in r for r in cce):
+            out.append("\nDirection of each figure with each knob over the cells: Spearman's rho of the knob with "
+                       "the cells' means, 95 % bootstrap interval from resampling every cell's agent-episodes "
+                       "(evaluation noise only, not training seeds). **holds**: the interval lies on the paper's "
+                       "side of 0; **reversed**: on the other side; **not shown**: it contains 0. Samples: agent-episodes; "
+                       "for the CCE-gap the deviation game's agents; the Hellinger distance is of each cell's pooled "
+                       "histograms, its resamples reweight the agent-episodes' histograms.\n\n")
+            out.append(_table(["figure", "knob", "paper's sign", "rho", "95 % interval", "verdict",
+                               "samples per cell (min)"], flexibility_directions(cce, logged=logged_hist)))
+    return out
+
+
 def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict | None = None) -> None:
     L = ["# Scenario-quality report\n",
          f"Runs: {', '.join(meta['runs'])}. Evaluation: {meta['scenes']} scenes per run ({meta['eval_scenes']}), "
@@ -728,27 +756,7 @@ def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict
     L.append(_table(["policy", "collision rate", "with a policy car", "with a non-policy car",
                      *(f"contact: {c}" for c in rk.CONTACTS)],
                     [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results]))
-    cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
-    if cce:
-        L.append("\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
-                 "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
-                 "alpha (less risk-averse) -> faster, smaller gaps.\n\n")
-        rows = [[r["beta"], r["alpha"], r["train_tail"]["lambda"], r["train_tail"]["mean_min_distance"],
-                 r["train_tail"]["mean_speed"], r["train_tail"]["cost"], r["risk"].get("mean_min_gap_m"),
-                 r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
-                 r["risk"].get("collision_rate")] for r in cce]
-        L.append(_table(["beta [m]", "alpha", "lambda (train)", "min distance (train) [m]", "speed (train) [m/s]",
-                         "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"],
-                        rows))
-        if len(cce) >= 3 and all("figures" in r for r in cce):
-            L.append("\nDirection of each figure with each knob over the cells: Spearman's rho of the knob with "
-                     "the cells' means, 95 % bootstrap interval from resampling every cell's agent-episodes "
-                     "(evaluation noise only, not training seeds). **holds**: the interval lies on the paper's "
-                     "side of 0; **reversed**: on the other side; **not shown**: it contains 0. Samples: agent-episodes; "
-                     "for the CCE-gap the deviation game's agents; the Hellinger distance is of each cell's pooled "
-                     "histograms, its resamples reweight the agent-episodes' histograms.\n\n")
-            L.append(_table(["figure", "knob", "paper's sign", "rho", "95 % interval", "verdict",
-                             "samples per cell (min)"], flexibility_directions(cce, logged=logged_hist)))
+    L.extend(_flexibility_section(results, logged_hist))
     L.append("\n## Fidelity per feature (logged vs generated)\n\n![fidelity](fidelity.png)\n\n")
     rows = []
     for r in results:

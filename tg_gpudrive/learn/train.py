@@ -353,19 +353,7 @@ class Trainer:
             else:
                 sim.actions[:, :C, : act.shape[-1]] = act
             sim.step()
-            alive = sim.alive[:, :C].float()
-            buf["reward"][t] = sim.reward[:, :C]
-            buf["cost"][t] = sim.cost[:, :C]
-            buf["done"][t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
-            stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
-            stats["alive"] += alive.sum()
-            stats["speed"] += (sim.speed[:, :C] * alive).sum()
-            ended = (sim.world_ended[:, None] != 0) & sim.policy_agents[:, :C]
-            stats["episodes"] += ended.sum()
-            stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
-            stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
-            stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
-            stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
+            self._record_step(buf, stats, t, C)
         obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
         with self._amp():
             buf["value"][T], buf["quant"][T] = self.critic(obs, mask)
@@ -373,6 +361,24 @@ class Trainer:
             raise TrainingError(f"non-finite policy output during the rollout of update {self.update}; stopped "
                                 f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
         return buf, stats
+
+    def _record_step(self, buf: dict, stats: dict, t: int, C: int) -> None:
+        """After step t: its rewards, costs and ends into the buffers; its reward terms, speed and the
+        outcomes of the episodes that ended into the rollout's stats (on the device, no host sync)."""
+        sim = self.sim
+        alive = sim.alive[:, :C].float()
+        buf["reward"][t] = sim.reward[:, :C]
+        buf["cost"][t] = sim.cost[:, :C]
+        buf["done"][t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
+        stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
+        stats["alive"] += alive.sum()
+        stats["speed"] += (sim.speed[:, :C] * alive).sum()
+        ended = (sim.world_ended[:, None] != 0) & sim.policy_agents[:, :C]
+        stats["episodes"] += ended.sum()
+        stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
+        stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
+        stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
+        stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
 
     def _buffers(self, T: int, W: int, C: int) -> dict:
         """Rollout storage, allocated once per shape (several GB at 4,096 worlds) and reused:
