@@ -1,0 +1,19 @@
+"""A non-editable install carries every package: pyproject.toml lists each folder of tg_gpudrive/ (and
+kernels/, installed as tg_gpudrive.kernels) that holds an __init__.py."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_pyproject_lists_every_package():
+    setup = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(setup["packages"])
+    found = {".".join(p.parent.relative_to(REPO).parts) for p in (REPO / "tg_gpudrive").rglob("__init__.py")
+             if "__pycache__" not in p.parts}
+    found |= {"tg_gpudrive.kernels"} if (REPO / "kernels" / "__init__.py").exists() else set()
+    assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
+    assert setup["package-dir"]["tg_gpudrive.kernels"] == "kernels"
