@@ -19,7 +19,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.envs.vector import TGVectorEnv
 from tg_gpudrive.render import EpisodeRecorder
-from tg_gpudrive.rollout import expert_policy
+from tg_gpudrive.agents.builtin import expert_policy
 
 
 def timed(fn, steps: int, device: str) -> float:

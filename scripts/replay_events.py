@@ -19,7 +19,8 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.evaluation.log_events import classify, first_events
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 
 
 def main(argv=None) -> int:

@@ -12,7 +12,8 @@ from tg_gpudrive.data.augment import augment_scene, mirror, perturb_start, rotat
 from tg_gpudrive.data.log_audit import infeasible_mask
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.envs.parallel import TGParallelEnv
 from tg_gpudrive.envs.single import TGSingleAgentEnv
 from tg_gpudrive.envs.vector import TGVectorEnv, load_scenes
-from tg_gpudrive.rollout import background_masks, expert_policy, make_background_driver
+from tg_gpudrive.agents.builtin import background_masks, expert_policy, make_background_driver
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
 

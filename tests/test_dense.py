@@ -12,7 +12,8 @@ from tg_gpudrive.data.procedural.dense import DENSE_AGENTS, DENSE_ROAD_POINTS, T
     resample_polylines
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 
 
 def test_resample_polylines_hand_computed():

@@ -25,7 +25,7 @@ from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.evaluation.episodes import (logged_episodes, path_kinematics, record_episodes, record_rollouts,
                                              replay_episodes)
-from tg_gpudrive.rollout import expert_policy, make_random_policy
+from tg_gpudrive.agents.builtin import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.enums import RoadType
@@ -362,7 +362,7 @@ def test_cce_gap_engine_expert_below_constant_and_random(device):
     the profile: the expert profile is hardly exploitable, the constant (keep speed and heading)
     and the uniformly random profiles are; reported per agent and per scenario type, with the PPO
     iterations each best response took."""
-    from tg_gpudrive.rollout import constant_policy
+    from tg_gpudrive.agents.builtin import constant_policy
 
     scenes = [generate_scene("merge", 0), generate_scene("t_junction", 0)]
     cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8)

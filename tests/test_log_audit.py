@@ -15,7 +15,8 @@ from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.model import agents_needed
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.enums import AgentType, RoadType
 

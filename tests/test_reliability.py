@@ -22,7 +22,7 @@ import torch
 from tg_gpudrive import checkpoint as ckpt_mod
 from tg_gpudrive import cli
 from tg_gpudrive.checkpoint import save_atomic
-from tg_gpudrive.config import REPO_CONFIGS, ConfigError, EngineConfig, TrainConfig, from_dict
+from tg_gpudrive.config import REPO_CONFIGS, ConfigError, TrainConfig, from_dict
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.learn.rundir import LOCK, RunLock

@@ -11,7 +11,7 @@ from tg_gpudrive import render
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.render import EpisodeRecorder, render_episode, render_frame
-from tg_gpudrive.rollout import expert_policy
+from tg_gpudrive.agents.builtin import expert_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.enums import AgentType, RoadType

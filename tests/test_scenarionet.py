@@ -20,7 +20,8 @@ from tg_gpudrive.data.sources import MixedSource, resolve_scenes
 from tg_gpudrive.data.store import convert, expand_inputs, load_file, open_store
 from tg_gpudrive.data.womd.scenarionet import load_pickle, load_scenarionet
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.scene import SceneError
 from tg_gpudrive.enums import AgentType, RoadType, TrafficLightState
 

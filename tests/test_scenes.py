@@ -14,7 +14,8 @@ from tg_gpudrive import cli
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, ProceduralParams, generate_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.rollout import builtin_policy, expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import builtin_policy, expert_policy
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.engine.simulator import Simulator
 
 SEEDS = (0, 1, 2)

@@ -24,7 +24,8 @@ from tg_gpudrive.data.womd.scenario_proto import read_tfrecord_scenes
 from tg_gpudrive.data.womd.tf_example import EXAMPLE, FEATURE_ENTRY, is_tf_example
 from tg_gpudrive.data.womd.tfrecord import iter_records, write_records
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.scene import SceneError
 from tg_gpudrive.enums import AgentType, RoadType
 

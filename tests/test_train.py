@@ -172,7 +172,8 @@ def test_small_cpu_config_learns(tmp_path):
     to one action (entropy ~0, or the constant policy's rates) fails."""
     from tg_gpudrive.data.sources import resolve_scenes
     from tg_gpudrive.agents.policy import load_policy
-    from tg_gpudrive.rollout import builtin_policy, run_rollout
+    from tg_gpudrive.agents.builtin import builtin_policy
+    from tg_gpudrive.rollout import run_rollout
 
     cfg = dataclasses.replace(load_config(TrainConfig, SMALL), out_dir=str(tmp_path))
     Trainer(cfg, tmp_path, progress=False).train()

@@ -19,7 +19,7 @@ import torch
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
 from tg_gpudrive.data.procedural import SCENARIO_TYPES, generate_scene
 from tg_gpudrive.agents.policy import categorical_kl
-from tg_gpudrive.rollout import constant_policy, expert_policy
+from tg_gpudrive.agents.builtin import constant_policy, expert_policy
 from tg_gpudrive.worldmodel import WorldModel, WorldModelDriver, WorldModelPrior, load_world_model
 from tg_gpudrive.worldmodel.closed_loop import corrective_from_log, corrective_target
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture

@@ -25,7 +25,7 @@ import warp as wp
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
-from tg_gpudrive.rollout import constant_policy
+from tg_gpudrive.agents.builtin import constant_policy
 from tg_gpudrive.enums import ControlMode
 
 

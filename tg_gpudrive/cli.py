@@ -59,7 +59,8 @@ from tg_gpudrive.learn import distributed
 from tg_gpudrive.agents import BUILTIN, open_policy
 from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
 from tg_gpudrive.learn.train import train_main
-from tg_gpudrive.rollout import expert_policy, run_rollout
+from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.enums import CollisionMode, ControlMode
 from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args
 from tg_gpudrive.worldmodel.cli import run as run_world_model

@@ -13,7 +13,7 @@ from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.agents.policy import load_policy
-from tg_gpudrive.rollout import background_masks, builtin_policy, make_background_driver
+from tg_gpudrive.agents.builtin import background_masks, builtin_policy, make_background_driver
 
 BUILTIN = ("expert", "constant", "random")
 Policy = Callable[[Simulator], None]

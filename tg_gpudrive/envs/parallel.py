@@ -47,7 +47,7 @@ from tg_gpudrive.envs.vector import (
     single_action_space,
     single_observation_space,
 )
-from tg_gpudrive.rollout import check_background
+from tg_gpudrive.agents.builtin import check_background
 
 
 class TGParallelEnv(ParallelEnv):

@@ -2,7 +2,7 @@
 
 The other agents replay their logs, or are driven by `other_policy` (a
 ``policy(sim)`` callable writing the simulator's action buffers, as in
-tg_gpudrive.rollout, or one of "expert", "constant", "random"), or, with
+tg_gpudrive.agents.builtin, or one of "expert", "constant", "random"), or, with
 ``background="world_model"``, the other eligible vehicles are driven by the
 learned world model, reacting to the controlled one. Observations
 are numpy float32 rows of the engine's layout (kernels/observation.py);
@@ -43,7 +43,7 @@ from tg_gpudrive.envs.vector import (
     single_action_space,
     single_observation_space,
 )
-from tg_gpudrive.rollout import background_masks, builtin_policy, check_background, make_background_driver
+from tg_gpudrive.agents.builtin import background_masks, builtin_policy, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import ControlMode
 
@@ -53,7 +53,7 @@ class EpisodeWorld:
 
     `controlled` is a bool mask over the scene's agents; `background` ("log" or
     "world_model", with `background_model`) says who drives the other eligible
-    vehicles (tg_gpudrive.rollout). Attributes: `sim` (the Simulator), `cfg` (its
+    vehicles (tg_gpudrive.agents.builtin). Attributes: `sim` (the Simulator), `cfg` (its
     config), `slots` (the policy's slots, background ones excluded), `slot_agent`
     (scene agent index of each slot, -1 for none).
     """

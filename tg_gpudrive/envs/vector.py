@@ -14,7 +14,7 @@ shows a tqdm bar on stderr (``progress=False``: none).
 
 Background (``background=``): "log" (default) replays the vehicles the policy
 does not drive; "world_model" has the learned world model drive them
-(tg_gpudrive.rollout.make_background_driver, `background_model` a checkpoint
+(tg_gpudrive.agents.builtin.make_background_driver, `background_model` a checkpoint
 or None for the shipped model): every step() writes the user's actions, then
 the model's actions of the background rows, then steps the engine, so the
 user's values in those rows are ignored. Background rows keep an obs row (the
@@ -83,7 +83,7 @@ from tqdm import tqdm
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict, load_config, to_dict
 from tg_gpudrive.data.sources import SceneListSource, SceneSource, resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
-from tg_gpudrive.rollout import background_masks, check_background, make_background_driver
+from tg_gpudrive.agents.builtin import background_masks, check_background, make_background_driver
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import ActionSpace
 

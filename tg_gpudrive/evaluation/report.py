@@ -81,7 +81,7 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, re
 from tg_gpudrive.evaluation.stats import spearman_ci
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import load_actor, load_policy
-from tg_gpudrive.rollout import expert_policy
+from tg_gpudrive.agents.builtin import expert_policy
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_world_model
 
 FILES = ("report.md", "grid.png", "multipliers.png", "fidelity.png", "cce_gap.png", "worst_scenes.png", "summary.json")
