@@ -12,6 +12,7 @@ every agent of the scenes it is evaluated or rendered on.
 from __future__ import annotations
 
 import errno
+import functools
 import logging
 import os
 from pathlib import Path
@@ -197,12 +198,21 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
     return sized_for(env, scenes)
 
 
-# what a trained network fixes: its observation sizes and its action space (the meaning of its outputs);
-# every other engine key may change when it is evaluated (collision mode, control, max_agents, radii, view)
-FIXED_ENGINE_KEYS = ("dynamics", "action_space", "accel_bins", "curvature_bins", "max_accel", "max_curvature",
-                     "delta_max", "partner_k", "road_k")
-# ... and, for --resume, the shapes of its networks
-FIXED_TRAIN_KEYS = ("hidden", "heads", "actor_history", "quantiles")
+# what a trained network fixes: the shapes of its networks, its observation sizes and its action space
+# (the meaning of its outputs). Every other key may change: when a policy is evaluated (collision mode,
+# control, max_agents, radii, view), resumed or fine-tuned from (init_policy).
+NETWORK_KEYS = ("hidden", "heads", "actor_history", "quantiles", "env.dynamics", "env.action_space",
+                "env.accel_bins", "env.curvature_bins", "env.max_accel", "env.max_curvature", "env.delta_max",
+                "env.partner_k", "env.road_k")
+FIXED_ENGINE_KEYS = tuple(k.removeprefix("env.") for k in NETWORK_KEYS if k.startswith("env."))
+
+
+def network_differences(old: TrainConfig, new: TrainConfig) -> list[tuple[str, object, object]]:
+    """(key, old value, new value) of every NETWORK_KEYS key where two training configs differ."""
+    def get(cfg, key):  # "env.road_k" -> cfg.env.road_k
+        return functools.reduce(getattr, key.split("."), cfg)
+
+    return [(k, get(old, k), get(new, k)) for k in NETWORK_KEYS if get(old, k) != get(new, k)]
 
 
 def _fixed_change(key: str, was, now, path, where: str) -> ConfigError:
@@ -233,9 +243,6 @@ def evaluation_engine(env: EngineConfig, overrides: list[str], path) -> EngineCo
 
 def check_resume_config(old: TrainConfig, new: TrainConfig, path) -> None:
     """A --resume's config (the run's, with new --set overrides) keeps what the saved networks fix."""
-    pairs = [(f"env.{k}", getattr(old.env, k), getattr(new.env, k)) for k in FIXED_ENGINE_KEYS]
-    pairs += [(k, getattr(old, k), getattr(new, k)) for k in FIXED_TRAIN_KEYS]
-    for key, was, now in pairs:
-        if was != now:
-            raise _fixed_change(key, was, now, path, "a new run (without --resume) can change it")
+    for key, was, now in network_differences(old, new):
+        raise _fixed_change(key, was, now, path, "a new run (without --resume) can change it")
 

@@ -128,14 +128,10 @@ class EngineConfig:
         _set_mode(self, "control", ControlMode, ENGINE_CONTROL)
         if self.dynamics == Dynamics.DELTA_LOCAL and self.action_space == ActionSpace.DISCRETE:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
-        if not 1 <= self.max_agents <= 1024:
-            raise ConfigError(f"max_agents: expected 1..1024, got {self.max_agents}")
-        if not 0 < self.view_angle <= 360:
-            raise ConfigError(f"view_angle: expected degrees in (0, 360], got {self.view_angle}")
         # sizes and search radii are bounded above too: beyond these the engine would allocate or
         # search without end rather than fail
         check_ranges(self, {
-            "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
+            "max_agents": "[1, 1024]", "view_angle": "(0, 360]", "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
             "max_curvature": "(0, 10]", "delta_max": "(0, 100]", "init_steps": "[0, 10000]", "goal_radius": "(0, 1000]",
             "beta": "[0, 1000]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
             "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "max_segment_length": "[0.5, 1000]",
@@ -269,16 +265,11 @@ class TrainConfig:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):
             raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
-        if self.cost_nstep < 1:
-            raise ConfigError(f"cost_nstep: expected >= 1, got {self.cost_nstep}")
-        if self.cost_limit < 0 or self.lambda_init < 0 or self.lambda_lr < 0:
-            raise ConfigError("cost_limit, lambda_init and lambda_lr must be >= 0")
         if self.prior not in ("expert", "world_model"):
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
-        if self.rollout_steps < 1 or self.updates < 1 or self.num_worlds < 1:
-            raise ConfigError("rollout_steps, updates and num_worlds must be >= 1")
         check_ranges(self, {
-            "num_scenes": "[1, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)", "epochs": "[1, inf)",
+            "num_scenes": "[1, inf)", "num_worlds": "[1, inf)", "updates": "[1, inf)", "rollout_steps": "[1, inf)",
+            "cost_nstep": "[1, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)", "epochs": "[1, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",

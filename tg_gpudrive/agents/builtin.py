@@ -29,6 +29,7 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
 
 Policy = Callable[[Simulator], None]
+BUILTIN = ("expert", "constant", "random")  # the names `builtin_policy` knows
 
 
 def expert_policy(sim: Simulator) -> None:

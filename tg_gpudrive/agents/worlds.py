@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 from tg_gpudrive.checkpoint import (evaluation_engine, load_checkpoint, policy_engine_config, usable_checkpoint)
 from tg_gpudrive.config import EngineConfig, TrainConfig, from_dict
@@ -13,10 +13,7 @@ from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.agents.policy import load_policy
-from tg_gpudrive.agents.builtin import background_masks, builtin_policy, make_background_driver
-
-BUILTIN = ("expert", "constant", "random")
-Policy = Callable[[Simulator], None]
+from tg_gpudrive.agents.builtin import BUILTIN, Policy, background_masks, builtin_policy, make_background_driver
 
 
 @dataclass

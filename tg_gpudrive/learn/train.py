@@ -25,7 +25,6 @@ sampler position and the engine State mid-episode.
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import math
@@ -42,7 +41,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, save_atomic
+from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, network_differences,
+                                    save_atomic)
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.augment import augment_scene, subset_mask
@@ -228,21 +228,12 @@ class Trainer:
             self._load(ck, exact)
 
     # ------------------------------------------------------------ setup bits
-    # what a checkpoint's networks must share with this run's for their weights to load
-    ARCH_KEYS = ("hidden", "heads", "actor_history", "quantiles", "env.action_space", "env.dynamics",
-                 "env.partner_k", "env.road_k")
-
     def _init_weights(self, source: str) -> None:
         """Actor and critic weights from the training checkpoint `source` (init_policy)."""
         path = checkpoint_path(source, "init_policy")
         ck = load_checkpoint(path, "init_policy", map_location=self.device)
         theirs = from_dict(TrainConfig, ck["config"], str(path))
-
-        def get(cfg, key):  # "env.road_k" -> cfg.env.road_k
-            return functools.reduce(getattr, key.split("."), cfg)
-
-        diff = [f"{k} {get(theirs, k)} (this run: {get(self.cfg, k)})" for k in self.ARCH_KEYS
-                if get(theirs, k) != get(self.cfg, k)]
+        diff = [f"{k} {was} (this run: {now})" for k, was, now in network_differences(theirs, self.cfg)]
         if diff:
             raise ConfigError(f"init_policy {source}: its networks differ from this run's: {'; '.join(diff)}")
         self.actor.load_state_dict(ck["actor"])
