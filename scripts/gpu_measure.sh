@@ -48,40 +48,12 @@ pack() { find "$RES" \( -name 'checkpoint.pt*' -size +4M -o -name 'checkpoint.pr
          if [ "$(stat -c %s "$OUT/$stage.tgz")" -gt 15728640 ]; then
            (cd "$OUT" && split -b 15M "$stage.tgz" "$stage.tgz.part_" && rm "$stage.tgz"); fi; }
 
-slim() {
-  # slim checkpoints (weights + config, a few MB) so they come back and load in evaluate / report
-  python3 - "$RES" <<'PY'
-import sys, torch, pathlib
-for p in pathlib.Path(sys.argv[1]).glob("*/checkpoint.pt"):
-    ck = torch.load(p, map_location="cpu", weights_only=False)
-    if "actor" not in ck:  # a world-model run's checkpoint: its model.pt is what comes back
-        continue
-    torch.save({k: ck[k] for k in ("config", "actor", "critic", "update", "lagrange")}, p)
-PY
-}
+# slim checkpoints (weights + config, a few MB) so they come back and load in evaluate / report
+slim() { python3 "$R"/scripts/slim_checkpoints.py "$RES"; }
 
-summarize() {
-  python3 - "$RES" <<'PY'
-import csv, pathlib, sys
-from tg_gpudrive.learn.quality import RATE_WINDOW, time_to_quality, windowed_rates
-# goal / collision / off-road over the episodes that ended in the last 10 updates (per-update
-# rates alone are biased: worlds whose cars all reach the goal end early and report 1.0)
-for d in sorted(p for p in pathlib.Path(sys.argv[1]).iterdir() if (p / "metrics.csv").exists()):
-    rows = list(csv.DictReader((d / "metrics.csv").open()))
-    if not rows or "goal_rate" not in rows[0]:  # not a policy run (a world model's log)
-        continue
-    r = windowed_rates(rows) or dict.fromkeys(("goal_rate", "collision_rate", "offroad_rate"), float("nan"))
-    n = sum(float(x["episodes"] or 0) for x in rows[-RATE_WINDOW:])
-    last = rows[-1]
-    print(f"{d.name}: {len(rows)} updates, goal {r['goal_rate']:.3f} coll {r['collision_rate']:.3f} "
-          f"off {r['offroad_rate']:.3f} ({n:.0f} episodes), ent {float(last['entropy']):.2f} "
-          f"klp {float(last['kl/prior']):.2f} lambda {float(last['lambda']):.2f} (max {float(last.get('lambda_max') or 0):.2f}) "
-          f"cvar {float(last['cvar']):.2f} budget {float(last.get('cost_budget') or 0):.2f} wall {float(last['wall_s']):.0f}s")
-    q = time_to_quality(rows)  # goal >= 0.95 with collision <= 0.05 and off-road <= 0.02, 10-update window
-    print(f"  time to quality: " + (f"{q['wall_s']:.0f} s of rollouts and updates, {q.get('elapsed_s', float('nan')):.0f} s "
-                                    f"elapsed (update {q['update']})" if q else "not reached"))
-PY
-}
+# per policy run: goal / collision / off-road over the episodes that ended in the last 10 updates, and
+# the time to quality (goal >= 0.95 with collision <= 0.05 and off-road <= 0.02, 10-update window)
+summarize() { python3 "$R"/scripts/summarize_runs.py "$RES"; }
 
 # held-out rates per collision mode of trained runs beside the shipped policy: plain procedural scenes and
 # urban ones (parked cars, stop-line queues, kerb stops; URBAN_EVAL), then the two real WOMD scenes;
@@ -147,7 +119,7 @@ quality)
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
     --set target_goal_rate=0.95 --set checkpoint_every=100000 "${SETS[@]}" 2>&1 | bar 3
-  python3 -c "from tg_gpudrive.learn.plots import plot_curves; plot_curves('$RES/run/metrics.csv', '$RES/curves.png')"
+  python3 "$R"/scripts/plot_curves.py "$RES/run/metrics.csv" "$RES/curves.png"
   ;;
 storebuild)
   [ -f /tmp/store/manifest.json ] || timeout 300 python3 "$R"/scripts/bench_store.py --n ${STORE_N:-10000} \
@@ -227,19 +199,7 @@ scale)
       "${SETS[@]}" 2>&1 | bar 1
   done
   # per rank, median over updates 3..: its own rollout, waiting for the slowest rollout, the update
-  python3 - "$RES" <<'PY'
-import csv, pathlib, statistics, sys
-for d in sorted(pathlib.Path(sys.argv[1]).glob("scale*")):
-    rows = [r for r in csv.DictReader((d / "timing.csv").open()) if int(r["update"]) >= 3] if (d / "timing.csv").exists() else []
-    m = list(csv.DictReader((d / "metrics.csv").open())) if (d / "metrics.csv").exists() else []
-    sps = statistics.median(float(r["agent_steps_per_s"]) for r in m[2:]) if len(m) > 2 else float("nan")
-    roll = statistics.median(float(r["rollout_agent_steps_per_s"]) for r in m[2:]) if len(m) > 2 else float("nan")
-    print(f"{d.name}: {sps:,.0f} agent steps/s end to end, rollout {roll:,.0f}")
-    for rank in sorted({r["rank"] for r in rows}):
-        own = [r for r in rows if r["rank"] == rank]
-        med = {k: statistics.median(float(r[k]) for r in own) for k in ("rollout_s", "wait_s", "update_s")}
-        print(f"  rank {rank}: rollout {med['rollout_s']:.3f} s, wait {med['wait_s']:.3f} s, update {med['update_s']:.3f} s")
-PY
+  python3 "$R"/scripts/scale_timing.py "$RES" --glob 'scale*'
   ;;
 urban)
   # real-scene transfer: a training mix with street furniture (parked cars, queues at stop

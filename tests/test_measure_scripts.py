@@ -1,0 +1,119 @@
+"""The Python scripts scripts/gpu_measure.sh calls: each answers --help and runs on small files made
+here (metrics.csv / timing.csv / checkpoints written by hand, so no simulator is built)."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tg_gpudrive.checkpoint import POLICY, WORLD_MODEL, load_checkpoint
+
+SCRIPTS = Path(__file__).resolve().parent.parent / "scripts"
+MEASURE_SCRIPTS = ("slim_checkpoints", "summarize_runs", "scale_timing", "plot_curves")
+
+METRICS = ("update", "agent_steps", "episodes", "goal_rate", "collision_rate", "offroad_rate", "entropy",
+           "kl/prior", "lambda", "lambda_max", "cvar", "cost_budget", "wall_s", "elapsed_s",
+           "agent_steps_per_s", "rollout_agent_steps_per_s")
+
+
+def run(name: str, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPTS / f"{name}.py"), *map(str, args)],
+                          capture_output=True, text=True, timeout=120)
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def metrics_row(update: int, episodes, goal, collision=0.01, offroad=0.0) -> dict:
+    return dict(zip(METRICS, (update, 100 * update, episodes, goal, collision, offroad, 1.5, 0.3, 0.2, 1.0, 0.1,
+                              0.5, 2.0 * update, 2.5 * update, 1000 * update, 2000 * update)))
+
+
+@pytest.mark.parametrize("name", MEASURE_SCRIPTS)
+def test_help(name):
+    out = run(name, "--help")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith(f"usage: {name}.py")
+
+
+def test_summarize_runs(tmp_path):
+    write_csv(tmp_path / "good" / "metrics.csv", [metrics_row(u, 10, 0.97) for u in range(1, 15)])
+    write_csv(tmp_path / "early" / "metrics.csv", [metrics_row(u, "", "", "", "") for u in range(1, 3)])
+    write_csv(tmp_path / "wm" / "metrics.csv", [{"step": 1, "loss": 0.5}])  # a world model's log: skipped
+    out = run("summarize_runs", tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "early: 2 updates, goal nan coll nan off nan (0 episodes), ent 1.50 klp 0.30 lambda 0.20 (max 1.00) "
+        "cvar 0.10 budget 0.50 wall 4s",
+        "  time to quality: not reached",
+        "good: 14 updates, goal 0.970 coll 0.010 off 0.000 (100 episodes), ent 1.50 klp 0.30 lambda 0.20 "
+        "(max 1.00) cvar 0.10 budget 0.50 wall 28s",
+        "  time to quality: 20 s of rollouts and updates, 25 s elapsed (update 10)"]
+
+
+def test_scale_timing(tmp_path):
+    write_csv(tmp_path / "scale2" / "metrics.csv", [metrics_row(u, 1, 0.0) for u in range(1, 7)])
+    write_csv(tmp_path / "scale2" / "timing.csv", [{"update": u, "rank": r, "rollout_s": 0.1 * u + r,
+                                                    "wait_s": 0.01 * r, "update_s": 0.2}
+                                                   for u in range(1, 7) for r in (0, 1)])
+    (tmp_path / "scale1").mkdir()  # a run that left nothing
+    (tmp_path / "other").mkdir()
+    out = run("scale_timing", tmp_path, "--glob", "scale*")
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "scale1: nan agent steps/s end to end, rollout nan",
+        "scale2: 4,500 agent steps/s end to end, rollout 9,000",
+        "  rank 0: rollout 0.450 s, wait 0.000 s, update 0.200 s",
+        "  rank 1: rollout 1.450 s, wait 0.010 s, update 0.200 s"]
+
+
+def test_slim_checkpoints(tmp_path):
+    weights = {"w": torch.arange(4.0)}
+    full = {"kind": POLICY, "config": {"hidden": 32, "env": {"partner_k": 8}}, "actor": weights,
+            "critic": weights, "update": 7, "lagrange": {"lam": torch.tensor(0.5)},
+            "opt": {"state": torch.zeros(50_000)}, "engine": torch.zeros(50_000), "rng": {}, "wall": 1.0}
+    (tmp_path / "cce").mkdir()
+    torch.save(full, tmp_path / "cce" / "checkpoint.pt")
+    (tmp_path / "old").mkdir()  # written before checkpoints named their kind
+    torch.save({k: v for k, v in full.items() if k != "kind"}, tmp_path / "old" / "checkpoint.pt")
+    (tmp_path / "wm").mkdir()
+    torch.save({"kind": WORLD_MODEL, "hparams": {}, "opt": {}}, tmp_path / "wm" / "checkpoint.pt")
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    untouched = {n: (tmp_path / n / "checkpoint.pt").read_bytes() for n in ("wm", "bad")}
+    big = (tmp_path / "cce" / "checkpoint.pt").stat().st_size
+
+    out = run("slim_checkpoints", tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "bad" in out.stderr and "cannot be read" in out.stderr
+    for name in ("cce", "old"):
+        path = tmp_path / name / "checkpoint.pt"
+        load_checkpoint(path, kind=POLICY)  # what evaluate and init_policy read
+        ck = torch.load(path, weights_only=False)  # the kept entries as stored
+        assert sorted(ck) == ["actor", "config", "critic", "kind", "lagrange", "update"]
+        assert ck["config"] == full["config"] and ck["update"] == 7 and torch.equal(ck["actor"]["w"], weights["w"])
+        assert path.stat().st_size < big / 10
+    for name, data in untouched.items():
+        assert (tmp_path / name / "checkpoint.pt").read_bytes() == data
+    slim = (tmp_path / "cce" / "checkpoint.pt").stat().st_size
+    assert run("slim_checkpoints", tmp_path).returncode == 0  # slimming again keeps what the slim file holds
+    assert sorted(torch.load(tmp_path / "cce" / "checkpoint.pt", weights_only=False)) == [
+        "actor", "config", "critic", "kind", "lagrange", "update"]
+    assert (tmp_path / "cce" / "checkpoint.pt").stat().st_size == slim
+
+
+def test_plot_curves(tmp_path):
+    write_csv(tmp_path / "metrics.csv", [metrics_row(u, 10, 0.5) for u in range(1, 4)])
+    out = run("plot_curves", tmp_path / "metrics.csv", tmp_path / "curves.png")
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
