@@ -159,3 +159,87 @@ def launch_road_query(model, state, control, only_reset_worlds: bool = False) ->
                       model.width, state.pos, state.yaw, state.present, state.world_reset,
                       int(only_reset_worlds)],
               outputs=[state.offroad, state.edge_dist, state.lane_dist])
+
+
+@wp.func
+def point_segment_distance64(p: wp.vec2, a: wp.vec2, b: wp.vec2):
+    """point_segment_distance in float64: RDP's farthest point is picked as the NumPy reference does."""
+    pd = wp.vec2d(wp.float64(p[0]), wp.float64(p[1]))
+    ad = wp.vec2d(wp.float64(a[0]), wp.float64(a[1]))
+    ab = wp.vec2d(wp.float64(b[0]), wp.float64(b[1])) - ad
+    den = wp.dot(ab, ab)
+    t = wp.float64(0.0)
+    if den > wp.float64(0.0):
+        t = wp.clamp(wp.dot(pd - ad, ab) / den, wp.float64(0.0), wp.float64(1.0))
+    return wp.length(pd - (ad + ab * t))
+
+
+@wp.kernel
+def simplify_kernel(
+    pts: wp.array(dtype=wp.vec2),
+    start: wp.array(dtype=wp.int32),  # (polylines,) first point
+    count: wp.array(dtype=wp.int32),  # points
+    polygon: wp.array(dtype=wp.int32),  # 1: a closed shape (crosswalk, speed bump, driveway)
+    tolerance: wp.float64,
+    stack: wp.array(dtype=wp.int32),  # scratch, 2 per point: a polyline's pending spans live in its own rows
+    keep_out: wp.array(dtype=wp.int32),  # (points,) 1: the point stays
+):
+    """Ramer-Douglas-Peucker, one thread per polyline (the iterative form of
+    tg_gpudrive.data.simplify.rdp_mask): every dropped point lies within `tolerance` of the kept
+    polyline, endpoints stay, and a polygon keeps at least three corners (its widest one when
+    thinner than the tolerance)."""
+    r = wp.tid()
+    a = start[r]
+    n = count[r]
+    if n <= 2:
+        for k in range(n):
+            keep_out[a + k] = 1
+        return
+    keep_out[a] = 1
+    keep_out[a + n - 1] = 1
+    for k in range(1, n - 1):
+        keep_out[a + k] = 0
+    kept = int(2)
+    # spans pending, stored as (i, j) pairs at stack[2a + 2t], stack[2a + 2t + 1]
+    stack[2 * a] = 0
+    stack[2 * a + 1] = n - 1
+    top = int(1)
+    while top > 0:
+        top -= 1
+        i = stack[2 * a + 2 * top]
+        j = stack[2 * a + 2 * top + 1]
+        if j - i >= 2:
+            best = wp.float64(-1.0)
+            m = int(-1)
+            for k in range(i + 1, j):
+                d = point_segment_distance64(pts[a + k], pts[a + i], pts[a + j])
+                if d > best:
+                    best = d
+                    m = k
+            if best > tolerance:
+                keep_out[a + m] = 1
+                kept += 1
+                stack[2 * a + 2 * top] = i
+                stack[2 * a + 2 * top + 1] = m
+                stack[2 * a + 2 * top + 2] = m
+                stack[2 * a + 2 * top + 3] = j
+                top += 2
+    if polygon[r] != 0 and kept < 3:
+        best = wp.float64(-1.0)
+        m = int(1)
+        for k in range(1, n - 1):
+            d = point_segment_distance64(pts[a + k], pts[a], pts[a + n - 1])
+            if d > best:
+                best = d
+                m = k
+        keep_out[a + m] = 1
+
+
+def launch_simplify(pts: wp.array, start: wp.array, count: wp.array, polygon: wp.array, tolerance: float,
+                    device) -> wp.array:
+    """The RDP keep mask (int32 per point) of the polylines [start, start + count) of `pts`."""
+    keep = wp.empty(len(pts), dtype=wp.int32, device=device)
+    stack = wp.empty(max(2 * len(pts), 1), dtype=wp.int32, device=device)
+    wp.launch(simplify_kernel, dim=len(start), device=device,
+              inputs=[pts, start, count, polygon, wp.float64(tolerance), stack], outputs=[keep])
+    return keep

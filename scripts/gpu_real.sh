@@ -1,16 +1,20 @@
 #!/usr/bin/env bash
-# Fine-tune the shipped policy on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml)
-# for the data-scaling curve: one run per number of real training scenes (0 = procedural alone, then the
-# nested subsets of scripts/split_dev.py --subsets 5,15,30 and the whole training split), plus the whole
-# split with the 120-degree view cone; runs are spread over the GPUs the machine has. Then evaluate every
-# run on the held-out real scenes and on held-out procedural scenes (seed 90000, the procedural bar), and
-# the whole-split run, the shipped policy and the expert replay in every collision mode.
-#   (cd /tmp && [PHASE=train|eval|all] [ONLY="real0 real44"] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
+# Fine-tune the shipped policy on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml),
+# one run per GPU of the machine, then evaluate every run on the held-out real scenes (every collision mode)
+# and on held-out procedural scenes (seed 90000, the procedural bar), beside the shipped policy and the
+# expert replay.
+#   (cd /tmp && [PHASE=train|eval|all] [PLAN=file] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
-# ONLY picks some of the runs below; TIME_LIMIT (s, default 470) bounds each training.
-# STORES holds womd_dev_train, womd_dev_train_{5,15,30} and womd_dev_heldout (scripts/split_dev.py). Run it
-# outside the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl (one
-# evaluation per line), the runs' curves and a tarball of their metrics and configs.
+# TIME_LIMIT (s, default 470) bounds each training. The plan (PLAN names a file of such lines; the default
+# below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
+# is a store name under STORES (womd_dev_train, womd_dev_train_5, ...) or - for procedural scenes alone,
+# and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
+# first fine-tunes the shipped world model on the same real scenes and the procedural mix (teacher
+# forcing, then one closed-loop round) and trains with it as the magnet; its traffic rates on the held-out
+# scenes (scripts/wm_traffic.py) go to OUT_DIR too.
+# STORES holds the stores of scripts/split_dev.py (womd_dev_train*, womd_dev_heldout). Run it outside
+# the checkout, with the package installed (the device README). OUT_DIR gets rates.jsonl (one evaluation
+# per line), the runs' curves, a tarball of their metrics and configs, and each run's policy (scripts/slim_checkpoints.py).
 set -uo pipefail
 stores=$1 out=$2 updates=${3:-300}
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -20,53 +24,78 @@ tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
 proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5]"
 ngpu=$(nvidia-smi -L | wc -l)
-# name  real store (- for none)  view angle
-plan="real0 - 360
-real5 $stores/womd_dev_train_5 360
-real15 $stores/womd_dev_train_15 360
-real30 $stores/womd_dev_train_30 360
-real44 $stores/womd_dev_train 360
-real44_v120 $stores/womd_dev_train 120"
-[ -z "${ONLY:-}" ] || plan=$(grep -wE "^($(tr ' ' '|' <<< "$ONLY"))" <<< "$plan")
+plan="real0 - -
+real5 womd_dev_train_5 -
+real15 womd_dev_train_15 -
+real30 womd_dev_train_30 -
+real44 womd_dev_train -"
+[ -z "${PLAN:-}" ] || plan=$(grep -v '^#' "$PLAN")
 mkdir -p "$out" "$runs"
-if [ "$phase" != eval ]; then
-  k=0
-  while read -r name store view; do
-    scenes=$proc
-    [ "$store" = - ] || scenes="mix:$proc=0.5,$store=0.5"
-    CUDA_VISIBLE_DEVICES=$((k % ngpu)) $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$scenes" \
-      --set updates="$updates" --set time_limit_s="${TIME_LIMIT:-470}" --set env.view_angle="$view" --out "$runs/$name" --overwrite \
-      --json > "$out/train_$name.json" 2> "$out/train_$name.log" &
-    k=$((k + 1))
-  done <<< "$plan"
-  wait
-  [ "$phase" = train ] && exit 0
-fi
+
+mix() {  # the training scenes of a real store (- for none)
+  if [ "$1" = - ]; then echo "$proc"; else echo "mix:$proc=0.5,$stores/$1=0.5"; fi
+}
+
+world_model() {  # name store: the shipped world model fine-tuned on the run's scenes -> $runs/name_wm/model.pt
+  local name=$1 scenes; scenes=$(mix "$2")
+  $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model=shipped --set steps=1500 \
+    --set "scenes=$scenes" --out "$runs/${name}_wm_tf" --overwrite > "$out/wm_$name.log" 2>&1 &&
+  $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model="$runs/${name}_wm_tf/model.pt" \
+    --set steps=0 --set num_scenes=600 --set closed_loop_steps=600 --set closed_loop_rounds=1 \
+    --set "scenes=$scenes" --out "$runs/${name}_wm" --overwrite >> "$out/wm_$name.log" 2>&1
+  tail -c 2000 "$out/wm_$name.log" > "$out/wm_$name.tail" && mv "$out/wm_$name.tail" "$out/wm_$name.log"
+}
+
+train() {  # gpu name store sets
+  local gpu=$1 name=$2 store=$3 sets=$4 extra=()
+  [ "$sets" = - ] || IFS=, read -ra kv <<< "$sets"
+  for s in "${kv[@]:-}"; do [ -z "$s" ] || extra+=(--set "$s"); done
+  export CUDA_VISIBLE_DEVICES=$gpu
+  if [[ $name == wm* ]]; then
+    world_model "$name" "$store" && extra+=(--set "prior_model=$runs/${name}_wm/model.pt")
+    python3 "$repo/scripts/wm_traffic.py" --models shipped "$runs/${name}_wm/model.pt" --scenes "$held" \
+      --num-scenes 17 --seeds 0 1 --json > "$out/wm_traffic_$name.json" 2>/dev/null
+  fi
+  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$(mix "$store")" --set updates="$updates" \
+    --set time_limit_s="${TIME_LIMIT:-470}" "${extra[@]}" --out "$runs/$name" --overwrite \
+    --json > "$out/train_$name.json" 2> "$out/train_$name.log"
+  tail -c 600 "$out/train_$name.log" > "$out/train_$name.tail" && mv "$out/train_$name.tail" "$out/train_$name.log"
+}
+
 rates() {  # gpu who scenes extra...
   local gpu=$1 who=$2 scenes=$3; shift 3
   CUDA_VISIBLE_DEVICES=$gpu $tg evaluate $who --scenes "$scenes" --device cuda --json "$@" 2>/dev/null | tail -1 |
     python3 -c "import json,sys; d=json.load(sys.stdin); print(json.dumps({'who': '$who', 'scenes': '$scenes', 'args': '$*', **{k: d.get(k) for k in ('collision_mode','agent_episodes','goal_rate','collision_rate','offroad_rate','score_rate','ci95','agents_dropped','agents_log_infeasible','max_agents')}}))" >> "$out/rates.jsonl"
 }
+
+evaluate() {  # gpu name
+  local gpu=$1 name=$2
+  for mode in ignore stop remove; do
+    rates "$gpu" "--checkpoint $runs/$name" "$held" --episodes 17 --seed 0 --collision-mode $mode
+  done
+  rates "$gpu" "--checkpoint $runs/$name" procedural:all --num-scenes 256 --episodes 256 --seed 90000
+}
+
 k=0
-while read -r name store view; do
-  ( rates $((k % ngpu)) "--checkpoint $runs/$name" "$held" --episodes 17 --seed 0
-    rates $((k % ngpu)) "--checkpoint $runs/$name" procedural:all --num-scenes 256 --episodes 256 --seed 90000 ) &
+while read -r name store sets; do
+  gpu=$((k % ngpu))
+  ( [ "$phase" = eval ] || train $gpu "$name" "$store" "$sets"
+    [ "$phase" = train ] || evaluate $gpu "$name" ) &
   k=$((k + 1))
 done <<< "$plan"
-( for mode in ignore stop remove; do
-    rates 0 "--policy expert" "$held" --episodes 17 --seed 0 --collision-mode $mode
-    rates 0 "--checkpoint shipped" "$held" --episodes 17 --seed 0 --collision-mode $mode
-  done
-  rates 0 "--checkpoint shipped" procedural:all --num-scenes 256 --episodes 256 --seed 90000 ) &
-( for mode in stop remove; do
-    rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --collision-mode $mode
-  done
-  rates 1 "--checkpoint $runs/real44" "$held" --episodes 17 --seed 0 --deterministic ) &
-for f in "$out"/train_*.log; do tail -c 300 "$f" > "$f.tail" && mv "$f.tail" "$f"; done
+if [ "$phase" != train ]; then
+  ( for mode in ignore stop remove; do
+      rates 0 "--policy expert" "$held" --episodes 17 --seed 0 --collision-mode $mode
+      rates 0 "--checkpoint shipped" "$held" --episodes 17 --seed 0 --collision-mode $mode
+    done ) &
+fi
 wait
 for name in $(cut -d' ' -f1 <<< "$plan"); do
   cp "$runs/$name/curves.png" "$out/curves_$name.png" 2>/dev/null
 done
-(cd "$runs" && tar czf "$out/runs.tgz" */metrics.csv */config.json)
-cp "$runs/real44/checkpoint.pt" "$out/real44.pt" 2>/dev/null
+(cd "$runs" && tar czf "$out/runs.tgz" */metrics.csv */config.json 2>/dev/null)
+python3 "$repo/scripts/slim_checkpoints.py" "$runs"  # each run's policy, about 1 MB
+for name in $(cut -d' ' -f1 <<< "$plan"); do
+  cp "$runs/$name/checkpoint.pt" "$out/$name.pt" 2>/dev/null
+done
 ls -la "$out"

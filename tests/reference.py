@@ -152,8 +152,12 @@ def expert_track(pos, yaw, vel, valid, init, dt=0.1, gain_long=0.3, gain_lat=1.0
     return out
 
 
-def scene_segments(scene, max_len: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Road polylines as segments of at most `max_len` metres: (a (S,2), b (S,2), type (S,))."""
+def scene_segments(scene, max_len: float, tolerance: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Road polylines, simplified to `tolerance` (the NumPy RDP of tg_gpudrive.data.simplify; 0: every
+    point), as segments of at most `max_len` metres: (a (S,2), b (S,2), type (S,))."""
+    if tolerance > 0:
+        from tg_gpudrive.data.simplify import simplify_scene
+        scene = simplify_scene(scene, tolerance)[0]
     pts, off = scene.road_points, scene.road_offsets
     if scene.num_polylines == 0:
         return np.zeros((0, 2), np.float32), np.zeros((0, 2), np.float32), np.zeros(0, np.int32)

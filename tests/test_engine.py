@@ -371,7 +371,7 @@ def test_batched_road_tables_match_the_per_scene_reference(womd_scenes, device):
     a, b, ty, start = (x.cpu().numpy() for x in (t.seg_a, t.seg_b, t.seg_type, t.cell_start))
     first = np.cumsum(t.segments) - t.segments
     for s, sc in enumerate(scenes):
-        ra, rb, rt = ref.scene_segments(sc, 4.0)
+        ra, rb, rt = ref.scene_segments(sc, 4.0, cfg.road_simplify)
         assert t.segments[s] == len(ra)
         mid = 0.5 * (ra + rb)
         lo = mid.min(0) - 1e-3

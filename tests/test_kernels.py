@@ -15,6 +15,7 @@ import torch
 
 from tg_gpudrive.config import EngineConfig, RewardConfig
 from tg_gpudrive.data.procedural.dense import dense_scene
+from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
@@ -219,8 +220,10 @@ def test_offroad_edge_and_lane_distance_match_numpy(device, rng, shape):
     sim = Simulator([scene], c, device)
     sim.reset()
     sim.step()
-    # the engine's split segments are the reference's too (splitting is exact on straight pieces)
-    segs = [(t, p[i], p[i + 1]) for t, p in scene.polylines() for i in range(len(p) - 1)]
+    # the engine's split segments are the reference's too (splitting is exact on straight pieces), after
+    # the NumPy simplification the engine's kernel must equal
+    segs = [(t, p[i], p[i + 1]) for t, p in simplify_scene(scene, c.road_simplify)[0].polylines()
+            for i in range(len(p) - 1)]
     p, y = scene.log_pos[:, INIT + 1], scene.log_yaw[:, INIT + 1]
     for i in range(scene.num_agents):
         off = any(ref.box_crosses_segment(p[i], y[i], scene.length[i], scene.width[i], a, b)
@@ -334,7 +337,7 @@ def test_observation_frames_and_nearest_k_match_numpy(device, rng, view_angle):
     obs_r = sim.obs_road[0].cpu().numpy()
     ego = sim.obs_ego[0].cpu().numpy()
     p, y = scene.log_pos[:, INIT], scene.log_yaw[:, INIT]
-    a_seg, b_seg, t_seg = (x.copy() for x in ref.scene_segments(scene, 3.0))
+    a_seg, b_seg, t_seg = (x.copy() for x in ref.scene_segments(scene, 3.0, c.road_simplify))
     mid = 0.5 * (a_seg + b_seg)
     hidden = 0  # partners within reach that the cone hides
     for i in range(25):
@@ -382,7 +385,7 @@ def _brute_force_road_rows(sim, scene_list, road_k, radius, max_segment_length):
     integ = sim.integrated.cpu().numpy()
     out = {}
     for w, sc in enumerate(scene_list):
-        a, b, t = ref.scene_segments(sc, max_segment_length)
+        a, b, t = ref.scene_segments(sc, max_segment_length, sim.cfg.road_simplify)
         mid = 0.5 * (a + b)
         d = b - a
         ln = np.linalg.norm(d, axis=1)
@@ -443,3 +446,49 @@ def test_road_rows_match_brute_force(device, kind, ranked):
     sim.model.parallel_road_rows = ranked
     sim.reset()
     _assert_road_rows_match(sim, _brute_force_road_rows(sim, scenes, c.road_k, c.road_radius, c.max_segment_length))
+
+
+# ---------------------------------------------------------------- simplification
+@pytest.fixture(scope="module")
+def womd_scenes():
+    return [load_gpudrive_json(f) for f in sorted((Path(__file__).parent / "data").glob("womd_*.json"))]
+
+
+def _engine_simplified(scene, tolerance, device):
+    from tg_gpudrive.engine.roads import _simplified
+    pts = torch.as_tensor(np.array(scene.road_points, np.float32), device=device)
+    off = torch.as_tensor(np.array(scene.road_offsets, np.int64), device=device)
+    ptype = torch.as_tensor(np.array(scene.road_type, np.int32), device=device)
+    p, o = _simplified(pts, off, ptype, tolerance)
+    return p.cpu().numpy(), o.cpu().numpy()
+
+
+@pytest.mark.parametrize("tolerance", [0.05, 0.1, 0.5])
+def test_simplify_kernel_keeps_the_numpy_rdp_points(device, womd_scenes, rng, tolerance):
+    """kernels/road.py simplify_kernel keeps exactly the points of the NumPy RDP (data/simplify.py) on real
+    WOMD maps and on random wiggly polylines and thin polygons (a crosswalk keeps three corners)."""
+    wiggle = np.cumsum(rng.normal(0, 0.3, (60, 2)) + [0.5, 0.0], 0)
+    thin = np.array([[0.0, 0.0], [5.0, 0.01], [10.0, 0.0], [5.0, -0.01]])
+    synthetic = random_replay_scene(rng, 2, 10.0, roads=[(RoadType.LANE, wiggle), (RoadType.CROSSWALK, thin),
+                                                         (RoadType.ROAD_EDGE, wiggle[:2]), (RoadType.STOP_SIGN, wiggle[:1])])
+    for scene in [*womd_scenes, synthetic]:
+        want = simplify_scene(scene, tolerance)[0]
+        pts, off = _engine_simplified(scene, tolerance, device)
+        np.testing.assert_array_equal(off, want.road_offsets)
+        np.testing.assert_array_equal(pts, want.road_points)
+        assert len(pts) < len(scene.road_points)
+    crosswalk = want.road_points[want.road_offsets[1]:want.road_offsets[2]]
+    assert len(crosswalk) == 3
+
+
+def test_simplified_roads_reach_further_ahead(device, womd_scenes):
+    """On a real map (a point every 0.5 m) the road_k nearest segments an agent observes reach several
+    times further once the roads are simplified."""
+    reach = {}
+    for tol in (0.0, 0.1):
+        sim = Simulator(womd_scenes[:1], cfg(road_k=32, road_radius=50.0, road_simplify=tol), device)
+        sim.reset()
+        r = sim.obs_road[0][sim.policy_agents[0]].cpu().numpy()
+        d = np.where(r[..., 0] > 0, np.linalg.norm(r[..., 1:3], axis=-1), 0.0).max(-1)
+        reach[tol] = float(np.median(d))
+    assert reach[0.1] > 2 * reach[0.0], reach

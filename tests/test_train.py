@@ -467,9 +467,16 @@ def test_init_policy_fine_tunes_from_a_trained_run(tmp_path):
     assert tr.update == 0 and not tr.opt.state  # a fresh optimiser and counter
     fresh = Trainer(tiny(tmp_path / "fresh"), tmp_path / "fresh", progress=False)
     assert not all(torch.equal(v, fresh.actor.state_dict()[k]) for k, v in tr.actor.state_dict().items())
-    with pytest.raises(ConfigError, match=r"init_policy .*hidden 32 \(this run: 64\).*env.road_k"):
+    with pytest.raises(ConfigError, match=r"init_policy .*hidden 32 \(this run: 64\).*env.accel_bins"):
         Trainer(tiny(tmp_path / "bad", init_policy=str(src), hidden=64,
-                     env=dataclasses.replace(tiny(dst).env, road_k=8)), tmp_path / "bad", progress=False)
+                     env=dataclasses.replace(tiny(dst).env, accel_bins=5)), tmp_path / "bad", progress=False)
+    # more partner and road rows: the pooled encoders take the same weights
+    wider = Trainer(tiny(tmp_path / "wide", init_policy=str(src),
+                         env=dataclasses.replace(tiny(dst).env, road_k=2 * tiny(dst).env.road_k,
+                                                 partner_k=tiny(dst).env.partner_k + 1)),
+                    tmp_path / "wide", progress=False)
+    for k, v in wider.actor.state_dict().items():
+        assert torch.equal(v.cpu(), old["actor"][k].cpu()), k
     with pytest.raises(ConfigError, match=r"init_policy shipped: .*hidden 128"):
         Trainer(tiny(tmp_path / "bad2", init_policy="shipped"), tmp_path / "bad2", progress=False)
 

@@ -101,6 +101,20 @@ def _read(path: Path, option: str, map_location) -> dict:
             from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{option}: {path} is not a checkpoint (it holds a {type(ck).__name__})")
+    return _with_earlier_defaults(ck)
+
+
+# engine keys added after checkpoints were shipped, with the value every earlier run was trained under
+# (a key missing from a saved config would otherwise take today's default and change what that
+# network observes)
+EARLIER_ENGINE_DEFAULTS = {"road_simplify": 0.0}
+
+
+def _with_earlier_defaults(ck: dict) -> dict:
+    env = ck.get("config", {}).get("env") if isinstance(ck.get("config"), dict) else None
+    if isinstance(env, dict):
+        for key, value in EARLIER_ENGINE_DEFAULTS.items():
+            env.setdefault(key, value)
     return ck
 
 
@@ -205,6 +219,9 @@ NETWORK_KEYS = ("hidden", "heads", "actor_history", "quantiles", "env.dynamics",
                 "env.accel_bins", "env.curvature_bins", "env.max_accel", "env.max_curvature", "env.delta_max",
                 "env.partner_k", "env.road_k")
 FIXED_ENGINE_KEYS = tuple(k.removeprefix("env.") for k in NETWORK_KEYS if k.startswith("env."))
+# ... of which the weights do not depend on these: partner and road rows go through one shared encoder
+# and are max-pooled, so a fine-tune (init_policy) may observe more or fewer of them
+POOLED_KEYS = ("env.partner_k", "env.road_k")
 
 
 def network_differences(old: TrainConfig, new: TrainConfig) -> list[tuple[str, object, object]]:

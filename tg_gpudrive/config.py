@@ -113,6 +113,10 @@ class EngineConfig:
     road_radius: float = 50.0
     view_angle: float = 360.0  # degrees: the cone around its heading in which an agent sees partners and road
     road_query_radius: float = 5.0  # m, search (and cap) for edge and lane distances
+    # m: road polylines are simplified (Ramer-Douglas-Peucker) to this tolerance when worlds are built,
+    # so straight runs of densely sampled maps (WOMD: a point every 0.5 m) become long segments and the
+    # road_k nearest reach ahead; collision and off-road move by at most this much. 0: every point
+    road_simplify: float = 0.1
     max_segment_length: float = 5.0  # m, longer road segments are split
     road_cell_size: float = 5.0  # m, static road grid (5 m: fastest measured, BENCHMARKS.md)
     collision_cells: int = 128  # hashed buckets per world for the agent broad phase
@@ -134,7 +138,7 @@ class EngineConfig:
             "max_agents": "[1, 1024]", "view_angle": "(0, 360]", "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
             "max_curvature": "(0, 10]", "delta_max": "(0, 100]", "init_steps": "[0, 10000]", "goal_radius": "(0, 1000]",
             "beta": "[0, 1000]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
-            "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "max_segment_length": "[0.5, 1000]",
+            "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "road_simplify": "[0, 10]", "max_segment_length": "[0.5, 1000]",
             "road_cell_size": "[1, 1000]", "collision_cells": "[1, 1048576]"}, odd=("accel_bins", "curvature_bins"))
 
     @property

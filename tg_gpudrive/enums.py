@@ -34,6 +34,10 @@ class RoadType(enum.IntEnum):
     DRIVEWAY = 7
 
 
+POLYGON_ROAD_TYPES = (RoadType.CROSSWALK, RoadType.SPEED_BUMP, RoadType.DRIVEWAY)
+"""Road kinds stored as closed shapes (an implied edge from the last point back to the first)."""
+
+
 class NamedMode(enum.IntEnum):
     """An IntEnum that parses from and prints as its lowercase member name (the YAML / CLI spelling)."""
 

@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 
 from tg_gpudrive.scene import Scene
-from tg_gpudrive.enums import RoadType
+from tg_gpudrive.enums import POLYGON_ROAD_TYPES, RoadType
 
 __all__ = ["DEFAULT_TOLERANCE_M", "rdp_mask", "simplify_polyline", "simplify_scene", "point_segment_distance"]
 
@@ -31,7 +31,6 @@ map points, so only points that are (nearly) collinear with their neighbours
 go: curves keep their shape and straight segments collapse to their ends.
 """
 
-_POLYGONS = (RoadType.CROSSWALK, RoadType.SPEED_BUMP, RoadType.DRIVEWAY)
 
 
 def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -106,7 +105,7 @@ def simplify_scene(scene: Scene, tolerance: float = DEFAULT_TOLERANCE_M) -> tupl
         if b - a <= 2:
             continue
         rtype = int(scene.road_type[r])
-        keep[a:b] = (_polygon_mask if rtype in _POLYGONS else rdp_mask)(pts[a:b], tolerance)
+        keep[a:b] = (_polygon_mask if rtype in POLYGON_ROAD_TYPES else rdp_mask)(pts[a:b], tolerance)
     counts = np.concatenate([[0], np.cumsum(keep)])
     new_off = counts[off].astype(np.int64)
     by_type: dict[str, dict[str, int]] = {}

@@ -27,8 +27,11 @@ import dataclasses
 
 import numpy as np
 import torch
+import warp as wp
 
 from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.enums import POLYGON_ROAD_TYPES
+from tg_gpudrive.kernels.road import launch_simplify
 from tg_gpudrive.scene import Scene, SceneError
 
 MAX_GRID_CELLS = 4_000_000  # per scene; a larger road extent needs a larger road_cell_size
@@ -96,6 +99,24 @@ def _nonempty(t: RoadTables) -> RoadTables:
     return t
 
 
+def _simplified(pts: torch.Tensor, off: torch.Tensor, ptype: torch.Tensor, tolerance: float):
+    """The points RDP keeps at `tolerance` (kernels/road.py simplify_kernel) and the polylines' new
+    offsets: straight runs of densely sampled roads collapse to their ends, so the `road_k` nearest
+    segments an agent observes reach metres ahead instead of a few half-metre pieces around it."""
+    if len(pts) == 0:
+        return pts, off
+    counts = (off[1:] - off[:-1]).to(torch.int32)
+    polygon = torch.isin(ptype, torch.tensor([int(t) for t in POLYGON_ROAD_TYPES], device=ptype.device)).to(torch.int32)
+    wdev = wp.device_from_torch(pts.device)
+    keep = launch_simplify(wp.from_torch(pts.contiguous(), dtype=wp.vec2), wp.from_torch(off[:-1].to(torch.int32).contiguous()),
+                           wp.from_torch(counts.contiguous()), wp.from_torch(polygon.contiguous()), tolerance, wdev)
+    keep = wp.to_torch(keep).bool()
+    if pts.device.type == "cuda":
+        wp.synchronize_device(wdev)
+    before = torch.cat([keep.new_zeros(1, dtype=torch.long), torch.cumsum(keep.long(), 0)])
+    return pts[keep], before[off]
+
+
 def _build_chunk(scenes: list[Scene], cfg: EngineConfig, dev: torch.device) -> RoadTables:
     n = len(scenes)
     # host: the scenes' polylines back to back (one copy of the points); everything else on `dev`
@@ -109,6 +130,8 @@ def _build_chunk(scenes: list[Scene], cfg: EngineConfig, dev: torch.device) -> R
     off = torch.from_numpy(off).to(dev)
     ptype = torch.from_numpy(np.concatenate([np.asarray(s.road_type, np.int32) for s in scenes]
                                             + [np.zeros(0, np.int32)])).to(dev)
+    if cfg.road_simplify > 0:
+        pts, off = _simplified(pts, off, ptype, cfg.road_simplify)
     poly_scene = torch.repeat_interleave(torch.arange(n, device=dev), torch.from_numpy(n_poly).to(dev))
     counts = off[1:] - off[:-1]  # points per polyline (>= 1 in a validated scene)
 

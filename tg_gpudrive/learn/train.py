@@ -41,8 +41,8 @@ import torch
 from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, checkpoint_path, load_checkpoint, network_differences,
-                                    save_atomic)
+from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, POOLED_KEYS, checkpoint_path, load_checkpoint,
+                                    network_differences, save_atomic)
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
 from tg_gpudrive.data.augment import augment_scene, subset_mask
@@ -233,7 +233,11 @@ class Trainer:
         path = checkpoint_path(source, "init_policy")
         ck = load_checkpoint(path, "init_policy", map_location=self.device)
         theirs = from_dict(TrainConfig, ck["config"], str(path))
-        diff = [f"{k} {was} (this run: {now})" for k, was, now in network_differences(theirs, self.cfg)]
+        changes = network_differences(theirs, self.cfg)
+        diff = [f"{k} {was} (this run: {now})" for k, was, now in changes if k not in POOLED_KEYS]
+        for k, was, now in changes:
+            if k in POOLED_KEYS:
+                log.info("init_policy %s: %s %s, this run observes %s", source, k, was, now)
         if diff:
             raise ConfigError(f"init_policy {source}: its networks differ from this run's: {'; '.join(diff)}")
         self.actor.load_state_dict(ck["actor"])
