@@ -13,7 +13,6 @@ import pytest
 
 import tg_gpudrive
 from tg_gpudrive.cli import build_parser
-from tg_gpudrive.evaluation.report import build_parser as report_parser
 
 
 def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
@@ -25,9 +24,7 @@ def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:
     top = build_parser()
-    parsers = {"tg-gpudrive": top, **_subparsers(top)}
-    parsers["report"] = report_parser()  # `tg-gpudrive report` hands its arguments to this parser
-    return parsers
+    return {"tg-gpudrive": top, **_subparsers(top)}
 
 
 def test_every_option_has_help_with_its_default():

@@ -14,6 +14,7 @@ import scipy.stats
 import torch
 
 from conftest import WOMD_FILES
+from test_report_markdown import csv_rows, per_agent_lines
 from tg_gpudrive.config import REPO_CONFIGS, EngineConfig, TrainConfig, load_config
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
@@ -424,8 +425,13 @@ def test_export_generated_episode_carries_the_rollout(merge_sim, tmp_path):
 
 # ------------------------------------------------------------------ report
 def test_report_on_tiny_runs(tmp_path):
-    from tg_gpudrive.evaluation.report import FILES, main
+    from tg_gpudrive.cli import main as cli_main
+    from tg_gpudrive.evaluation.report import FILES
+    from tg_gpudrive.evaluation.report_markdown import PER_AGENT_COLUMNS
     from tg_gpudrive.learn.train import Trainer
+
+    def main(argv):  # `tg-gpudrive report ...`
+        return cli_main(["report", *argv])
 
     base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
     runs = []
@@ -470,6 +476,7 @@ def test_report_on_tiny_runs(tmp_path):
     assert (out / "cce_gap_curve.png").stat().st_size > 0 and "## CCE-gap over training" in md
     worst = summary["meta"]["worst_scenes"]
     assert worst["label"] == "cce" and worst["scenes"] and "## Worst scenes of cce" in md
+    _check_report_tables(out, summary, md)
 
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
@@ -493,7 +500,23 @@ def test_report_on_tiny_runs(tmp_path):
     assert not any(r["cce_gap"] or r.get("gap_curve") for r in nogap["results"]) and len(nogap["results"]) == 6
     md = (tmp_path / "nogap" / "report.md").read_text()
     assert "not computed (--no-cce-gap)" in md and "Not computed (--no-cce-gap)" in md
+    assert not csv_rows(tmp_path / "nogap" / "per_agent.csv", PER_AGENT_COLUMNS)  # the header alone
     assert "## CCE-gap per agent" not in md and not (tmp_path / "nogap" / "cce_gap.png").exists()
+
+
+def _check_report_tables(out: Path, summary: dict, md: str) -> None:
+    """Per-agent and per-scene rows are in the CSV files that report.md names (one row per agent of every
+    policy's deviation game, per exported scenario), never in report.md."""
+    from tg_gpudrive.evaluation.report_markdown import PER_AGENT_COLUMNS, PER_SCENE_COLUMNS
+
+    agents = csv_rows(out / "per_agent.csv", PER_AGENT_COLUMNS)
+    gapped = [r for r in summary["results"] if r["cce_gap"]]
+    assert len(agents) == sum(len(r["cce_gap"]["agents"]) for r in gapped) > 0
+    assert {(a["policy"], a["agent"]) for a in agents} == {(r["label"], x) for r in gapped for x in r["cce_gap"]["agents"]}
+    scenes = csv_rows(out / "per_scene.csv", PER_SCENE_COLUMNS)
+    assert [s["run"] for s in scenes] == ["cce", "mappo"] and all((out / s["exported"]).exists() for s in scenes)
+    assert "(per_agent.csv)" in md and "(per_scene.csv)" in md
+    assert not per_agent_lines(md, agents)
 
 
 def test_the_report_says_whether_its_scenes_are_held_out():
@@ -618,7 +641,7 @@ def test_flexibility_table_averages_the_last_updates(tmp_path):
 def test_worst_scenes_rank_scenes_by_failures_per_agent_episode():
     from types import SimpleNamespace
 
-    from tg_gpudrive.evaluation.report import worst_scenes
+    from tg_gpudrive.evaluation.report_stats import worst_scenes
 
     E, A, K = 4, 3, 5
     policy = np.ones((E, A), bool)

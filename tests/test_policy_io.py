@@ -118,9 +118,7 @@ def test_missing_shipped_policy_names_the_option(tmp_path, monkeypatch, capsys):
     assert cli.main(["render", "--policy", "shipped", "--scenes", str(DENSE), "--device", "cpu",
                      "--out", str(tmp_path / "f.png")]) == 2
     assert "--policy shipped: the packaged policy" in capsys.readouterr().err
-    from tg_gpudrive.evaluation.report import main as report_main
-
-    assert report_main(["--runs", "shipped", "--out", str(tmp_path / "report")]) == 2
+    assert cli.main(["report", "--runs", "shipped", "--out", str(tmp_path / "report")]) == 2
     assert "--runs shipped: the packaged policy" in capsys.readouterr().err
 
 
@@ -136,13 +134,11 @@ def test_render_shipped_policy_keeps_every_agent(tiny_run, monkeypatch, tmp_path
 
 def test_report_runs_the_shipped_policy(tiny_run, monkeypatch, tmp_path, caplog):
     """`report --runs shipped`: the packaged checkpoint, its config from the checkpoint, every agent kept."""
-    from tg_gpudrive.evaluation.report import main as report_main
-
     monkeypatch.setattr(ckpt_mod, "SHIPPED_POLICY", tiny_run / "checkpoint.pt")
     out = tmp_path / "report"
     with caplog.at_level(logging.WARNING, logger="tg_gpudrive"):
-        assert report_main(["--runs", "shipped", "--out", str(out), "--scenes", "1", "--seeds", "0", "1",
-                            "--br-iters", "1", "--br-seeds", "0", "--top", "1", "--device", "cpu"]) == 0
+        assert cli.main(["report", "--runs", "shipped", "--out", str(out), "--scenes", "1", "--seeds", "0", "1",
+                         "--br-iters", "1", "--br-seeds", "0", "--top", "1", "--device", "cpu"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert "shipped" in {r["label"] for r in summary["results"]}
     assert "dropped" not in caplog.text

@@ -15,6 +15,9 @@ import sys
 from pathlib import Path
 
 import pytest
+from test_report_markdown import csv_rows
+
+from tg_gpudrive.evaluation.report_markdown import PER_AGENT_COLUMNS, PER_SCENE_COLUMNS
 
 REPO = Path(__file__).resolve().parent.parent
 MARK = re.compile(r"<!-- test: run( shrunk)? -->\n```(\w+)\n(.*?)```", re.S)
@@ -69,3 +72,9 @@ def test_readme_snippet_runs(tmp_path, name, shrunk, lang, body):
         r = subprocess.run(["bash", "-e", "-c", ln], cwd=tmp_path, capture_output=True, text=True, env=env,
                            timeout=900)
         assert r.returncode == 0, f"{ln}\n{r.stderr[-3000:]}"
+        if ln.startswith("tg-gpudrive report"):  # report.md names its tables, written beside it as CSV
+            out = tmp_path / re.search(r"--out (\S+)", ln).group(1)
+            md = (out / "report.md").read_text()
+            assert "(per_agent.csv)" in md and "(per_scene.csv)" in md
+            csv_rows(out / "per_agent.csv", PER_AGENT_COLUMNS)
+            assert csv_rows(out / "per_scene.csv", PER_SCENE_COLUMNS)

@@ -9,7 +9,7 @@ import pytest
 pytest.importorskip("matplotlib")
 from PIL import Image  # noqa: E402
 
-from tg_gpudrive.evaluation.report import plot_gaps, plot_grid, plot_multipliers  # noqa: E402
+from tg_gpudrive.evaluation.report_figures import plot_gaps, plot_grid, plot_multipliers  # noqa: E402
 
 MAX_W, MAX_H = 3000, 2200  # pixels
 

@@ -70,7 +70,7 @@ def test_a_cell_without_episodes_is_an_error_naming_it():
 def test_flexibility_table_marks_each_claim():
     """Six made cells (beta 2-4 x alpha 0.1, 0.9): gaps grow with beta far beyond the episodes' spread,
     speed grows with alpha (against the paper), the rest is noise."""
-    from tg_gpudrive.evaluation.report import flexibility_directions
+    from tg_gpudrive.evaluation.report_stats import flexibility_directions
 
     rng = np.random.default_rng(5)
     cells = []

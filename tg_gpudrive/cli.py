@@ -54,7 +54,8 @@ from tg_gpudrive.data.sources import resolve_scenes, source_report
 from tg_gpudrive.data.store import convert
 from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.scene import scene_defaults
-from tg_gpudrive.evaluation.report import main as report_main
+from tg_gpudrive.evaluation import report as report_module
+from tg_gpudrive.evaluation.report import ReportOptions, report_main
 from tg_gpudrive.learn import distributed
 from tg_gpudrive.agents import BUILTIN, open_policy
 from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
@@ -240,8 +241,63 @@ def _render_parser(sub) -> None:
 
 
 def _report_parser(sub) -> None:
-    sub.add_parser("report", add_help=False,
-                   help="scenario-quality report of training runs (tg-gpudrive report --runs DIR... --out DIR)")
+    """`tg-gpudrive report`: its options, defaults from ReportOptions."""
+    p = sub.add_parser("report", description=report_module.__doc__,
+                       help="scenario-quality report of training runs (tg-gpudrive report --runs DIR... --out DIR)")
+    d = ReportOptions()
+    p.add_argument("--runs", nargs="+", required=True,
+                   help="training run directories (or checkpoint files; shipped: the packaged policy) (required)")
+    p.add_argument("--out", default="report", help="output directory")
+    p.add_argument("--scenes", type=int, default=d.scenes, help="evaluation scenes (worlds) per run")
+    p.add_argument("--scene-seed", type=int, default=d.scene_seed,
+                   help="first procedural seed of the evaluation scenes: held out when the runs never trained on it "
+                        "(an overlap with a run's training seeds is an error); -1: the runs' own training scenes")
+    p.add_argument("--eval-scenes", default=None, metavar="SPEC",
+                   help="scene spec of the evaluation scenes (default: each run's own; file and store specs have "
+                        "no seed, so name held-out files here)")
+    p.add_argument("--no-cce-gap", action="store_true",
+                   help="skip the CCE-gaps (the PPO best responses that take most of a report's time)")
+    p.add_argument("--seeds", type=int, nargs="+", default=list(d.seeds), metavar="SEED",
+                   help=f"rollout seeds; diversity needs at least two (default: {' '.join(map(str, d.seeds))})")
+    _report_br_args(p, d)
+    p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
+    p.add_argument("--device", default="auto",
+                   help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
+    p.add_argument("--grid-scene", type=int, default=d.grid_scene,
+                   help="evaluation scene (0 .. --scenes - 1) that grid.png shows in every beta x alpha cell")
+    p.add_argument("--grid-gifs", action="store_true",
+                   help="also write frames/<run>.gif, the whole episode of that scene, per cell (default: off)")
+    p.add_argument("--no-baselines", action="store_true",
+                   help="leave out log replay, expert, behaviour prior and world model, and the CCE-gap of the "
+                        "policy runs started from (a process that fills the cache for some of the runs, beside "
+                        "one that does these shared parts)")
+
+
+def _report_br_args(p: argparse.ArgumentParser, d: ReportOptions) -> None:
+    """The report's --br-* options: how each agent's PPO best response (the CCE-gap) is trained."""
+    p.add_argument("--br-iters", type=int, default=d.br_iters,
+                   help="CCE-gap: cap on the PPO iterations of each best response (it stops earlier at a plateau)")
+    p.add_argument("--br-seeds", type=int, nargs="+", default=list(d.br_seeds), metavar="SEED",
+                   help=f"seeds of the best-response training (default: {' '.join(map(str, d.br_seeds))})")
+    p.add_argument("--br-lr", type=float, default=d.br_lr, help="learning rate of the best response (actor)")
+    p.add_argument("--br-tol", type=float, default=d.br_tol,
+                   help="plateau tolerance: a best response stops when its moving-mean discounted return has not "
+                        "beaten its best by tol * max(1, |best|) for --br-patience iterations")
+    p.add_argument("--br-window", type=int, default=d.br_window, help="iterations per moving mean of the plateau rule")
+    p.add_argument("--br-patience", type=int, default=d.br_patience,
+                   help="iterations without a new best moving mean before a best response stops")
+    p.add_argument("--br-min-iters", type=int, default=d.br_min_iters,
+                   help="PPO iterations a best response always runs before the plateau rule may stop it")
+    p.add_argument("--br-copies", type=int, default=d.br_copies,
+                   help="episodes per agent and PPO iteration (each agent deviates in this many worlds; "
+                        "default: 16 on a GPU, 4 on the CPU)")
+    p.add_argument("--br-scenes", type=int, default=d.br_scenes,
+                   help="CCE-gap: the first N evaluation scenes play the deviation game (default: all; a multiple "
+                        "of the scenario types keeps them balanced)")
+    p.add_argument("--br-rounds", type=int, default=d.br_rounds,
+                   help="fresh evaluation batches of J(pi) and of J(BR) each")
+    p.add_argument("--br-gamma", type=float, default=None,
+                   help="discount of the best response's returns (default: the run's gamma)")
 
 
 def _convert_parser(sub) -> None:
@@ -499,23 +555,42 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def cmd_report(args) -> int:
+    """`tg-gpudrive report --runs DIR [DIR ...] --out DIR`: the options as ReportOptions, then report_main."""
+    opts = ReportOptions(scenes=args.scenes, scene_seed=None if args.scene_seed == -1 else args.scene_seed,
+                         eval_scenes=args.eval_scenes, cce_gap=not args.no_cce_gap,
+                         seeds=tuple(args.seeds), br_iters=args.br_iters,
+                         br_seeds=tuple(args.br_seeds), br_lr=args.br_lr, br_tol=args.br_tol, br_window=args.br_window,
+                         br_patience=args.br_patience, br_min_iters=args.br_min_iters, br_copies=args.br_copies,
+                         br_scenes=args.br_scenes, br_rounds=args.br_rounds,
+                         br_gamma=args.br_gamma, top=args.top, device=args.device,
+                         grid_scene=args.grid_scene, grid_gifs=args.grid_gifs, baselines=not args.no_baselines)
+    if opts.cce_gap:  # the slow part: say so before it starts, and how to skip it
+        print(f"tg-gpudrive report: the CCE-gap trains a PPO best response for every agent of each policy "
+              f"({len(opts.br_seeds)} seed(s), up to {opts.br_iters} iterations each): minutes per policy on a GPU, "
+              f"about 20 minutes for one small run on a 2-core CPU; --no-cce-gap leaves it out", file=sys.stderr)
+    report_main(args.runs, args.out, opts)
+    print(f"wrote {Path(args.out) / 'report.md'}")
+    return 0
+
+
 def cmd_train_world_model(args) -> int:
     return run_world_model(args) or 0
 
 
 COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
-            "evaluate": cmd_evaluate, "render": cmd_render}
+            "evaluate": cmd_evaluate, "render": cmd_render, "report": cmd_report}
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    if argv[:1] == ["report"]:  # its own argument parser (tg_gpudrive.evaluation.report)
-        return report_main(argv[1:])
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
-        if getattr(args, "device", None) is not None:  # "auto" made concrete; CUDA without one fails here
+        # "auto" made concrete; CUDA without one fails here. Not for report: it resolves the device per run
+        # and keys its cache by the option as given
+        if getattr(args, "device", None) is not None and args.command != "report":
             args.device = resolve_device(args.device, flag="--device")
         return COMMANDS[args.command](args)
     except (ConfigError, ValueError, FileNotFoundError) as e:

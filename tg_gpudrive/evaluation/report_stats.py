@@ -1,0 +1,138 @@
+"""The numbers a scenario-quality report derives from recorded episodes and training curves.
+
+    measure(label, gen, logged, top)   fidelity, diversity and risk of one policy's episodes
+    episode_figures(gen, risk)         one value per agent-episode of each figure the flexibility claims name
+    flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
+    worst_scenes(gen)                  the scenes where the policy's agents fail most
+    tail_means(rows, keys)             training figures averaged over the last updates
+    gap_curve(start, kept, last, u)    the CCE-gap over a run's training
+
+No rollouts, no files, no pictures: report.py runs the policies, report_figures.py draws,
+report_markdown.py writes the tables. `fmt` is how the report prints a number, here because the
+flexibility rows carry their interval as text.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from tg_gpudrive.evaluation import diversity as div
+from tg_gpudrive.evaluation import fidelity as fid
+from tg_gpudrive.evaluation import risk as rk
+from tg_gpudrive.evaluation.stats import spearman_ci
+
+WORST_SCENES = 4  # scenes drawn in worst_scenes.png
+
+
+def fmt(v, nd=3) -> str:
+    """A table cell's number: `nd` significant digits, integers as they are, "-" for None."""
+    if v is None:
+        return "-"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    v = float(v)
+    return "nan" if math.isnan(v) else f"{v:.{nd}g}" if abs(v) < 1e4 else f"{v:.3e}"
+
+
+def worst_scenes(gen, k: int = WORST_SCENES) -> list[dict]:
+    """The `k` scenes where the policy's agents fail most (a collision or leaving the road, per
+    agent-episode), most failures first: scene index and id, agent-episodes, collisions, off-road."""
+    pol = np.asarray(gen.policy, bool)
+    col = np.asarray(gen.collided, bool).any(-1) & pol
+    off = np.asarray(gen.offroad, bool).any(-1) & pol
+    by: dict[int, list[int]] = {}
+    for e, i in enumerate(np.asarray(gen.scene_index)):
+        t = by.setdefault(int(i), [0, 0, 0, 0])
+        t[0] += int(pol[e].sum())
+        t[1] += int(col[e].sum())
+        t[2] += int(off[e].sum())
+        t[3] += int((col[e] | off[e]).sum())
+    rows = [{"scene": i, "scene_id": gen.scenes[i].scene_id, "agent_episodes": n, "collisions": c, "offroad": o,
+             "failure_rate": f / n} for i, (n, c, o, f) in by.items() if n and f]
+    return sorted(rows, key=lambda r: (-r["failure_rate"], -r["agent_episodes"], r["scene"]))[:k]
+
+
+def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
+    """One value per policy agent-episode of each figure the flexibility claims are about."""
+    m = risk["agents"]  # present at some step, so the mean speed below has a step to average
+    speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
+    return {"min_gap": risk["min_gap"][m], "speed": speed[m],
+            "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
+            "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float),
+            "collision_other": ((risk["contact"] >= 0) & ~risk["partner_policy"])[m].astype(float),
+            "from_behind": (risk["contact"] == rk.CONTACTS.index("from behind"))[m].astype(float),
+            # rows, not values: the Hellinger figure is a statistic of their sum (flexibility_directions)
+            "hellinger": fid.episode_histograms(gen, m).astype(np.float32)}
+
+
+def measure(label: str, gen, logged, top: int) -> dict:
+    """Fidelity, diversity and risk of recorded episodes `gen` against the `logged` ones (no CCE-gap),
+    with the `top` most critical scenarios; `figures` holds the per-agent-episode values behind the
+    flexibility intervals (left out of summary.json)."""
+    risk = rk.episode_risk(gen)
+    return {"label": label, "fidelity": fid.compare(logged, gen), "diversity": div.diversity(gen),
+            "risk": rk.summarize(gen, risk), "critical": rk.rank_scenarios(gen, risk, top=top), "cce_gap": None,
+            "figures": episode_figures(gen, risk)}
+
+
+# The paper's direction for each figure as the knob grows: beta (the distance constraint: larger is
+# tighter) gives larger gaps and safer, less competitive traffic; alpha (the CVaR level: larger is
+# more risk-averse) gives lower speeds and larger spacing. 0: the paper states no direction.
+FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
+    "min_gap": ("min gap [m]", +1, +1),
+    "speed": ("mean speed [m/s]", -1, -1),
+    "ttc_critical": (f"TTC < {rk.TTC_CRITICAL:g} s rate", -1, -1),
+    "collision": ("collision rate", -1, -1),
+    "hard_brakes": ("hard brakes / agent", 0, 0),
+    "collision_other": ("collision with a non-policy car", 0, 0),  # the replayed logs do not react
+    "from_behind": ("hit from behind", 0, 0),
+    # per agent (the deviation game's), not per agent-episode
+    "cce_gap": ("CCE-gap", 0, 0),
+    # of the cell's pooled histograms, not a mean: bootstrapped through fidelity.episode_histograms' rows
+    "hellinger": ("Hellinger to the logs (mean of 4 features)", 0, 0),
+}
+
+
+def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict | None = None) -> list[list]:
+    """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, samples per cell) of the Spearman
+    correlation of each figure with beta and with alpha over the CCE-MAPPO cells; the Hellinger row
+    needs the `logged` histograms (fidelity.histograms of the logs the cells were compared with)."""
+    rows = []
+    for key, (name, *signs) in FLEX_CLAIMS.items():
+        # a cache written before the figure existed, or a report without CCE-gaps
+        if any(key not in c["figures"] for c in cells) or key == "hellinger" and logged is None:
+            continue
+        samples = [c["figures"][key] for c in cells]
+        stat = (lambda sums: fid.hellinger_of_sums(logged, sums)) if key == "hellinger" else None
+        for knob, sign in zip(("beta", "alpha"), signs):
+            values = [c[knob] for c in cells]
+            if len(set(values)) < 2:
+                continue
+            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells], statistic=stat)
+            verdict = r.verdict(sign) if sign else "-"
+            rows.append([name, knob, {1: "+", -1: "-", 0: "none"}[sign], r.rho, f"[{fmt(r.lo)}, {fmt(r.hi)}]",
+                         verdict, min(len(x) for x in samples)])
+    return rows
+
+
+def tail_means(rows: list[dict], keys: Sequence[str], tail: int = 5) -> dict:
+    """Mean of each key over the last `tail` training updates (NaN when absent)."""
+    out = {}
+    for k in keys:
+        vals = [float(r[k]) for r in rows[-tail:] if r.get(k) not in (None, "", "nan")]
+        out[k] = sum(vals) / len(vals) if vals else math.nan
+    return out
+
+
+def gap_curve(start: dict | None, kept: list[dict], last: dict | None, last_update: int | None) -> list[dict]:
+    """The CCE-gap over a run's training: `start` (the gap of the policy it started from) at update 0,
+    the kept policies' points (report.kept_gaps) and the final checkpoint's gap `last` at `last_update`;
+    empty with fewer than two points."""
+    points = [] if start is None else [{"update": 0, "mean_gap": start["mean_gap"], "ci95": start["ci95"]}]
+    points += kept
+    if points and last and last_update is not None and last_update > points[-1]["update"]:
+        points.append({"update": last_update, "mean_gap": last["mean_gap"], "ci95": last["ci95"]})
+    return points if len(points) > 1 else []
