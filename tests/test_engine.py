@@ -366,7 +366,7 @@ def test_batched_road_tables_match_the_per_scene_reference(womd_scenes, device):
     from tg_gpudrive.engine.roads import build_road_tables
 
     scenes = [*womd_scenes, dense_scene(5)]
-    cfg = EngineConfig(max_segment_length=4.0, road_cell_size=7.0)
+    cfg = EngineConfig(max_segment_length=4.0, road_cell_size=7.0, road_simplify=0.1)
     t = build_road_tables(scenes, cfg, device)
     a, b, ty, start = (x.cpu().numpy() for x in (t.seg_a, t.seg_b, t.seg_type, t.cell_start))
     first = np.cumsum(t.segments) - t.segments

@@ -85,16 +85,18 @@ def test_shipped_resolves_to_the_packaged_file(tmp_path, monkeypatch):
         checkpoint_path("./shipped", "--checkpoint")
 
 
-def test_earlier_shipped_policy_stays_loadable_by_name():
-    """The policy shipped before the current one stays packaged as "shipped_v1": the current one was
-    fine-tuned from it (its config says so), and earlier fine-tuned runs name it as their start, so a
-    report's CCE-gap over their training starts from the policy they really started from."""
-    v1 = checkpoint_path("shipped_v1", "--checkpoint")
-    assert v1 == ckpt_mod.SHIPPED_EARLIER["shipped_v1"] and v1.is_file()
-    assert v1.read_bytes() != ckpt_mod.SHIPPED_POLICY.read_bytes()
+def test_earlier_shipped_policies_stay_loadable_by_name():
+    """The policies shipped before the current one stay packaged, "shipped_v2" and "shipped_v1": each was
+    fine-tuned from the one before (its config says so), and earlier fine-tuned runs name them as their
+    start, so a report's CCE-gap over their training starts from the policy they really started from."""
     current = ckpt_mod.load_checkpoint("shipped", "--checkpoint")
-    assert current["config"]["init_policy"] == "shipped_v1"
-    assert ckpt_mod.load_checkpoint(current["config"]["init_policy"], "--checkpoint")["update"] == 400
+    for name, start, update in (("shipped_v2", "shipped_v1", 161), ("shipped_v1", "", 400)):
+        path = checkpoint_path(name, "--checkpoint")
+        assert path == ckpt_mod.SHIPPED_EARLIER[name] and path.is_file()
+        assert path.read_bytes() != ckpt_mod.SHIPPED_POLICY.read_bytes()
+        assert current["config"]["init_policy"] == name
+        current = ckpt_mod.load_checkpoint(name, "--checkpoint")
+        assert current["config"].get("init_policy", "") == start and current["update"] == update
 
 
 def test_shipped_policy_drives_held_out_scenes(capsys):

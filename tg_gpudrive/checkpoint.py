@@ -32,7 +32,7 @@ SHIPPED = "shipped"  # the name that stands for the packaged policy
 SHIPPED_POLICY = Path(__file__).resolve().parent / "policies" / "shipped.pt"
 # earlier shipped policies by name: a run that fine-tuned from "shipped" before the policy changed names
 # its start this way (its config.json), so a report's CCE-gap over training starts from the right policy
-SHIPPED_EARLIER = {"shipped_v1": SHIPPED_POLICY.with_name("shipped_v1.pt")}  # named as their files, like worldmodel.prior.PACKAGED
+SHIPPED_EARLIER = {name: SHIPPED_POLICY.with_name(f"{name}.pt") for name in ("shipped_v1", "shipped_v2")}  # named as their files, like worldmodel.prior.PACKAGED
 
 
 class CheckpointError(ValueError):
@@ -101,20 +101,6 @@ def _read(path: Path, option: str, map_location) -> dict:
             from None
     if not isinstance(ck, dict):
         raise CheckpointError(f"{option}: {path} is not a checkpoint (it holds a {type(ck).__name__})")
-    return _with_earlier_defaults(ck)
-
-
-# engine keys added after checkpoints were shipped, with the value every earlier run was trained under
-# (a key missing from a saved config would otherwise take today's default and change what that
-# network observes)
-EARLIER_ENGINE_DEFAULTS = {"road_simplify": 0.0}
-
-
-def _with_earlier_defaults(ck: dict) -> dict:
-    env = ck.get("config", {}).get("env") if isinstance(ck.get("config"), dict) else None
-    if isinstance(env, dict):
-        for key, value in EARLIER_ENGINE_DEFAULTS.items():
-            env.setdefault(key, value)
     return ck
 
 

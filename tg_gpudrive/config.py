@@ -115,8 +115,10 @@ class EngineConfig:
     road_query_radius: float = 5.0  # m, search (and cap) for edge and lane distances
     # m: road polylines are simplified (Ramer-Douglas-Peucker) to this tolerance when worlds are built,
     # so straight runs of densely sampled maps (WOMD: a point every 0.5 m) become long segments and the
-    # road_k nearest reach ahead; collision and off-road move by at most this much. 0: every point
-    road_simplify: float = 0.1
+    # road_k nearest reach metres ahead; collision and off-road move by at most this much. 0: every
+    # point, what the shipped world model was fitted on (as magnet or traffic it needs 0);
+    # configs/train/real_mix.yaml and the policy trained with it use 0.1
+    road_simplify: float = 0.0
     max_segment_length: float = 5.0  # m, longer road segments are split
     road_cell_size: float = 5.0  # m, static road grid (5 m: fastest measured, BENCHMARKS.md)
     collision_cells: int = 128  # hashed buckets per world for the agent broad phase

@@ -1,12 +1,15 @@
 """Policies that ship with the package.
 
-`shipped.pt`: a CCE-MAPPO training checkpoint (as `learn.train.Trainer.save` writes it) that
+`shipped.pt`: a CCE-MAPPO policy (config, actor, critic, multipliers) that
 `tg-gpudrive evaluate --checkpoint shipped`, `tg-gpudrive render --policy shipped` and
 `tg-gpudrive report --runs shipped` load by name; the name is resolved in one place,
 `tg_gpudrive.checkpoint.checkpoint_path` (SHIPPED_POLICY). An install without the file says so
-when the name is used. It is `shipped_v1.pt` fine-tuned for 161 updates on every vehicle with a
-budget of half the logs' CVaR (BENCHMARKS.md, "The shipped policy fine-tuned on every vehicle").
+when the name is used. It drives real WOMD traffic: `shipped_v2.pt` fine-tuned with
+configs/train/real_mix.yaml on real scenes mixed with urban procedural ones, observing 16 partners and
+64 road segments of roads simplified to 0.1 m (its `provenance` field says how it was made).
 
-`shipped_v1.pt`: the policy shipped before (400 updates of configs/train/gpu.yaml), loaded by the name
-"shipped_v1" (checkpoint.SHIPPED_EARLIER): the current one and the documented grid started from it.
+Earlier policies stay loadable by name (checkpoint.SHIPPED_EARLIER), for comparison:
+`shipped_v2.pt`, the policy shipped before, trained on procedural scenes only (`shipped_v1.pt`
+fine-tuned for 161 updates on every vehicle with a budget of half the logs' CVaR), and
+`shipped_v1.pt` (400 updates of configs/train/gpu.yaml), which the documented grid started from.
 """
