@@ -1,5 +1,4 @@
-"""The help format of every `tg-gpudrive` command: shared by tg_gpudrive.cli and the report's own
-parser (tg_gpudrive.evaluation.report), so neither imports the other for it. Standard library only."""
+"""The help format of every `tg-gpudrive` command (tg_gpudrive.cli's one parser). Standard library only."""
 
 from __future__ import annotations
 

@@ -8,5 +8,8 @@
     diversity.py       mean pairwise displacement of a scene's episodes
     risk.py            collisions, min TTC, min gap, hard braking, ranking of critical scenarios
     export.py          scenes and generated episodes to GPUDrive processed JSON
-    report.py          `tg-gpudrive report` (report_main, main)
+    report.py          `tg-gpudrive report`: collects the runs' episodes and gaps (cached), report_main
+    report_stats.py    the report's figures of merit: per-policy measures, knob directions, worst scenes
+    report_figures.py  its plots: the grid of trajectories, multipliers, gaps and their curves, worst scenes
+    report_markdown.py report.md (the findings) and per_agent.csv / per_scene.csv beside it
 """
