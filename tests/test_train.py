@@ -199,7 +199,7 @@ def test_small_cpu_config_learns(tmp_path):
 def test_nan_in_the_loss_itself_is_caught(tmp_path):
     tr = Trainer(tiny(tmp_path, updates=1, checkpoint_every=1), tmp_path, progress=False)
     buf, _ = tr.collect()
-    buf["reward"][0, 0, 0] = float("nan")
+    buf.reward[0, 0, 0] = float("nan")
     with pytest.raises(TrainingError, match=r"non-finite loss in update 0.*last good checkpoint"):
         tr.learn(buf)
 
@@ -307,7 +307,7 @@ def test_policy_step_does_not_shrink_when_the_critic_loss_is_large(tmp_path):
         tr = Trainer(tiny(tmp_path / str(scale), eta1=0.0, entropy_coef=0.0), tmp_path / str(scale),
                      progress=False)
         buf, _ = tr.collect()
-        buf["reward"].mul_(scale)
+        buf.reward.mul_(scale)
         before = [p.detach().clone() for p in tr.actor.parameters()]
         tr.learn(buf)
         moved.append(sum(float((p.detach() - b).abs().sum()) for p, b in zip(tr.actor.parameters(), before)))

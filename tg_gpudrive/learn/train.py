@@ -1,22 +1,13 @@
 """CCE-MAPPO (TrafficGamer) on the engine's tensors: `tg-gpudrive train`.
 
-One update = a rollout of `rollout_steps` steps in all W worlds, then PPO
-epochs. The loop reads and writes the simulator's tensors in place; the only
-Python loops are over steps, epochs and minibatches. Controlled agents sit in
-slots [0, C) of every world (the engine puts them first), so the learner works
-on (T, W, C, ...) blocks. Per agent i the actor minimises
-
-    PPO-clip(A_reward - lambda A_cost) - entropy_coef H
-        + eta1 KL(pi || pi_prior) + (1 / eta2) KL(pi || pi_previous)
-
-(losses.cce_mappo_actor_loss); the centralised critic regresses the reward
-lambda-returns; the quantile critic learns the distribution of the discounted
-cost-to-go; lambda >= 0 rises while CVaR_alpha of that distribution, averaged
-over the agents' states, exceeds `cost_limit` (set it above the logged drivers'
-own level, or the constraint is infeasible and lambda grows without bound).
-Actor and critic share one Adam optimiser but their gradients are clipped
-apart. The update reads values back from the GPU once, at its end (the row
-selections of the live agents are the only other host syncs).
+`Trainer.train` is the loop; each update is a rollout of `rollout_steps` steps in all W worlds
+(collector.RolloutCollector: a Rollout of (T, W, C, ...) blocks, controlled agents in slots [0, C)),
+then PPO epochs over it (update.ppo_update: advantages, the Lagrange step on the CVaR constraint, the
+actor and critic losses of losses.py). Around them the loop resamples scenes, logs (runlog.RunLog),
+checks the quality targets (targets.RateWindow, targets.HeldoutCheck), saves checkpoints and stops on
+the update count, the time limit, the target or a Ctrl-C (stop.StopRequest). The budget lambda
+answers to is `cost_limit` (x the logged drivers' own CVaR with `cost_limit_mode: logs`; set it above
+their level, or the constraint is infeasible and lambda grows without bound).
 
 Checkpoints are atomic (write, then rename) and hold everything a resume needs
 to continue exactly: weights, optimisers, lambda, RNG states, counters, the
@@ -29,9 +20,6 @@ import json
 import logging
 import math
 import random
-import signal
-import sys
-import threading
 import time
 from pathlib import Path
 
@@ -50,12 +38,15 @@ from tg_gpudrive.data.sources import resolve_scenes, source_report
 from tg_gpudrive.engine.control import cap_controlled, control_masks
 from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.history import HIST_DIM, HistoryBuffer
+from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector
 from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
+from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
+from tg_gpudrive.learn.update import Groups, minibatch_loss, ppo_update
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
@@ -65,7 +56,8 @@ SMALL_MINIBATCH = 16  # world-steps: a minibatch with fewer is warned about
 
 
 class TrainingError(RuntimeError):
-    pass
+    """Training cannot go on (a non-finite policy output or loss): stopped without saving, so the
+    checkpoint on disk stays the last good one."""
 
 
 def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
@@ -120,40 +112,12 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
     return L.cvar_from_quantiles(vals.sort().values, alpha)
 
 
-# ------------------------------------------------------------------- trainer
-class StopRequest:
-    """Ctrl-C during training: the first SIGINT asks the loop to end the update under way and save it
-    (a checkpoint at the last finished update, so --resume continues exactly); a second one stops at
-    once. Outside the main thread (where no handler can be installed) Ctrl-C keeps its default."""
-
-    def __init__(self):
-        self._flag = False
-        self._old = None
-
-    def __enter__(self) -> "StopRequest":
-        if threading.current_thread() is threading.main_thread():
-            self._old = signal.signal(signal.SIGINT, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
-
-    def _handle(self, signum, frame) -> None:
-        if self._flag:
-            raise KeyboardInterrupt
-        self._flag = True
-        print("\ntg-gpudrive train: Ctrl-C: finishing this update, then saving a checkpoint "
-              "(Ctrl-C again stops at once, keeping the last saved one)", file=sys.stderr)
-
-    def requested(self, device) -> bool:
-        """Whether a stop was asked for, on any rank (every rank must leave at the same update)."""
-        if dist_util.world_size() == 1:
-            return self._flag
-        return bool(dist_util.all_reduce_mean(torch.tensor(float(self._flag), device=device)) > 0)
-
-
 class Trainer:
+    """A training run: the worlds (scene source, sampler, simulator), the learner (networks, optimiser,
+    Lagrange multipliers) and the loop `train` over its collaborators: the rollout collector
+    (collector.py), the update (update.py), the logs (runlog.py), the quality targets (targets.py) and
+    the checkpoints. `resume` continues a run from its checkpoint (exactly, on one process)."""
+
     def __init__(self, cfg: TrainConfig, out_dir: str | Path | None = None, resume: str | Path | None = None,
                  progress: bool = True):
         self.cfg = cfg
@@ -172,45 +136,10 @@ class Trainer:
         torch.backends.cuda.matmul.allow_tf32 = True
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.rank)
-        self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
-        if self.world > 1:
-            self.source = dist_util.ShardSource(self.source, self.rank, self.world)
-        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.rank)
         # exact resume needs the same process count: engine states and samplers are per rank
         exact = ck is not None and ck.get("world_size", 1) == self.world == 1
-        if exact:
-            self.sampler.load_state_dict(ck["sampler"])
-            self.sampler.last_indices = np.asarray(ck["scene_indices"], np.int64)
-            scenes = [self.source.get(int(i)) for i in self.sampler.last_indices]
-        else:
-            scenes = self.sampler.sample()
-        self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_control`)
-        scenes, masks = self._worlds(scenes)
-        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=masks)
-        self.actor, self.critic = build_models(cfg, self.sim, self.device)
-        if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
-            self.actor.load_state_dict(ck["actor"])
-            self.critic.load_state_dict(ck["critic"])
-        elif cfg.init_policy:
-            self._init_weights(cfg.init_policy)
-        self.actor_fwd, self.critic_fwd = self.actor, self.critic
-        if self.world > 1:
-            ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
-            self.actor_fwd = DDP(self.actor, device_ids=ids)
-            self.critic_fwd = DDP(self.critic, device_ids=ids)
-        self.head = PolicyHead(cfg.env.discrete)
-        e = cfg.env
-        self._noop = e.noop_index
-        self.prior = make_prior(cfg, self.sim)
-        # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
-        self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
-        self.prior_logits = self.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
-        self.params = [*self.actor.parameters(), *self.critic.parameters()]
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
-        shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
-        self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
-        self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled below
-        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
+        self._build_worlds(ck if exact else None)
+        self._build_learner(ck)
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
@@ -228,6 +157,50 @@ class Trainer:
             self._load(ck, exact)
 
     # ------------------------------------------------------------ setup bits
+    def _build_worlds(self, ck: dict | None) -> None:
+        """The scene source (this rank's shard), the sampler and the simulator over its first draw, or
+        over the scenes of the checkpoint `ck` an exact resume continues."""
+        cfg = self.cfg
+        self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
+        if self.world > 1:
+            self.source = dist_util.ShardSource(self.source, self.rank, self.world)
+        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.rank)
+        if ck is not None:
+            self.sampler.load_state_dict(ck["sampler"])
+            self.sampler.last_indices = np.asarray(ck["scene_indices"], np.int64)
+            scenes = [self.source.get(int(i)) for i in self.sampler.last_indices]
+        else:
+            scenes = self.sampler.sample()
+        self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_worlds`)
+        scenes, masks = self._worlds(scenes)
+        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=masks)
+
+    def _build_learner(self, ck: dict | None) -> None:
+        """The networks (from the checkpoint `ck`, init_policy or fresh), the magnet, the optimiser, the
+        Lagrange multipliers, the sampling generator and the rollout collector."""
+        cfg = self.cfg
+        actor, critic = build_models(cfg, self.sim, self.device)
+        self.nets = Networks(actor, critic, PolicyHead(cfg.env.discrete), amp=self.sim.is_cuda and cfg.amp)
+        if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
+            actor.load_state_dict(ck["actor"])
+            critic.load_state_dict(ck["critic"])
+        elif cfg.init_policy:
+            self._init_weights(cfg.init_policy)
+        if self.world > 1:
+            ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
+            self.nets.actor_fwd = DDP(actor, device_ids=ids)
+            self.nets.critic_fwd = DDP(critic, device_ids=ids)
+        prior = make_prior(cfg, self.sim)
+        # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
+        self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
+        self.params = [*actor.parameters(), *critic.parameters()]
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
+        shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
+        self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
+        self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
+        self.collector = RolloutCollector(cfg, self.sim, self.nets, prior, self.gen, self.device, self.actor_hist)
+
     def _init_weights(self, source: str) -> None:
         """Actor and critic weights from the training checkpoint `source` (init_policy)."""
         path = checkpoint_path(source, "init_policy")
@@ -275,267 +248,50 @@ class Trainer:
         scenes, masks = self._worlds(self.sampler.sample())
         self.sim.set_scenes(scenes, controlled=masks, config=sized_for(self.cfg.env, scenes))
 
-    # ------------------------------------------------------------- rollout
-    def _amp(self):
-        """bf16 autocast for the networks on GPU (losses stay in float32)."""
-        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.sim.is_cuda and self.cfg.amp)
+    # ------------------------------------------------------ collect, learn
+    @property
+    def prior(self) -> BehaviourPrior:
+        """The magnet (make_prior); replacing it serves the next rollouts and updates."""
+        return self.collector.prior
 
-    def _policy_out(self, obs, slots, hist=None):
-        with self._amp():
-            out = self.actor(obs, slots, hist)
-        return out.float() if self.head.discrete else (out[0].float(), out[1].float())
+    @prior.setter
+    def prior(self, prior: BehaviourPrior) -> None:
+        self.collector.prior = prior
 
-    @torch.no_grad()
-    def collect(self) -> tuple[dict, dict]:
-        """Drive every world for `rollout_steps` steps under the current policy: (the buffers the update
-        reads, this rollout's episode and throughput stats)."""
-        cfg, sim = self.cfg, self.sim
-        T, W, C = cfg.rollout_steps, sim.num_worlds, max(sim.max_controlled, 1)
-        dev = self.device
-        buf = self._buffers(T, W, C)
-        stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev), "alive": torch.zeros((), device=dev),
-                 "episodes": torch.zeros((), device=dev), "goal": torch.zeros((), device=dev),
-                 "collided": torch.zeros((), device=dev), "offroad": torch.zeros((), device=dev),
-                 "min_dist": torch.zeros((), device=dev), "speed": torch.zeros((), device=dev)}
-        bad = torch.zeros((), dtype=torch.bool, device=dev)  # non-finite policy output, checked once per rollout
-        for t in range(T):
-            obs = sim.obs[:, :C]
-            mask = sim.active[:, :C] != 0
-            # the actor runs on the live rows only (often under half of W x C); the other
-            # slots get the no-op action, which the engine ignores for agents that do not act
-            w_idx, c_idx = mask.nonzero(as_tuple=True)
-            hist = None
-            if self.actor_hist is not None:  # the actor's motion window, synced once per step
-                self.actor_hist.sync(sim)
-                buf["hist"][t] = self.actor_hist.features(sim, slice(0, C))
-                hist = buf["hist"][t][w_idx, c_idx]
-            out = self._policy_out(obs[w_idx, c_idx], c_idx, hist)
-            if self.head.discrete:
-                bad |= ~torch.isfinite(out).all()
-                out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-            else:
-                bad |= ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
-                out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
-            d = self.head.dist(out)
-            # sampled with our own generator, so a resumed run replays the same actions
-            if self.head.discrete:
-                a = torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0] if len(w_idx) else \
-                    torch.zeros(0, dtype=torch.long, device=dev)
-            else:
-                a = out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=dev)
-            act = buf["act"][t]
-            act.fill_(self._noop if self.head.discrete else 0.0)  # rows that do not act
-            act[w_idx, c_idx] = a.to(act.dtype)
-            buf["logp"][t][w_idx, c_idx] = d.log_prob(a)
-            if self.head.discrete:
-                buf["old"][t][w_idx, c_idx] = out
-            else:
-                buf["old"][0][t][w_idx, c_idx], buf["old"][1][t][w_idx, c_idx] = out
-            buf["obs"][t].copy_(obs)
-            buf["mask"][t] = mask
-            with self._amp():
-                buf["value"][t], buf["quant"][t] = self.critic(obs, mask, w_idx * C + c_idx)
-            if self.prior_logits:
-                # the discrete magnet's logits, once per live row and step (bf16 on GPU): computing
-                # them per minibatch and epoch instead doubled the update time with the world model
-                ctx = self.prior.context(sim, C)
-                with self._amp():
-                    buf["prior"][t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
-            elif self.cfg.eta1 > 0:
-                buf["prior"][t] = self.prior.context(sim, C)
-            if self.head.discrete:
-                sim.actions_index[:, :C] = act.to(torch.int32)
-            else:
-                sim.actions[:, :C, : act.shape[-1]] = act
-            sim.step()
-            self._record_step(buf, stats, t, C)
-        obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
-        with self._amp():
-            buf["value"][T], buf["quant"][T] = self.critic(obs, mask)
-        if bool(bad):
-            raise TrainingError(f"non-finite policy output during the rollout of update {self.update}; stopped "
-                                f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
-        return buf, stats
+    actor = property(lambda self: self.nets.actor, doc="the policy network")
+    critic = property(lambda self: self.nets.critic, doc="the reward value and cost quantile network")
+    head = property(lambda self: self.nets.head, doc="the actor's output as a distribution")
 
-    def _record_step(self, buf: dict, stats: dict, t: int, C: int) -> None:
-        """After step t: its rewards, costs and ends into the buffers; its reward terms, speed and the
-        outcomes of the episodes that ended into the rollout's stats (on the device, no host sync)."""
-        sim = self.sim
-        alive = sim.alive[:, :C].float()
-        buf["reward"][t] = sim.reward[:, :C]
-        buf["cost"][t] = sim.cost[:, :C]
-        buf["done"][t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
-        stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
-        stats["alive"] += alive.sum()
-        stats["speed"] += (sim.speed[:, :C] * alive).sum()
-        ended = (sim.world_ended[:, None] != 0) & sim.policy_agents[:, :C]
-        stats["episodes"] += ended.sum()
-        stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
-        stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
-        stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
-        stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
+    def collect(self) -> tuple[Rollout, dict]:
+        """One rollout in every world (collector.RolloutCollector): (the batch, its episode and throughput
+        counters, also `batch.stats`)."""
+        try:
+            batch = self.collector.collect()
+        except NonFinite as e:
+            raise self._spoilt(f"{e.what} during the rollout of update {self.update}") from None
+        return batch, batch.stats
 
-    def _buffers(self, T: int, W: int, C: int) -> dict:
-        """Rollout storage, allocated once per shape (several GB at 4,096 worlds) and reused:
-        every entry is overwritten by each rollout, so nothing needs clearing."""
-        key = (T, W, C)
-        if getattr(self, "_buf_key", None) == key:
-            return self._buf
-        cfg, sim, dev = self.cfg, self.sim, self.device
-        self._buf = None  # drop the old storage before allocating the new one
-        act = (T, W, C) if self.head.discrete else (T, W, C, self.cfg.env.act_dim)
-        # under bf16 autocast the networks round their inputs to bf16 anyway: store them so
-        obs_dtype = torch.bfloat16 if sim.is_cuda and cfg.amp else torch.float32
-        buf = {
-            "obs": torch.zeros((T, W, C, sim.obs_dim), dtype=obs_dtype, device=dev),
-            "act": torch.zeros(act, device=dev),
-            "logp": torch.zeros((T, W, C), device=dev),
-            "mask": torch.zeros((T, W, C), dtype=torch.bool, device=dev),
-            "reward": torch.zeros((T, W, C), device=dev),
-            "cost": torch.zeros((T, W, C), device=dev),
-            "done": torch.zeros((T, W, C), device=dev),
-            "value": torch.zeros((T + 1, W, C), device=dev),
-            "quant": torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
-            "prior": torch.zeros((T, W, C, self._prior_dim()), device=dev),
-        }
-        if self.actor_hist is not None:
-            buf["hist"] = torch.zeros((T, W, C, cfg.actor_history, HIST_DIM), device=dev)
-        buf["old"] = (torch.zeros((T, W, C, sim.num_actions), device=dev) if self.head.discrete
-                      else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)))
-        self._buf, self._buf_key = buf, key
-        return buf
+    def learn(self, batch: Rollout | dict) -> dict:
+        """One CCE-MAPPO update on `batch` (update.ppo_update): the update's row of metrics."""
+        try:
+            return ppo_update(self.cfg, Rollout.of(batch), self.nets, self.opt, self.lagrange, self.budget,
+                              self.gen, self.prior)
+        except NonFinite as e:
+            raise self._spoilt(f"{e.what} in update {self.update} ({e.detail})") from None
 
-    def _prior_dim(self) -> int:
-        """Per row and step: the magnet's logits (discrete), its context (continuous), nothing (eta1 0)."""
-        if self.cfg.eta1 <= 0:
-            return 0
-        return self.sim.num_actions if self.prior_logits else getattr(self.prior, "context_dim", 4)
+    def minibatch_loss(self, b: Groups | dict, idx: torch.Tensor, lam) -> tuple[torch.Tensor, dict]:
+        """The loss of the flattened groups `idx` of `b` (update.minibatch_loss)."""
+        return minibatch_loss(self.cfg, Groups.of(b), idx, lam, self.nets, self.prior)
 
-    # --------------------------------------------------------------- update
-    def learn(self, buf: dict) -> dict:
-        cfg = self.cfg
-        T, W, C = buf["reward"].shape
-        adv_r, ret_r = L.gae(buf["reward"], buf["value"], buf["done"], cfg.gamma, cfg.gae_lambda)
-        # the critic as it was during the rollout is the cost critic's target network (hard update once
-        # per PPO update); it is read inside the cost-to-go's support (targets, advantages, constraint)
-        quant = buf["quant"].clamp(0.0, L.cost_to_go_bound(cfg.gamma))
-        adv_c, cvar = L.cvar_gae(buf["cost"], quant, buf["done"], cfg.alpha, cfg.gamma, cfg.gae_lambda)
-        q_target = L.cost_quantile_targets(buf["cost"], quant, buf["done"], cfg.gamma, cfg.cost_nstep)
-        mask = buf["mask"]
-        # the constraint per agent slot: the mean over its live states of CVaR_alpha(Z(o))
-        cnt = mask.sum((0, 1))
-        jc = torch.zeros(cfg.env.max_agents, device=self.device)
-        jc[:C] = (cvar[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
-        seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=self.device)
-        seen[:C] = cnt > 0
-        jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0  # equal lambdas on all ranks
-        if not cfg.per_agent_lambda:  # one multiplier for all: the mean over the slots that had agents
-            jc = (jc * seen).sum() / seen.sum().clamp(min=1)
-        lam_before = self.lagrange.value.detach().clone()
-        if cfg.constraint:
-            # a slot without agents in this rollout keeps its multiplier
-            step = jc if not cfg.per_agent_lambda else torch.where(seen, jc, self.budget)
-            self.lagrange.update(step, self.budget)
-        else:
-            lam_before = torch.zeros_like(lam_before)
-        lam = lam_before[:C] if cfg.per_agent_lambda else lam_before
-
-        n_groups = T * W
-        batch = self.flatten(buf, adv_r, adv_c, ret_r, q_target)
-        mb = max(1, n_groups // cfg.minibatches)
-        # loss parts accumulate on the device and are read once: a read per minibatch would
-        # stall the launch queue on every one of them
-        acc: dict[str, torch.Tensor] = {}
-        bad = torch.zeros((), dtype=torch.bool, device=self.device)
-        n_mb = 0
-        for _ in range(cfg.epochs):
-            perm = torch.randperm(n_groups, generator=self.gen, device=self.device)
-            for s in range(0, n_groups, mb):
-                loss, parts = self.minibatch_loss(batch, perm[s:s + mb], lam)
-                bad |= ~torch.isfinite(loss)
-                self.opt.zero_grad(set_to_none=True)
-                loss.backward()  # under DDP the gradients are averaged over the ranks here
-                # actor and critic clipped apart: one joint norm lets the critic's large early
-                # regression gradients scale the policy's step down to nothing
-                torch.nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
-                torch.nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
-                self.opt.step()
-                for k, val in parts.items():
-                    acc[k] = acc.get(k, 0.0) + val.detach()
-                n_mb += 1
-        acc = {k: float(v) for k, v in acc.items()}
-        if bool(bad):
-            # the weights in memory are spoilt, nothing is saved: the checkpoint on disk stays the last good one
-            raise TrainingError(
-                f"non-finite loss in update {self.update} (mean policy {acc['loss/policy'] / n_mb:.4g}, value "
-                f"{acc['loss/value'] / n_mb:.4g}, cost quantiles {acc['loss/cost_quantile'] / n_mb:.4g}); stopped "
-                f"without saving, the last good checkpoint is {self.out / 'checkpoint.pt'}")
-        out = {k: v / max(n_mb, 1) for k, v in acc.items()}
-        out["cvar"] = float(L.masked_mean(cvar[:-1], mask))
-        lam_now = self.lagrange.value[seen] if cfg.per_agent_lambda else self.lagrange.value
-        out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
-        out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
-        out["cost_budget"] = float(self.budget)
-        return out
-
-    def flatten(self, buf, adv_r, adv_c, ret_r, q_target) -> dict:
-        """(T, W, C, ...) rollout tensors -> (T*W, C, ...) groups: one group = one world at one step."""
-        T, W = buf["reward"].shape[:2]
-        flat = lambda x: x.reshape(T * W, *x.shape[2:])  # noqa: E731
-        b = {k: flat(buf[k]) for k in ("obs", "act", "logp", "mask", "prior", "hist") if k in buf}
-        b.update(adv_r=flat(adv_r), adv_c=flat(adv_c), ret_r=flat(ret_r), q_target=flat(q_target))
-        b["old"] = flat(buf["old"]) if self.head.discrete else (flat(buf["old"][0]), flat(buf["old"][1]))
-        return b
-
-    def minibatch_loss(self, b: dict, idx: torch.Tensor, lam) -> tuple[torch.Tensor, dict]:
-        """CCE-MAPPO loss of the groups `idx`: actor on their live rows, critic on the groups."""
-        cfg = self.cfg
-        mi = b["mask"][idx]
-        # the actor is per agent: run it on the live rows only (often under half of W x C)
-        g, c = mi.nonzero(as_tuple=True)
-        weight = 1.0
-        if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
-            g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
-                1, dtype=torch.long, device=idx.device), 0.0
-        rows = idx[g]
-        obs = b["obs"]
-        with self._amp():
-            out = self.actor_fwd(obs[rows, c], c, b["hist"][rows, c] if "hist" in b else None)
-            v, q = self.critic_fwd(obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
-        out = out.float() if self.head.discrete else (out[0].float(), out[1].float())
-        v, q = v.float(), q.float()
-        d = self.head.dist(out)
-        logp = d.log_prob(b["act"][rows, c])
-        ent = d.entropy()
-        old = b["old"]
-        old_out = old[rows, c] if self.head.discrete else (old[0][rows, c], old[1][rows, c])
-        if cfg.eta1 <= 0:  # plain MAPPO: no magnet to evaluate
-            kl_prior = torch.zeros_like(logp)
-        else:
-            prior_out = b["prior"][rows, c] if self.prior_logits else \
-                self.prior.distribution(b["prior"][rows, c], obs[rows, c].float())
-            kl_prior = self.head.kl(out, prior_out)
-        kl_prev = self.head.kl(out, old_out)
-        lam_rows = lam[c] if cfg.per_agent_lambda else lam
-        loss_pi, st = L.cce_mappo_actor_loss(
-            logp, b["logp"][rows, c], b["adv_r"][rows, c], b["adv_c"][rows, c], lam_rows, ent, kl_prior,
-            kl_prev, clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef, eta1=cfg.eta1, eta2=cfg.eta2,
-            normalize_advantages=cfg.normalize_advantages)
-        loss_v = (v[g, c] - b["ret_r"][rows, c]).pow(2).mean()
-        # quantile loss on live rows, against at most 16 evenly spaced target samples: the
-        # pairwise (N x M) Huber term is otherwise the largest tensor of the update
-        tq = b["q_target"][rows, c]
-        if tq.shape[-1] > 16:
-            tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, 16, device=tq.device).round().long()]
-        loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
-        loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
-        parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
-                 "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
-                 "clip_frac": st["clip_frac"]}
-        return loss, parts
+    def _spoilt(self, what: str) -> TrainingError:
+        # the weights in memory are spoilt, nothing is saved: the checkpoint on disk stays the last good one
+        return TrainingError(f"{what}; stopped without saving, the last good checkpoint is "
+                             f"{self.out / 'checkpoint.pt'}")
 
     # ----------------------------------------------------------------- loop
     def train(self) -> dict:
+        """Update until cfg.updates, the time limit, the quality target or a Ctrl-C, under a progress bar;
+        then curves.png. The last update's metrics row."""
         cfg = self.cfg
         bar = None
         if self.progress:
@@ -552,7 +308,7 @@ class Trainer:
         self.runlog.close()
         return last
 
-    def _loop(self, bar, stop: "StopRequest", t_start: float, elapsed0: float) -> dict:
+    def _loop(self, bar, stop: StopRequest, t_start: float, elapsed0: float) -> dict:
         """Updates until cfg.updates, the time limit, the quality target or a Ctrl-C (which ends the
         update under way and saves it); the last update's metrics row."""
         cfg = self.cfg
@@ -589,13 +345,13 @@ class Trainer:
     def _step(self, elapsed0: float, t_start: float) -> tuple[dict, dict]:
         """One update: collect, reduce the stats over the ranks, learn, count, log. (metrics row, stats)."""
         t0 = time.perf_counter()
-        buf, stats = self.collect()
+        batch, stats = self.collect()
         self._sync()
         t_own = time.perf_counter() - t0  # this rank's rollout
         dist_util.all_reduce_sum_(stats)  # rates and throughput over all ranks
         self._sync()
         t_roll = time.perf_counter() - t0  # until the slowest rank's rollout is in
-        row = self.learn(buf)
+        row = self.learn(batch)
         self._sync()
         dt = time.perf_counter() - t0
         # where each rank's time went: its rollout, waiting for the slowest rollout, the update
@@ -609,12 +365,12 @@ class Trainer:
         steps = int(stats["alive"])
         self.agent_steps += steps
         self.update += 1
-        row.update(self._row(buf, stats, steps, dt, t_roll))
+        row.update(self._row(batch, stats, steps, dt, t_roll))
         self.runlog.metrics(row)
         self.runlog.timing(self.update, phases)
         return row, stats
 
-    def _row(self, buf: dict, stats: dict, steps: int, dt: float, t_roll: float) -> dict:
+    def _row(self, batch: Rollout, stats: dict, steps: int, dt: float, t_roll: float) -> dict:
         """The counters, rates, reward terms and throughput of the update just done (metrics.csv)."""
         n_ep = float(stats["episodes"])
         per = lambda key: float(stats[key]) / n_ep if n_ep else float("nan")  # noqa: E731
@@ -624,7 +380,7 @@ class Trainer:
             "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
             "episodes": n_ep, "goal_rate": per("goal"), "collision_rate": per("collided"),
             "offroad_rate": per("offroad"), "mean_min_distance": per("min_dist"),
-            "cost": float(buf["cost"].sum() / max(int(buf["mask"].sum()), 1)),
+            "cost": float(batch.cost.sum() / max(int(batch.mask.sum()), 1)),
             "mean_speed": float(stats["speed"]) / max(steps, 1),
             "scenes_visited": self.sampler.visited,
             **source_report(self.source),  # files that do not load, scenes that cannot be played
@@ -632,7 +388,7 @@ class Trainer:
         per_term = stats["terms"] / max(steps, 1)
         for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
             row[f"reward/{name}"] = v
-        row["reward"] = float(buf["reward"].sum() / max(int(buf["mask"].sum()), 1))
+        row["reward"] = float(batch.reward.sum() / max(int(batch.mask.sum()), 1))
         row["ranks"] = self.world
         if self.sim.is_cuda:
             row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
@@ -683,13 +439,15 @@ class Trainer:
 
     # -------------------------------------------------------- checkpoints
     def state_dict(self) -> dict:
+        """The checkpoint: everything an exact resume reads (`_load`), and the config and actor that
+        evaluation and init_policy read."""
         rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
                "gen": self.gen.get_state()}
         if torch.cuda.is_available():
             rng["cuda"] = torch.cuda.get_rng_state_all()
         return {
-            "kind": POLICY, "config": to_dict(self.cfg), "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
-            "opt": self.opt.state_dict(),
+            "kind": POLICY, "config": to_dict(self.cfg), "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(), "opt": self.opt.state_dict(),
             "lagrange": self.lagrange.state_dict(), "cost_budget": float(self.budget),
             "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "elapsed": self.elapsed,
             "rng": rng,
@@ -700,6 +458,7 @@ class Trainer:
         }
 
     def save(self) -> Path:
+        """checkpoint.pt (the previous one kept beside it) and config.json of the run directory."""
         path = save_atomic(self.state_dict(), self.out / "checkpoint.pt", keep_previous=True)
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
@@ -713,6 +472,9 @@ class Trainer:
         return save_atomic(snap, self.out / POLICY_DIR / f"update_{self.update:06d}.pt")
 
     def _load(self, ck: dict, exact: bool) -> None:
+        """Continue from the checkpoint `ck` (whose weights are in already): exactly (RNG states, engine
+        state mid-episode, the prior's and the actor's motion windows) when `exact`, else its optimiser,
+        lambda and counters; the logs lose the rows written after it."""
         self.opt.load_state_dict(ck["opt"])
         self.lagrange.load_state_dict(ck["lagrange"])
         self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
@@ -738,6 +500,7 @@ class Trainer:
 
 
 def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> dict:
+    """`tg-gpudrive train`: a run to its end; the last update's metrics (without NaNs) and where it is."""
     trainer = Trainer(cfg, out_dir, resume, progress)
     last = trainer.train()
     return {k: v for k, v in last.items() if not (isinstance(v, float) and math.isnan(v))} | {

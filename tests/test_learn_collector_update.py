@@ -1,0 +1,107 @@
+"""The rollout collector and the CCE-MAPPO update on their own, without a Trainer: a rollout of two
+CPU worlds has the documented shapes and masks, and one update moves the weights and reports finite
+numbers (or stops with NonFinite on a NaN reward)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from tg_gpudrive.agents.policy import PolicyHead, build_models
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import HIST_DIM, HistoryBuffer
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector
+from tg_gpudrive.learn.train import make_prior
+from tg_gpudrive.learn.update import flatten, advantages, ppo_update
+
+from test_train import tiny
+
+CASES = {"discrete": dict(), "continuous+history": dict(prior="expert", actor_history=3)}
+
+
+def _setup(tmp_path, case: str):
+    """A 2-world CPU simulator, the networks, optimiser and multipliers of a tiny run, and its collector."""
+    cfg = tiny(tmp_path, **CASES[case])
+    if case.startswith("continuous"):
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, action_space="continuous"))
+    torch.manual_seed(0)
+    src = resolve_scenes(cfg.scenes, n=cfg.num_worlds, seed=cfg.seed)
+    sim = Simulator([src.get(i) for i in range(cfg.num_worlds)], cfg.env, "cpu")
+    actor, critic = build_models(cfg, sim, "cpu")
+    nets = Networks(actor, critic, PolicyHead(cfg.env.discrete))
+    gen = torch.Generator().manual_seed(0)
+    hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
+    prior = make_prior(cfg, sim)
+    sim.reset()
+    collector = RolloutCollector(cfg, sim, nets, prior, gen, "cpu", hist)
+    opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
+    lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, (cfg.env.max_agents,))
+    return cfg, sim, nets, collector, opt, lagrange, gen, prior
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_collector_fills_a_rollout_of_the_documented_shapes(tmp_path, case):
+    cfg, sim, nets, collector, *_ = _setup(tmp_path, case)
+    batch = collector.collect()
+    T, W, C = cfg.rollout_steps, cfg.num_worlds, max(sim.max_controlled, 1)
+    assert isinstance(batch, Rollout) and batch.mask.dtype == torch.bool
+    assert batch.obs.shape == (T, W, C, sim.obs_dim)
+    assert batch.value.shape == (T + 1, W, C) and batch.quant.shape == (T + 1, W, C, cfg.quantiles)
+    for x in (batch.logp, batch.reward, batch.cost, batch.done):
+        assert x.shape == (T, W, C)
+    m = batch.mask
+    assert bool(m[0].any())  # agents acted at the first step
+    assert torch.isfinite(batch.logp[m]).all() and set(batch.done.unique().tolist()) <= {0.0, 1.0}
+    if nets.head.discrete:  # the no-op where an agent did not act; the magnet's logits on its live rows
+        assert (batch.act[~m] == cfg.env.noop_index).all()
+        assert batch.prior.shape == (T, W, C, sim.num_actions) and batch.old.shape == (T, W, C, sim.num_actions)
+        assert (batch.logp[m] <= 0).all()
+    else:
+        assert batch.act.shape == (T, W, C, cfg.env.act_dim) and (batch.act[~m] == 0).all()
+        assert batch.prior.shape[:3] == (T, W, C) and batch.prior.shape[-1] == 4  # the expert's context
+        assert all(o.shape == batch.act.shape for o in batch.old)
+    assert (batch.hist is None) == (cfg.actor_history == 0)
+    if batch.hist is not None:
+        assert batch.hist.shape == (T, W, C, cfg.actor_history, HIST_DIM)
+    st = batch.stats
+    assert st["terms"].shape == (len(sim.reward_term_names),) and float(st["alive"]) > 0
+    assert float(st["episodes"]) >= float(st["goal"]) >= 0
+    # by name, as the scripts read it, and back
+    assert batch["mask"] is batch.mask and ("hist" in batch) == (batch.hist is not None)
+    again = Rollout.of(dict(batch, reward=batch.reward * 2))
+    assert torch.equal(again.reward, 2 * batch.reward) and again.obs is batch.obs
+    groups = flatten(batch, advantages(cfg, batch), nets.head.discrete)
+    assert groups.obs.shape == (T * W, C, sim.obs_dim) and groups.q_target.shape[:2] == (T * W, C)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_one_update_moves_the_weights_and_reports_finite_numbers(tmp_path, case):
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, case)
+    batch = collector.collect()
+    before = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    n_actor = len(list(nets.actor.parameters()))
+    budget = torch.tensor(0.0)  # any cost is over it: lambda rises on the slots that had agents
+    lam0 = lagrange.value.detach().clone()
+    out = ppo_update(cfg, batch, nets, opt, lagrange, budget, gen, prior)
+    want = {"loss/policy", "loss/value", "loss/cost_quantile", "kl/prior", "kl/prev", "entropy", "clip_frac",
+            "cvar", "lambda", "lambda_max", "cost_budget"}
+    assert set(out) == want and all(math.isfinite(v) for v in out.values()), out
+    after = [p.detach() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    moved = [not torch.equal(a, b) for a, b in zip(before, after)]
+    assert any(moved[:n_actor]) and any(moved[n_actor:])
+    seen = batch.mask.any((0, 1))
+    assert (lagrange.value[:len(seen)][seen] >= lam0[:len(seen)][seen]).all()
+
+
+def test_a_nan_reward_stops_the_update_with_nonfinite(tmp_path):
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete")
+    batch = collector.collect()
+    batch.reward[0, 0, 0] = float("nan")
+    with pytest.raises(NonFinite, match="non-finite loss") as e:
+        ppo_update(cfg, batch, nets, opt, lagrange, torch.tensor(1.0), gen, prior)
+    assert e.value.what == "non-finite loss" and "mean policy" in e.value.detail

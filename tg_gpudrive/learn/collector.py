@@ -1,0 +1,246 @@
+"""Rollout collection for CCE-MAPPO: drive every world for `rollout_steps` steps under the current actor
+and keep what the update reads.
+
+Per step the actor runs on the live rows only (often under half of W x C) and samples with the trainer's
+own generator (so a resumed run replays the same actions); the critic values every slot; the magnet
+(the behaviour prior) stores its logits or its context; the engine steps; rewards, costs, ends and the
+episodes that ended go into the buffers and the rollout's counters, all on the device. Controlled agents
+sit in slots [0, C) of every world, so every buffer is a (T, W, C, ...) block. The buffers are allocated
+once per shape (several GB at 4,096 worlds) and overwritten by every rollout.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import torch
+
+from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead
+from tg_gpudrive.config import TrainConfig
+from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.history import HIST_DIM, HistoryBuffer
+
+Tensor = torch.Tensor
+STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "min_dist", "speed")
+
+
+class NonFinite(RuntimeError):
+    """NaN or inf in what the networks produced (a rollout's policy output, an update's loss): the
+    weights in memory are spoilt. `what` names it, `detail` adds the numbers; the trainer says which
+    update it was and which checkpoint is the last good one."""
+
+    def __init__(self, what: str, detail: str = ""):
+        super().__init__(f"{what} ({detail})" if detail else what)
+        self.what, self.detail = what, detail
+
+
+class ByName:
+    """Read access by field name, `batch["mask"]`, and `dict(batch, prior=...)` copies, for the scripts
+    and tests that handle a batch as a mapping; `of` turns such a mapping back into the dataclass."""
+
+    def keys(self) -> list[str]:
+        return [f.name for f in dataclasses.fields(self) if getattr(self, f.name) is not None]
+
+    def __getitem__(self, key: str):
+        if key not in self.keys():
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.keys()
+
+    @classmethod
+    def of(cls, batch):
+        """`batch` itself when it is one already, else the dataclass of the mapping's entries."""
+        return batch if isinstance(batch, cls) else cls(**{k: batch[k] for k in batch.keys()})
+
+
+@dataclass
+class Rollout(ByName):
+    """One rollout of T steps in W worlds for the C controlled slots, as the update reads it. A row
+    (step, world, slot) counts where `mask` is set (the agent acted); the others hold filler."""
+
+    obs: Tensor  # (T, W, C, obs_dim); bf16 under GPU autocast (what the networks round it to anyway)
+    act: Tensor  # (T, W, C) action indices (discrete) or (T, W, C, act_dim) actions; the no-op where not live
+    logp: Tensor  # (T, W, C) log-probability of `act` under the rollout's policy
+    mask: Tensor  # (T, W, C) bool: the agent was live (acted) at that step
+    reward: Tensor  # (T, W, C) the step's reward
+    cost: Tensor  # (T, W, C) the step's cost (what the constraint bounds)
+    done: Tensor  # (T, W, C) 1.0 where the agent's episode ended at that step (terminated or world ended)
+    value: Tensor  # (T + 1, W, C) the critic's reward value; row T bootstraps the last step
+    quant: Tensor  # (T + 1, W, C, quantiles) the cost critic's quantiles of the discounted cost-to-go
+    prior: Tensor  # (T, W, C, P) the magnet: its logits (discrete), its context (continuous), P 0 (eta1 0)
+    old: Tensor | tuple[Tensor, Tensor]  # the rollout policy's output: logits, or (mean, log_std)
+    hist: Tensor | None = None  # (T, W, C, actor_history, HIST_DIM) the actor's motion window, if it has one
+    # the rollout's counters, summed on the device (and over the ranks by the trainer): reward `terms`,
+    # `alive` agent-steps, their `speed`, and the `episodes` that ended with their `goal`, `collided`,
+    # `offroad` and `min_dist` outcomes
+    stats: dict[str, Tensor] = field(default_factory=dict)
+
+
+@dataclass
+class Networks:
+    """The learner's networks: actor and critic, the views the update runs them through (DDP-wrapped on
+    several ranks, else the modules themselves), the head that turns the actor's output into a
+    distribution, and whether they run under bf16 autocast (GPU with `amp`; losses stay float32)."""
+
+    actor: torch.nn.Module
+    critic: torch.nn.Module
+    head: PolicyHead
+    amp: bool = False
+    actor_fwd: torch.nn.Module | None = None
+    critic_fwd: torch.nn.Module | None = None
+
+    def __post_init__(self):
+        self.actor_fwd = self.actor_fwd or self.actor
+        self.critic_fwd = self.critic_fwd or self.critic
+
+    def autocast(self):
+        """bf16 autocast around the networks' forward passes when `amp`, else nothing."""
+        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp)
+
+    def float_out(self, out):
+        """The actor's output in float32: logits, or (mean, log_std)."""
+        return out.float() if self.head.discrete else (out[0].float(), out[1].float())
+
+
+class RolloutCollector:
+    """Fills a Rollout from the simulator under the current actor (see the module docstring). `prior` may
+    be replaced between rollouts (the magnet is read at every step)."""
+
+    def __init__(self, cfg: TrainConfig, sim: Simulator, nets: Networks, prior: BehaviourPrior,
+                 gen: torch.Generator, device, actor_hist: HistoryBuffer | None = None):
+        self.cfg, self.sim, self.nets, self.prior, self.gen, self.device = cfg, sim, nets, prior, gen, device
+        self.actor_hist = actor_hist  # the actor's own motion window: kept in step with the engine
+        self.prior_logits = nets.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
+        self._buf: Rollout | None = None
+        self._buf_key = None
+
+    @torch.no_grad()
+    def collect(self) -> Rollout:
+        """Drive every world for `rollout_steps` steps; raises NonFinite if the policy's output was not
+        finite (checked once per rollout)."""
+        sim, nets = self.sim, self.nets
+        T, C = self.cfg.rollout_steps, max(sim.max_controlled, 1)
+        buf = self._buffers(T, sim.num_worlds, C)
+        stats = {"terms": torch.zeros(len(sim.reward_term_names), device=self.device)}
+        stats.update({k: torch.zeros((), device=self.device) for k in STAT_KEYS})
+        bad = torch.zeros((), dtype=torch.bool, device=self.device)
+        for t in range(T):
+            bad |= self._act(buf, t, C)
+            sim.step()
+            self._record_step(buf, stats, t, C)
+        obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
+        with nets.autocast():
+            buf.value[T], buf.quant[T] = nets.critic(obs, mask)
+        if bool(bad):
+            raise NonFinite("non-finite policy output")
+        return dataclasses.replace(buf, stats=stats)
+
+    def _act(self, buf: Rollout, t: int, C: int) -> Tensor:
+        """Step t before the engine steps: sample the live agents' actions, store them with the rollout
+        policy's output, the observations, the critic's values and the magnet, and hand the actions to
+        the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
+        sim, nets, head = self.sim, self.nets, self.nets.head
+        obs = sim.obs[:, :C]
+        mask = sim.active[:, :C] != 0
+        # the other slots get the no-op action, which the engine ignores for agents that do not act
+        w_idx, c_idx = mask.nonzero(as_tuple=True)
+        hist = None
+        if self.actor_hist is not None:  # the actor's motion window, synced once per step
+            self.actor_hist.sync(sim)
+            buf.hist[t] = self.actor_hist.features(sim, slice(0, C))
+            hist = buf.hist[t][w_idx, c_idx]
+        with nets.autocast():
+            out = nets.float_out(nets.actor(obs[w_idx, c_idx], c_idx, hist))
+        if head.discrete:
+            bad = ~torch.isfinite(out).all()
+            out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+        else:
+            bad = ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
+            out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
+        d = head.dist(out)
+        a = self._sample(out, len(w_idx))
+        act = buf.act[t]
+        act.fill_(self.cfg.env.noop_index if head.discrete else 0.0)  # rows that do not act
+        act[w_idx, c_idx] = a.to(act.dtype)
+        buf.logp[t][w_idx, c_idx] = d.log_prob(a)
+        if head.discrete:
+            buf.old[t][w_idx, c_idx] = out
+        else:
+            buf.old[0][t][w_idx, c_idx], buf.old[1][t][w_idx, c_idx] = out
+        buf.obs[t].copy_(obs)
+        buf.mask[t] = mask
+        with nets.autocast():
+            buf.value[t], buf.quant[t] = nets.critic(obs, mask, w_idx * C + c_idx)
+        self._magnet(buf, t, C, obs, w_idx, c_idx)
+        if head.discrete:
+            sim.actions_index[:, :C] = act.to(torch.int32)
+        else:
+            sim.actions[:, :C, : act.shape[-1]] = act
+        return bad
+
+    def _sample(self, out, n: int) -> Tensor:
+        """Actions of the n live rows, drawn with the trainer's generator."""
+        if not self.nets.head.discrete:
+            return out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=self.device)
+        if n == 0:
+            return torch.zeros(0, dtype=torch.long, device=self.device)
+        return torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0]
+
+    def _magnet(self, buf: Rollout, t: int, C: int, obs: Tensor, w_idx: Tensor, c_idx: Tensor) -> None:
+        """The magnet of step t: the discrete prior's logits once per live row (bf16 on GPU; computing them
+        per minibatch and epoch instead doubled the update time with the world model), else its context."""
+        if self.prior_logits:
+            ctx = self.prior.context(self.sim, C)
+            with self.nets.autocast():
+                buf.prior[t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
+        elif self.cfg.eta1 > 0:
+            buf.prior[t] = self.prior.context(self.sim, C)
+
+    def _record_step(self, buf: Rollout, stats: dict, t: int, C: int) -> None:
+        """After step t: its rewards, costs and ends into the buffers; its reward terms, speed and the
+        outcomes of the episodes that ended into the rollout's stats (on the device, no host sync)."""
+        sim = self.sim
+        alive = sim.alive[:, :C].float()
+        buf.reward[t] = sim.reward[:, :C]
+        buf.cost[t] = sim.cost[:, :C]
+        buf.done[t] = ((sim.terminated[:, :C] != 0) | (sim.world_ended[:, None] != 0)).float()
+        stats["terms"] += (sim.reward_terms[:, :C] * alive[..., None]).sum((0, 1))
+        stats["alive"] += alive.sum()
+        stats["speed"] += (sim.speed[:, :C] * alive).sum()
+        ended = (sim.world_ended[:, None] != 0) & sim.policy_agents[:, :C]
+        stats["episodes"] += ended.sum()
+        stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
+        stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
+        stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
+        stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
+
+    def _buffers(self, T: int, W: int, C: int) -> Rollout:
+        """Rollout storage, allocated once per shape and reused: every entry is overwritten by each
+        rollout, so nothing needs clearing."""
+        key = (T, W, C)
+        if self._buf_key == key:
+            return self._buf
+        cfg, sim, dev, discrete = self.cfg, self.sim, self.device, self.nets.head.discrete
+        self._buf = None  # drop the old storage before allocating the new one
+        act = (T, W, C) if discrete else (T, W, C, cfg.env.act_dim)
+        # under bf16 autocast the networks round their inputs to bf16 anyway: store them so
+        obs_dtype = torch.bfloat16 if sim.is_cuda and cfg.amp else torch.float32
+        steps = lambda *rest, dtype=torch.float32: torch.zeros((T, W, C, *rest), dtype=dtype, device=dev)  # noqa: E731
+        self._buf = Rollout(
+            obs=steps(sim.obs_dim, dtype=obs_dtype), act=torch.zeros(act, device=dev), logp=steps(),
+            mask=steps(dtype=torch.bool), reward=steps(), cost=steps(), done=steps(),
+            value=torch.zeros((T + 1, W, C), device=dev), quant=torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
+            prior=steps(self._prior_dim()),
+            old=steps(sim.num_actions) if discrete else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)),
+            hist=steps(cfg.actor_history, HIST_DIM) if self.actor_hist is not None else None)
+        self._buf_key = key
+        return self._buf
+
+    def _prior_dim(self) -> int:
+        """Per row and step: the magnet's logits (discrete), its context (continuous), nothing (eta1 0)."""
+        if self.cfg.eta1 <= 0:
+            return 0
+        return self.sim.num_actions if self.prior_logits else getattr(self.prior, "context_dim", 4)

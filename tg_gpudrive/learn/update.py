@@ -1,0 +1,193 @@
+"""One CCE-MAPPO update over a rollout (TrafficGamer), read top to bottom: `ppo_update`.
+
+1. Advantages: GAE of the reward against the critic; the cost critic (as it was during the rollout, a
+   target network updated once per PPO update) gives CVaR_alpha-GAE advantages of the cost and n-step
+   targets for its quantiles (losses.gae, losses.cvar_gae, losses.cost_quantile_targets).
+2. The Lagrange step: lambda >= 0 rises while CVaR_alpha of the cost-to-go, averaged over the agents'
+   live states (per agent slot with `per_agent_lambda`), exceeds the budget. The multiplier the actor
+   loss uses is the one from before this step.
+3. Epochs of shuffled minibatches of groups (one group = one world at one step): per agent the actor
+   minimises PPO-clip(A_reward - lambda A_cost) - entropy_coef H + eta1 KL(pi || prior)
+   + (1 / eta2) KL(pi || pi_rollout) on its live rows (losses.cce_mappo_actor_loss); the critic
+   regresses the reward lambda-returns and the quantile critic the cost targets (quantile Huber).
+   Actor and critic share one Adam optimiser but their gradients are clipped apart.
+
+The loss parts accumulate on the device and are read back once, at the end (the row selections of the
+live agents are the only other host syncs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from tg_gpudrive.agents.policy import BehaviourPrior
+from tg_gpudrive.config import TrainConfig
+from tg_gpudrive.learn import distributed as dist_util
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.collector import ByName, Networks, NonFinite, Rollout
+
+Tensor = torch.Tensor
+MAX_TARGET_SAMPLES = 16  # target quantiles per row in the quantile loss (its N x M term is the update's largest)
+
+
+@dataclass
+class Targets:
+    """What step 1 computes, (T, W, C, ...) like the rollout: the reward advantages and lambda-returns,
+    the cost advantages, CVaR_alpha of every state's cost-to-go ((T + 1, W, C)) and the quantile targets."""
+
+    adv_r: Tensor
+    ret_r: Tensor
+    adv_c: Tensor
+    cvar: Tensor
+    q_target: Tensor
+
+
+@dataclass
+class Groups(ByName):
+    """A rollout and its targets as (T * W, C, ...) groups, one group = one world at one step: what a
+    minibatch indexes (see Rollout for the entries it shares)."""
+
+    obs: Tensor
+    act: Tensor
+    logp: Tensor
+    mask: Tensor
+    prior: Tensor
+    old: Tensor | tuple[Tensor, Tensor]
+    adv_r: Tensor
+    adv_c: Tensor
+    ret_r: Tensor
+    q_target: Tensor
+    hist: Tensor | None = None
+
+
+def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
+    adv_r, ret_r = L.gae(batch.reward, batch.value, batch.done, cfg.gamma, cfg.gae_lambda)
+    # the cost critic is read inside the cost-to-go's support (targets, advantages, constraint)
+    quant = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+    adv_c, cvar = L.cvar_gae(batch.cost, quant, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
+    q_target = L.cost_quantile_targets(batch.cost, quant, batch.done, cfg.gamma, cfg.cost_nstep)
+    return Targets(adv_r, ret_r, adv_c, cvar, q_target)
+
+
+def lagrange_step(cfg: TrainConfig, mask: Tensor, cvar: Tensor, lagrange: L.LagrangeMultiplier,
+                  budget: Tensor) -> tuple[Tensor, Tensor]:
+    """Step the multipliers on this rollout's constraint (equal on all ranks). (the multipliers the actor
+    loss uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
+    agents in the rollout on any rank)."""
+    C = mask.shape[-1]
+    # the constraint per agent slot: the mean over its live states of CVaR_alpha(Z(o))
+    cnt = mask.sum((0, 1))
+    jc = torch.zeros(cfg.env.max_agents, device=mask.device)
+    jc[:C] = (cvar[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
+    seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=mask.device)
+    seen[:C] = cnt > 0
+    jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0
+    if not cfg.per_agent_lambda:  # one multiplier for all: the mean over the slots that had agents
+        jc = (jc * seen).sum() / seen.sum().clamp(min=1)
+    lam = lagrange.value.detach().clone()
+    if cfg.constraint:
+        # a slot without agents in this rollout keeps its multiplier
+        lagrange.update(jc if not cfg.per_agent_lambda else torch.where(seen, jc, budget), budget)
+    else:
+        lam = torch.zeros_like(lam)
+    return (lam[:C] if cfg.per_agent_lambda else lam), seen
+
+
+def flatten(batch: Rollout, tg: Targets, discrete: bool) -> Groups:
+    T, W = batch.reward.shape[:2]
+    flat = lambda x: None if x is None else x.reshape(T * W, *x.shape[2:])  # noqa: E731
+    old = flat(batch.old) if discrete else (flat(batch.old[0]), flat(batch.old[1]))
+    return Groups(obs=flat(batch.obs), act=flat(batch.act), logp=flat(batch.logp), mask=flat(batch.mask),
+                  prior=flat(batch.prior), old=old, adv_r=flat(tg.adv_r), adv_c=flat(tg.adv_c),
+                  ret_r=flat(tg.ret_r), q_target=flat(tg.q_target), hist=flat(batch.hist))
+
+
+def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
+                   prior: BehaviourPrior) -> tuple[Tensor, dict]:
+    """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups."""
+    mi = b.mask[idx]
+    # the actor is per agent: run it on the live rows only (often under half of W x C)
+    g, c = mi.nonzero(as_tuple=True)
+    weight = 1.0
+    if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
+        g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
+            1, dtype=torch.long, device=idx.device), 0.0
+    rows = idx[g]
+    with nets.autocast():
+        out = nets.actor_fwd(b.obs[rows, c], c, None if b.hist is None else b.hist[rows, c])
+        v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
+    out, v, q = nets.float_out(out), v.float(), q.float()
+    head = nets.head
+    d = head.dist(out)
+    logp = d.log_prob(b.act[rows, c])
+    old_out = b.old[rows, c] if head.discrete else (b.old[0][rows, c], b.old[1][rows, c])
+    if cfg.eta1 <= 0:  # plain MAPPO: no magnet to evaluate
+        kl_prior = torch.zeros_like(logp)
+    else:  # the discrete magnet's logits are stored; the continuous one is rebuilt from its context
+        prior_out = b.prior[rows, c] if head.discrete else prior.distribution(b.prior[rows, c], b.obs[rows, c].float())
+        kl_prior = head.kl(out, prior_out)
+    loss_pi, st = L.cce_mappo_actor_loss(
+        logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam[c] if cfg.per_agent_lambda else lam,
+        d.entropy(), kl_prior, head.kl(out, old_out), clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef,
+        eta1=cfg.eta1, eta2=cfg.eta2, normalize_advantages=cfg.normalize_advantages)
+    loss_v = (v[g, c] - b.ret_r[rows, c]).pow(2).mean()
+    # quantile loss on live rows, against at most MAX_TARGET_SAMPLES evenly spaced target samples
+    tq = b.q_target[rows, c]
+    if tq.shape[-1] > MAX_TARGET_SAMPLES:
+        tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, MAX_TARGET_SAMPLES, device=tq.device).round().long()]
+    loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
+    loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
+    parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
+             "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
+             "clip_frac": st["clip_frac"]}
+    return loss, parts
+
+
+def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
+             gen: torch.Generator, prior: BehaviourPrior) -> dict:
+    """`epochs` passes of shuffled minibatches, one optimiser step each; the mean loss parts. Raises
+    NonFinite (after the steps: the weights are spoilt then) when a loss was not finite."""
+    n_groups = b.mask.shape[0]
+    mb = max(1, n_groups // cfg.minibatches)
+    acc: dict[str, Tensor] = {}
+    bad = torch.zeros((), dtype=torch.bool, device=b.mask.device)
+    n_mb = 0
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
+        for s in range(0, n_groups, mb):
+            loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior)
+            bad |= ~torch.isfinite(loss)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()  # under DDP the gradients are averaged over the ranks here
+            # actor and critic clipped apart: one joint norm lets the critic's large early
+            # regression gradients scale the policy's step down to nothing
+            torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
+            torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
+            opt.step()
+            for k, val in parts.items():
+                acc[k] = acc.get(k, 0.0) + val.detach()
+            n_mb += 1
+    mean = {k: float(v) / max(n_mb, 1) for k, v in acc.items()}
+    if bool(bad):
+        raise NonFinite("non-finite loss", f"mean policy {mean['loss/policy']:.4g}, value {mean['loss/value']:.4g}, "
+                                           f"cost quantiles {mean['loss/cost_quantile']:.4g}")
+    return mean
+
+
+def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.optim.Optimizer,
+               lagrange: L.LagrangeMultiplier, budget: Tensor, gen: torch.Generator,
+               prior: BehaviourPrior) -> dict:
+    """Learn from one rollout (steps 1-3 of the module docstring): the update's row of metrics (the mean
+    loss parts, CVaR, lambda and the budget). `gen` shuffles the minibatches; `prior` rebuilds a
+    continuous magnet from its stored context."""
+    tg = advantages(cfg, batch)
+    lam, seen = lagrange_step(cfg, batch.mask, tg.cvar, lagrange, budget)
+    out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior)
+    out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
+    lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
+    out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
+    out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
+    out["cost_budget"] = float(budget)
+    return out
