@@ -127,6 +127,7 @@ def track_log(i: int, t: int, pos: wp.vec2, yaw: float, vel: wp.vec2, log_pos: w
                            gain_long, gain_lat)
 
 
+# one kernel on purpose: splitting it would add launches and global-memory round trips per logged step
 @wp.kernel
 def expert_actions_kernel(
     # model
@@ -224,6 +225,7 @@ def finite_or_zero(u: wp.vec3, bad_actions: wp.array(dtype=wp.int32)):
     return wp.vec3(0.0, 0.0, 0.0)
 
 
+# one kernel on purpose: splitting it would add launches and global-memory round trips per step
 @wp.kernel
 def step_agents_kernel(
     # model

@@ -41,6 +41,7 @@ def in_view(d: wp.vec2, c: float, s: float, view_cos: float):
     return c * d[0] + s * d[1] >= view_cos * wp.length(d)
 
 
+# one kernel on purpose: splitting it would add launches and global-memory round trips per step
 @wp.kernel
 def ego_partner_obs_kernel(
     agents_per_world: int,
@@ -204,6 +205,7 @@ def rect_dist2(p: wp.vec2, lo: wp.vec2, size: float):
     return dx * dx + dy * dy
 
 
+# one kernel on purpose: splitting it would add launches and global-memory round trips per step
 @wp.kernel
 def road_select_kernel(
     agents_per_world: int,

@@ -140,6 +140,7 @@ def finish_world_kernel(
             world_done[w] = 1
 
 
+# one kernel on purpose: splitting it would add launches and global-memory round trips per reset
 @wp.kernel
 def reset_agents_kernel(
     agents_per_world: int,

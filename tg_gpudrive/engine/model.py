@@ -157,6 +157,37 @@ class SlotPlan:
                    int((ex["log_infeasible"][idx] & cand).sum()))
 
 
+def _plan_arrays(plan_list: list[SlotPlan], A: int, T: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Host arrays of the distinct slot plans, (G, A, ...) each, named as the Model's fields (worlds index
+    them by world_plan), and the scene agent of each plan slot (G, A) (-1: empty)."""
+    G = len(plan_list)
+    g = {
+        "slot_valid": np.zeros((G, A), np.int32), "integrated": np.zeros((G, A), np.int32),
+        "background": np.zeros((G, A), np.int32),
+        "agent_type": np.zeros((G, A), np.int32), "length": np.ones((G, A), np.float32),
+        "width": np.ones((G, A), np.float32), "goal": np.zeros((G, A, 2), np.float32),
+        "log_pos": np.zeros((G, A, T, 2), np.float32), "log_yaw": np.zeros((G, A, T), np.float32),
+        "log_vel": np.zeros((G, A, T, 2), np.float32), "log_valid": np.zeros((G, A, T), np.int32),
+    }
+    plan_agent = np.full((G, A), -1, np.int64)
+    for k, p in enumerate(plan_list):
+        sc, idx = p.scene, p.idx
+        n, t = len(idx), sc.num_steps
+        plan_agent[k, :n] = idx
+        g["slot_valid"][k, :n] = 1
+        g["integrated"][k, :n] = p.policy | p.background
+        g["background"][k, :n] = p.background
+        g["agent_type"][k, :n] = sc.agent_type[idx]
+        g["length"][k, :n] = sc.length[idx]
+        g["width"][k, :n] = sc.width[idx]
+        g["goal"][k, :n] = sc.goal[idx]
+        g["log_pos"][k, :n, :t] = sc.log_pos[idx]
+        g["log_yaw"][k, :n, :t] = sc.log_yaw[idx]
+        g["log_vel"][k, :n, :t] = sc.log_vel[idx]
+        g["log_valid"][k, :n, :t] = sc.log_valid[idx]
+    return g, plan_agent
+
+
 # --------------------------------------------------------------------- model
 class Model:
     """Fixed arrays and scalars of a batch of scenes (see the module docstring for fields).
@@ -187,13 +218,54 @@ class Model:
         self.scenes = scenes
         self._copy_scalars(cfg)
         self.parallel_road_rows = wp.get_device(device).is_cuda  # the same rows either way
+        plan_list, road_scenes, world_road, report = self._plan_worlds(controlled, background)
+        G = len(plan_list)
+        seconds = {"host": time.perf_counter() - t0}
+        t0 = time.perf_counter()
+        roads_t = build_road_tables(road_scenes, cfg, device)  # on the device, all distinct scenes at once
+        report.segments.extend(roads_t.segments[world_road].tolist())
+        seconds["roads"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self.report = report
+        self.max_controlled = max(report.controlled)
+        g, plan_agent = _plan_arrays(plan_list, A, T)
+        self._plan_host = g
+        self.slot_agent = plan_agent[self.world_plan]  # (W, A) scene agent index of each slot, -1: empty
+        cell = np.array([p.cell for p in plan_list], np.float32)[self.world_plan]
+        last_step = np.array([s.num_steps - 1 for s in scenes], np.int32)
+        n_seg = int(roads_t.segments.sum())
+        self.seg_pad = float(0.5 * roads_t.max_len) + 1e-3 if n_seg else 0.0
+        grid = {"grid_origin": roads_t.origin[world_road], "grid_nx": roads_t.nx.astype(np.int32)[world_road],
+                "grid_ny": roads_t.ny.astype(np.int32)[world_road],
+                "grid_cell_offset": roads_t.cell_offset.astype(np.int32)[world_road]}
+        seconds["host"] += time.perf_counter() - t0
 
+        t0 = time.perf_counter()
+        self._upload(g, G, cell, last_step, grid, roads_t)
+        wp.synchronize_device(device)
+        seconds["upload"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        self.expert_action = wp.zeros((G * A, T), dtype=wp.vec3, device=device)
+        self.expert_index = wp.zeros((G * A, T), dtype=wp.int32, device=device)
+        self.expert_track = wp.zeros((G * A, T), dtype=wp.vec2, device=device)
+        launch_expert_actions(self)
+        wp.synchronize_device(device)
+        seconds["expert"] = time.perf_counter() - t0
+        self.build_seconds = seconds
+
+    def _plan_worlds(self, controlled: list[np.ndarray] | None, background: list[np.ndarray] | None
+                     ) -> tuple[list[SlotPlan], list[Scene], np.ndarray, BuildReport]:
+        """The slot plan of every world, built once per distinct (scene, masks) pair (`world_plan` indexes
+        them), and the distinct scenes whose road grids the worlds share: (the distinct plans, the distinct
+        scenes, the road grid of each world, the build report without its segments)."""
+        scenes, cfg, A = self.scenes, self.cfg, self.max_agents
         plans: dict[tuple, int] = {}  # (scene id, mask bytes) -> distinct slot plan
         roads: dict[int, int] = {}  # scene id -> distinct road grid (`scenes` keeps every id alive)
         plan_list: list[SlotPlan] = []
         road_scenes: list[Scene] = []  # the distinct scenes, in order of first use
-        self.world_plan = np.zeros(W, np.int64)  # distinct slot plan of each world
-        world_road = np.zeros(W, np.int64)
+        self.world_plan = np.zeros(len(scenes), np.int64)  # distinct slot plan of each world
+        world_road = np.zeros(len(scenes), np.int64)
         report = BuildReport([], [], [], [])
         for w, sc in enumerate(scenes):
             if abs(sc.dt - self.dt) > 1e-9:
@@ -218,55 +290,14 @@ class Model:
                 roads[id(sc)] = len(road_scenes)
                 road_scenes.append(sc)
             world_road[w] = roads[id(sc)]
-        seconds = {"host": time.perf_counter() - t0}
-        t0 = time.perf_counter()
-        roads_t = build_road_tables(road_scenes, cfg, device)  # on the device, all distinct scenes at once
-        report.segments.extend(roads_t.segments[world_road].tolist())
-        seconds["roads"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        self.report = report
-        self.max_controlled = max(report.controlled)
+        return plan_list, road_scenes, world_road, report
 
-        G = len(plan_list)
-        g = {  # host arrays of the distinct slot plans, (G, A, ...); worlds index them by world_plan
-            "slot_valid": np.zeros((G, A), np.int32), "integrated": np.zeros((G, A), np.int32),
-            "background": np.zeros((G, A), np.int32),
-            "agent_type": np.zeros((G, A), np.int32), "length": np.ones((G, A), np.float32),
-            "width": np.ones((G, A), np.float32), "goal": np.zeros((G, A, 2), np.float32),
-            "log_pos": np.zeros((G, A, T, 2), np.float32), "log_yaw": np.zeros((G, A, T), np.float32),
-            "log_vel": np.zeros((G, A, T, 2), np.float32), "log_valid": np.zeros((G, A, T), np.int32),
-        }
-        plan_agent = np.full((G, A), -1, np.int64)
-        for k, p in enumerate(plan_list):
-            sc, idx = p.scene, p.idx
-            n, t = len(idx), sc.num_steps
-            plan_agent[k, :n] = idx
-            g["slot_valid"][k, :n] = 1
-            g["integrated"][k, :n] = p.policy | p.background
-            g["background"][k, :n] = p.background
-            g["agent_type"][k, :n] = sc.agent_type[idx]
-            g["length"][k, :n] = sc.length[idx]
-            g["width"][k, :n] = sc.width[idx]
-            g["goal"][k, :n] = sc.goal[idx]
-            g["log_pos"][k, :n, :t] = sc.log_pos[idx]
-            g["log_yaw"][k, :n, :t] = sc.log_yaw[idx]
-            g["log_vel"][k, :n, :t] = sc.log_vel[idx]
-            g["log_valid"][k, :n, :t] = sc.log_valid[idx]
-        self._plan_host = g
-        self.slot_agent = plan_agent[self.world_plan]  # (W, A) scene agent index of each slot, -1: empty
-        cell = np.array([p.cell for p in plan_list], np.float32)[self.world_plan]
-        last_step = np.array([s.num_steps - 1 for s in scenes], np.int32)
+    def _upload(self, g: dict[str, np.ndarray], G: int, cell: np.ndarray, last_step: np.ndarray,
+                grid: dict[str, np.ndarray], roads_t) -> None:
+        """The Model's device arrays: per-slot ones gathered from the `G` distinct plans' host arrays `g`,
+        the logs one row per plan slot, the road tables as views of `roads_t`'s tensors."""
+        W, A, T, dev = self.num_worlds, self.max_agents, self.num_steps, self.device
 
-        n_seg = int(roads_t.segments.sum())
-        self.seg_pad = float(0.5 * roads_t.max_len) + 1e-3 if n_seg else 0.0
-        grid_origin = roads_t.origin[world_road]
-        grid_nx = roads_t.nx.astype(np.int32)[world_road]
-        grid_ny = roads_t.ny.astype(np.int32)[world_road]
-        grid_off = roads_t.cell_offset.astype(np.int32)[world_road]
-        seconds["host"] += time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        dev = device
         def flat(name, dtype):
             x = g[name][self.world_plan]
             return wp.array(x.reshape(W * A, *x.shape[2:]), dtype=dtype, device=dev)
@@ -293,25 +324,14 @@ class Model:
         self.seg_b = wp.from_torch(roads_t.seg_b, dtype=wp.vec2)
         self.seg_mid = wp.from_torch(roads_t.seg_mid, dtype=wp.vec2)
         self.seg_type = wp.from_torch(roads_t.seg_type, dtype=wp.int32)
-        self.grid_origin = wp.array(grid_origin, dtype=wp.vec2, device=dev)
-        self.grid_nx = wp.array(grid_nx, dtype=wp.int32, device=dev)
-        self.grid_ny = wp.array(grid_ny, dtype=wp.int32, device=dev)
-        self.grid_cell_offset = wp.array(grid_off, dtype=wp.int32, device=dev)
+        self.grid_origin = wp.array(grid["grid_origin"], dtype=wp.vec2, device=dev)
+        self.grid_nx = wp.array(grid["grid_nx"], dtype=wp.int32, device=dev)
+        self.grid_ny = wp.array(grid["grid_ny"], dtype=wp.int32, device=dev)
+        self.grid_cell_offset = wp.array(grid["grid_cell_offset"], dtype=wp.int32, device=dev)
         self.cell_start = wp.from_torch(roads_t.cell_start, dtype=wp.int32)
-        r = cfg.reward
+        r = self.cfg.reward
         self.reward_weights = wp.array(np.array([getattr(r, k) for k in REWARD_TERMS], np.float32),
                                        dtype=float, device=dev)
-        wp.synchronize_device(dev)
-        seconds["upload"] = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        self.expert_action = wp.zeros((G * A, T), dtype=wp.vec3, device=dev)
-        self.expert_index = wp.zeros((G * A, T), dtype=wp.int32, device=dev)
-        self.expert_track = wp.zeros((G * A, T), dtype=wp.vec2, device=dev)
-        launch_expert_actions(self)
-        wp.synchronize_device(dev)
-        seconds["expert"] = time.perf_counter() - t0
-        self.build_seconds = seconds
 
     @functools.cached_property
     def host(self) -> dict[str, np.ndarray]:

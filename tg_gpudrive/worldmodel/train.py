@@ -163,11 +163,7 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
     collect_s = time.perf_counter() - t0
     model = build_model(cfg).to(device)
     if cfg.init_model and ck is None:
-        init = load_world_model(cfg.init_model)
-        if init.hparams != model.hparams:
-            raise ConfigError(f"init_model {cfg.init_model}: hyper-parameters {init.hparams} differ from the "
-                              f"config's {model.hparams}")
-        model.load_state_dict(init.state_dict())
+        _load_init_model(model, cfg)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     gen = torch.Generator().manual_seed(cfg.seed)
     step0, wall = 0, 0.0
@@ -177,73 +173,100 @@ def train_world_model(cfg: WorldModelConfig, out_dir: str | Path | None = None, 
         gen.set_state(ck["gen"])
         torch.set_rng_state(ck["torch_rng"])
         step0, wall = ck["step"], ck["wall"]
-    csv_path = out / "metrics.csv"
-    if ck is not None and csv_path.exists():  # drop rows logged after the checkpoint
-        rows = [r for r in csv.DictReader(csv_path.open()) if int(r["step"]) <= step0]
-        with csv_path.open("w", newline="") as f:
-            if rows:
-                w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
-                w.writeheader()
-                w.writerows(rows)
+        _drop_rows_after(out / "metrics.csv", step0)
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=1))
 
-    bar = None
-    if progress:
-        bar = tqdm(total=cfg.steps, initial=step0, desc="world model", unit="step")
-    state = {"loss": 0.0, "n": 0, "t": time.perf_counter(), "wall": wall, "last": {}}
-
-    def save_checkpoint(step: int, closed_loop_done: bool = False) -> None:
-        ckpt = {"kind": WORLD_MODEL, "model": {"hparams": model.hparams, "grid": grid_of(cfg.env),
-                          "state_dict": model.state_dict()},
-                "opt": opt.state_dict(), "gen": gen.get_state(), "torch_rng": torch.get_rng_state(),
-                "step": step, "wall": state["wall"], "config": to_dict(cfg), "closed_loop_done": closed_loop_done}
-        save_atomic(ckpt, out / "checkpoint.pt")
-        save_world_model(model, out / "model.pt", cfg.env, {"config": to_dict(cfg), "step": step})
-
-    def on_step(step: int, loss: float) -> None:
-        state["loss"] += loss
-        state["n"] += 1
-        if bar is not None:
-            bar.update(1)
-        if step % cfg.log_every == 0 or step == cfg.steps:
-            now = time.perf_counter()
-            state["wall"] += now - state["t"]
-            row = {"step": step, "train_nll": state["loss"] / state["n"], "samples": step * cfg.batch_size,
-                   "samples_per_s": state["n"] * cfg.batch_size / max(now - state["t"], 1e-9),
-                   "wall_s": state["wall"]}
-            if val is not None:
-                v = dataset_nll(model, val)
-                row.update({f"val_{k}": x for k, x in v.items()})
-                model.set_layout(*data["layout"])
-            _append_csv(csv_path, row)
-            state["last"] = row
-            if bar is not None:
-                bar.set_postfix(nll=f"{row['train_nll']:.3f}", val=f"{row.get('val_nll', float('nan')):.3f}")
-            state["loss"], state["n"], state["t"] = 0.0, 0, time.perf_counter()
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            save_checkpoint(step)
-
+    run = _TeacherForcedRun(cfg, out, model, opt, gen, data, val, wall, step0, progress)
     if step0 < cfg.steps:
         fit(model, data, steps=cfg.steps, batch_size=cfg.batch_size, lr=cfg.lr, weight_decay=cfg.weight_decay,
-            label_smoothing=cfg.label_smoothing, gen=gen, opt=opt, start=step0, on_step=on_step)
+            label_smoothing=cfg.label_smoothing, gen=gen, opt=opt, start=step0, on_step=run.on_step)
     elif not (out / "model.pt").exists():
-        save_checkpoint(step0)
-    if bar is not None:
-        bar.close()
-    result = dict(state["last"])
+        run.save_checkpoint(step0)
+    if run.bar is not None:
+        run.bar.close()
+    result = dict(run.last)
     if cfg.closed_loop_steps > 0:
         if ck is not None and ck.get("closed_loop_done"):
             result["closed_loop"] = "done before the resume"
         else:
             result["closed_loop"] = closed_loop_finetune(model, cfg, data, train_scenes, val_scenes, out,
                                                          device, progress)
-            save_checkpoint(cfg.steps, closed_loop_done=True)
+            run.save_checkpoint(cfg.steps, closed_loop_done=True)
     result.update({"train_samples": int(data["target"].shape[0]), "collect_s": collect_s,
                    "parameters": sum(p.numel() for p in model.parameters()),
                    "out_dir": str(out), "model": str(out / "model.pt")})
     if val is not None:
         result["val_baselines"] = baseline_nlls(val, cfg.env, data)
     return result
+
+
+def _load_init_model(model: WorldModel, cfg: WorldModelConfig) -> None:
+    """Starts `model` from the weights of `cfg.init_model`, which must have the same hyper-parameters."""
+    init = load_world_model(cfg.init_model)
+    if init.hparams != model.hparams:
+        raise ConfigError(f"init_model {cfg.init_model}: hyper-parameters {init.hparams} differ from the "
+                          f"config's {model.hparams}")
+    model.load_state_dict(init.state_dict())
+
+
+def _drop_rows_after(csv_path: Path, step0: int) -> None:
+    """Drops the rows of a resumed run's metrics.csv logged after its checkpoint's step `step0`."""
+    if not csv_path.exists():
+        return
+    rows = [r for r in csv.DictReader(csv_path.open()) if int(r["step"]) <= step0]
+    with csv_path.open("w", newline="") as f:
+        if rows:
+            w = csv.DictWriter(f, fieldnames=list(rows[0].keys()))
+            w.writeheader()
+            w.writerows(rows)
+
+
+class _TeacherForcedRun:
+    """The bookkeeping of the teacher-forced steps: the running loss, a metrics.csv row (with the held-out
+    NLL) every `log_every` steps, checkpoint.pt and model.pt every `checkpoint_every`, the tqdm bar."""
+
+    def __init__(self, cfg: WorldModelConfig, out: Path, model: WorldModel, opt, gen: torch.Generator,
+                 data: dict, val: dict | None, wall: float, step0: int, progress: bool):
+        self.cfg, self.out, self.model, self.opt, self.gen, self.data, self.val = cfg, out, model, opt, gen, data, val
+        self.csv_path = out / "metrics.csv"
+        self.bar = tqdm(total=cfg.steps, initial=step0, desc="world model", unit="step") if progress else None
+        self.loss, self.n, self.t, self.wall, self.last = 0.0, 0, time.perf_counter(), wall, {}
+
+    def save_checkpoint(self, step: int, closed_loop_done: bool = False) -> None:
+        cfg, model = self.cfg, self.model
+        ckpt = {"kind": WORLD_MODEL, "model": {"hparams": model.hparams, "grid": grid_of(cfg.env),
+                          "state_dict": model.state_dict()},
+                "opt": self.opt.state_dict(), "gen": self.gen.get_state(), "torch_rng": torch.get_rng_state(),
+                "step": step, "wall": self.wall, "config": to_dict(cfg), "closed_loop_done": closed_loop_done}
+        save_atomic(ckpt, self.out / "checkpoint.pt")
+        save_world_model(model, self.out / "model.pt", cfg.env, {"config": to_dict(cfg), "step": step})
+
+    def on_step(self, step: int, loss: float) -> None:
+        cfg = self.cfg
+        self.loss += loss
+        self.n += 1
+        if self.bar is not None:
+            self.bar.update(1)
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            self._log(step)
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            self.save_checkpoint(step)
+
+    def _log(self, step: int) -> None:
+        now = time.perf_counter()
+        self.wall += now - self.t
+        bs = self.cfg.batch_size
+        row = {"step": step, "train_nll": self.loss / self.n, "samples": step * bs,
+               "samples_per_s": self.n * bs / max(now - self.t, 1e-9), "wall_s": self.wall}
+        if self.val is not None:
+            v = dataset_nll(self.model, self.val)
+            row.update({f"val_{k}": x for k, x in v.items()})
+            self.model.set_layout(*self.data["layout"])
+        _append_csv(self.csv_path, row)
+        self.last = row
+        if self.bar is not None:
+            self.bar.set_postfix(nll=f"{row['train_nll']:.3f}", val=f"{row.get('val_nll', float('nan')):.3f}")
+        self.loss, self.n, self.t = 0.0, 0, time.perf_counter()
 
 
 def closed_loop_finetune(model: WorldModel, cfg: WorldModelConfig, data: dict, train_scenes: list,

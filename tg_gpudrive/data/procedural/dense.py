@@ -55,15 +55,9 @@ def _polyline_lengths(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return cum[offsets[1:] - 1] - cum[offsets[:-1]]
 
 
-def dense_scene(seed: int, agents: int | None = None, road_points: int | None = None, gap: float = 30.0) -> Scene:
-    """One dense scene from `seed`; `agents` / `road_points` fix the sizes (else drawn from
-    DENSE_AGENTS / DENSE_ROAD_POINTS)."""
-    rng = np.random.default_rng([seed, 0xD5])
-    n_agents = int(agents if agents is not None else rng.integers(DENSE_AGENTS[0], DENSE_AGENTS[1] + 1))
-    n_points = int(road_points if road_points is not None else rng.integers(DENSE_ROAD_POINTS[0],
-                                                                           DENSE_ROAD_POINTS[1] + 1))
-    if not 1 <= n_agents <= 1024 or n_points < 2:
-        raise ValueError(f"dense_scene: agents must be 1..1024 and road_points >= 2, got {n_agents}, {n_points}")
+def _draw_tiles(rng: np.random.Generator, n_agents: int) -> tuple[list[Scene], list[str], list[int]]:
+    """Procedural scenes of random types and seeds, drawn until they hold at least `n_agents` agents:
+    (tiles, their types, their seeds)."""
     tiles: list[Scene] = []
     kinds, seeds = [], []
     total = 0
@@ -79,16 +73,23 @@ def dense_scene(seed: int, agents: int | None = None, road_points: int | None = 
     T = max(t.num_steps for t in tiles)
     if any(t.num_steps != T or t.dt != tiles[0].dt for t in tiles):
         raise ValueError("dense_scene: tiles differ in steps or dt")
+    return tiles, kinds, seeds
 
-    # lay the tiles on a square grid, each road bounding box centred in its cell
+
+def _tile_shifts(tiles: list[Scene], gap: float) -> list[np.ndarray]:
+    """The offset of each tile that lays the tiles on a square grid, each road bounding box centred in its
+    cell, cells `gap` metres wider than the largest box."""
     lo = np.array([t.road_points.min(0) for t in tiles])
     hi = np.array([t.road_points.max(0) for t in tiles])
     pitch = float((hi - lo).max()) + gap
     cols = math.ceil(math.sqrt(len(tiles)))
-    shift = [np.array([(i % cols) * pitch, (i // cols) * pitch], np.float32) - 0.5 * (lo[i] + hi[i])
-             for i in range(len(tiles))]
+    return [np.array([(i % cols) * pitch, (i // cols) * pitch], np.float32) - 0.5 * (lo[i] + hi[i])
+            for i in range(len(tiles))]
 
-    # agents: every tile whole, the last one cut to reach exactly n_agents
+
+def _agent_fields(tiles: list[Scene], shift: list[np.ndarray], n_agents: int) -> dict[str, np.ndarray]:
+    """The agent fields of the dense scene: every tile whole, the last one cut to reach exactly `n_agents`;
+    positions and goals shifted with their tile, ids renumbered, one logging vehicle (the first tile's)."""
     keep = []
     left = n_agents
     for t in tiles:
@@ -104,12 +105,18 @@ def dense_scene(seed: int, agents: int | None = None, road_points: int | None = 
 
     log_valid = agents_of("log_valid")
     log_pos = np.where(log_valid[..., None], agents_of("log_pos", offset=True), 0.0).astype(np.float32)
-    agent_id = np.arange(n_agents, dtype=np.int64)
     is_sdc = agents_of("is_sdc")
     if is_sdc.sum() > 1:  # one logging vehicle per scene, as in WOMD: the first tile's
         is_sdc[np.nonzero(is_sdc)[0][1:]] = False
+    return dict(log_pos=log_pos, log_yaw=agents_of("log_yaw"), log_vel=agents_of("log_vel"), log_valid=log_valid,
+                length=agents_of("length"), width=agents_of("width"), height=agents_of("height"),
+                agent_type=agents_of("agent_type"), agent_id=np.arange(n_agents, dtype=np.int64),
+                goal=agents_of("goal", offset=True), is_sdc=is_sdc, is_interest=agents_of("is_interest"))
 
-    # roads: polylines back to back, ids and lane edges renumbered
+
+def _road_fields(tiles: list[Scene], shift: list[np.ndarray], n_points: int) -> tuple[dict[str, np.ndarray], float]:
+    """The road fields of the dense scene: the tiles' polylines back to back, ids and lane edges renumbered,
+    resampled evenly so that the map holds about `n_points` points. Returns (fields, the spacing in m)."""
     pts, offs, types, ids, edges = [], [0], [], [], []
     n_poly = 0
     for t, d in zip(tiles, shift):
@@ -126,19 +133,27 @@ def dense_scene(seed: int, agents: int | None = None, road_points: int | None = 
     budget = n_points - int((~multi).sum()) - 1.5 * int(multi.sum())
     spacing = float(lengths[multi].sum()) / max(budget, 1.0)
     points, offsets = resample_polylines(points, offsets, max(spacing, 0.05))
+    return dict(road_points=points, road_offsets=offsets, road_type=np.concatenate(types),
+                road_id=np.concatenate(ids), lane_edges=np.concatenate(edges).astype(np.int32)), spacing
 
+
+def dense_scene(seed: int, agents: int | None = None, road_points: int | None = None, gap: float = 30.0) -> Scene:
+    """One dense scene from `seed`; `agents` / `road_points` fix the sizes (else drawn from
+    DENSE_AGENTS / DENSE_ROAD_POINTS)."""
+    rng = np.random.default_rng([seed, 0xD5])
+    n_agents = int(agents if agents is not None else rng.integers(DENSE_AGENTS[0], DENSE_AGENTS[1] + 1))
+    n_points = int(road_points if road_points is not None else rng.integers(DENSE_ROAD_POINTS[0],
+                                                                           DENSE_ROAD_POINTS[1] + 1))
+    if not 1 <= n_agents <= 1024 or n_points < 2:
+        raise ValueError(f"dense_scene: agents must be 1..1024 and road_points >= 2, got {n_agents}, {n_points}")
+    tiles, kinds, seeds = _draw_tiles(rng, n_agents)
+    shift = _tile_shifts(tiles, gap)
+    roads, spacing = _road_fields(tiles, shift, n_points)
     cp = tiles[0].metadata.get("conflict_point")
     scene = Scene(
-        scene_id=f"dense-{seed}",
-        log_pos=log_pos, log_yaw=agents_of("log_yaw"), log_vel=agents_of("log_vel"), log_valid=log_valid,
-        length=agents_of("length"), width=agents_of("width"), height=agents_of("height"),
-        agent_type=agents_of("agent_type"), agent_id=agent_id, goal=agents_of("goal", offset=True),
-        is_sdc=is_sdc, is_interest=agents_of("is_interest"),
-        road_points=points, road_offsets=offsets, road_type=np.concatenate(types), road_id=np.concatenate(ids),
-        lane_edges=np.concatenate(edges).astype(np.int32), dt=tiles[0].dt,
+        scene_id=f"dense-{seed}", **_agent_fields(tiles, shift, n_agents), **roads, dt=tiles[0].dt,
         metadata={"scenario_type": "dense", "source": "procedural:dense", "tile_types": kinds, "tile_seeds": seeds,
                   "road_spacing_m": spacing,
                   **({"conflict_point": (np.asarray(cp, np.float32) + shift[0]).tolist()} if cp is not None else {})},
     )
     return scene.validate(scene.scene_id)
-

@@ -386,8 +386,20 @@ class _Grow(Exception):
 
 
 def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadMap:
-    na = len(arms)
+    """One attempt at the junction's map with the arms' current stop distances; raises _Grow naming
+    the arms whose stop lines must move out when a turn does not fit."""
     m = RoadMap()
+    lane_in, lane_out = _approach_lanes(m, arms, w)
+    _junction_movements(m, arms, w, allowed, lane_in, lane_out)
+    _junction_curbs(m, arms, w)
+    _parking_strips(m, arms, w, lane_in, lane_out)
+    _arm_markings(m, arms, w, crosswalks)
+    return m
+
+
+def _approach_lanes(m: RoadMap, arms: list[Arm], w: float) -> tuple[dict, dict]:
+    """The straight lanes of every arm, inbound (spawn lanes, ending at the stop line) and outbound
+    (starting there): ({(arm, k): lane}, {(arm, k): lane})."""
     lane_in, lane_out = {}, {}
     for i, a in enumerate(arms):
         for k in range(a.n_in):
@@ -400,7 +412,29 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
             p = a.point(a.r_stop, -(k + 0.5) * w)
             lane_out[i, k] = m.add_lane(line(p[0], p[1], a.theta, a.length - a.r_stop),
                                         conflict_range=(0.0, 12.0))
-    # movements
+    return lane_in, lane_out
+
+
+def _lane_pairs(a: Arm, b: Arm, cls: str, dest: tuple[float, int], s_dests: list) -> list[tuple[int, int]]:
+    """(inbound lane of arm a, outbound lane of arm b) pairs of the movement `dest` = (deflection, j)
+    from a to b = arms[j], of class `cls` (`_classify`): left turns from the innermost lane, right turns
+    from the outermost, straight on lane by lane; two straight-ish destinations (Y) split the lanes."""
+    if cls == "L":
+        return [(0, 0)]
+    if cls == "R":
+        return [(a.n_in - 1, b.n_out - 1)]
+    if len(s_dests) == 1:
+        return [(k, min(k, b.n_out - 1)) for k in range(a.n_in)]
+    half = a.n_in / 2
+    ks = range(0, max(1, math.ceil(half))) if dest == s_dests[0] else \
+        range(min(a.n_in - 1, math.floor(half)), a.n_in)
+    ks = list(ks) if a.n_in > 1 else [0]
+    return [(k, min(k, b.n_out - 1) if dest == s_dests[0] else
+             max(0, b.n_out - a.n_in + k)) for k in ks]
+
+
+def _junction_movements(m: RoadMap, arms: list[Arm], w: float, allowed, lane_in: dict, lane_out: dict) -> None:
+    """The junction lanes of every allowed movement, with their edges and routes."""
     for i, a in enumerate(arms):
         dests = []
         for j, b in enumerate(arms):
@@ -413,19 +447,7 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
         for defl, j in dests:
             b = arms[j]
             cls = _classify(defl)
-            if cls == "L":
-                pairs = [(0, 0)]
-            elif cls == "R":
-                pairs = [(a.n_in - 1, b.n_out - 1)]
-            elif len(s_dests) == 1:
-                pairs = [(k, min(k, b.n_out - 1)) for k in range(a.n_in)]
-            else:  # two straight-ish destinations (Y): split the lanes
-                half = a.n_in / 2
-                ks = range(0, max(1, math.ceil(half))) if (defl, j) == s_dests[0] else \
-                    range(min(a.n_in - 1, math.floor(half)), a.n_in)
-                ks = list(ks) if a.n_in > 1 else [0]
-                pairs = [(k, min(k, b.n_out - 1) if (defl, j) == s_dests[0] else
-                          max(0, b.n_out - a.n_in + k)) for k in ks]
+            pairs = _lane_pairs(a, b, cls, (defl, j), s_dests)
             prio = _movement_prio(cls, a.major, any(x.major for x in arms))
             for k, kk in pairs:
                 p = a.point(a.r_stop, (k + 0.5) * w)
@@ -436,8 +458,12 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
                 c = m.add_lane(path, prio=prio, arms=(i, j))
                 m.edges += [(lane_in[i, k], c), (c, lane_out[j, kk])]
                 m.routes.append([lane_in[i, k], c, lane_out[j, kk]])
-    # curbs: one per corner between consecutive arms; where an arm side has a parking strip, the
-    # kerb runs at the strip's outer edge and steps in to the lane edge over PARK_TAPER before the corner
+
+
+def _junction_curbs(m: RoadMap, arms: list[Arm], w: float) -> None:
+    """One curb per corner between consecutive arms; where an arm side has a parking strip, the kerb
+    runs at the strip's outer edge and steps in to the lane edge over PARK_TAPER before the corner."""
+    na = len(arms)
     for i in range(na):
         a, b = arms[i], arms[(i + 1) % na]
         alpha = float(wrap(b.theta - a.theta)) % (2 * math.pi)
@@ -455,13 +481,20 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
             raise _Grow([i, (i + 1) % na])
         curb = turn.offset(-w / 2)
         m.curbs.append(head + curb + tail)  # the runs end where the corner's kerb starts and ends
+
+
+def _parking_strips(m: RoadMap, arms: list[Arm], w: float, lane_in: dict, lane_out: dict) -> None:
+    """A ParkingStrip for every arm side drawn with one (`_draw_parking`), beside its outer lane."""
     for i, a in enumerate(arms):
         for side, inner, width, lane in ((+1, a.n_in * w, a.park_in, lane_in.get((i, a.n_in - 1), -1)),
                                          (-1, a.n_out * w, a.park_out, lane_out.get((i, a.n_out - 1), -1))):
             if width > 0:
                 m.strips.append(ParkingStrip(float(a.theta), side, inner, width, a.r_stop + PARK_TAPER, a.length,
                                              lane, a.r_stop, w / 2))
-    # road lines along the arms, crosswalks at the stop lines
+
+
+def _arm_markings(m: RoadMap, arms: list[Arm], w: float, crosswalks: bool) -> None:
+    """Road lines along the arms and, with `crosswalks`, a crosswalk at each stop line."""
     for a in arms:
         ln = a.length - a.r_stop
         offs = ([0.0] if a.n_in and a.n_out else []) + [k * w for k in range(1, a.n_in)] + \
@@ -474,7 +507,6 @@ def _junction_try(arms: list[Arm], w: float, allowed, crosswalks: bool) -> RoadM
             lo, hi = -a.n_out * w, a.n_in * w
             m.crosswalks.append(np.array([a.point(t0, lo), a.point(t0, hi), a.point(t1, hi),
                                           a.point(t1, lo), a.point(t0, lo)]))
-    return m
 
 
 def _segment(p, q) -> Path:
@@ -584,8 +616,28 @@ def map_roundabout(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> 
 
 
 def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
+    """The roundabout's map: ring radius `rc`, entry and exit radii `re`, `rx`, arms at `thetas`;
+    raises GeometryError when the arms do not fit."""
     m = RoadMap()
-    na = len(thetas)
+    arm_data, nodes = _roundabout_arms(thetas, rc, re, rx, w)
+    gaps = _order_ring_nodes(nodes, rc)
+    ring, seg_of_start, seg_of_end = _ring_lanes(m, nodes, gaps, rc)
+    lanes = _roundabout_arm_lanes(m, thetas, lengths, arm_data, rc, re, rx, w, seg_of_start, seg_of_end)
+    _roundabout_routes(m, nodes, ring, *lanes)
+    for lid in ring:
+        m.spawn.append((lid, m.lanes[lid].path.length, 0.35))
+    _roundabout_curbs(m, thetas, lengths, arm_data, rc, re, rx, w)
+    for i, th in enumerate(thetas):
+        u, n, te, tx = arm_data[i][:4]
+        t0 = max(te, tx)
+        m.lines.append(line(t0 * u[0], t0 * u[1], th, lengths[i] - t0))
+    return m
+
+
+def _roundabout_arms(thetas, rc, re, rx, w) -> tuple[list[tuple], list[tuple]]:
+    """Per arm (u, n, te, tx, ce, cx, psi_e, psi_x): its direction and normal, how far out its entry
+    and exit arcs leave the arm, their centres and the ring angles where they meet the ring; and the
+    ring nodes (angle, "e" or "x", arm) in arm order."""
     nodes = []  # (angle, kind, arm)
     arm_data = []
     for i, th in enumerate(thetas):
@@ -599,14 +651,24 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
         psi_x = math.atan2(cx[1], cx[0])
         arm_data.append((u, n, te, tx, ce, cx, psi_e, psi_x))
         nodes += [(psi_x, "x", i), (psi_e, "e", i)]
-    # order nodes ccw starting at the first exit
+    return arm_data, nodes
+
+
+def _order_ring_nodes(nodes: list[tuple], rc: float) -> np.ndarray:
+    """Sorts `nodes` counter-clockwise from the first exit and returns the angular gaps between
+    consecutive ones; raises GeometryError when they are too close or do not alternate exit, entry."""
     base = nodes[0][0]
     nodes.sort(key=lambda t: (t[0] - base) % (2 * math.pi))
     ang = np.array([(t[0] - base) % (2 * math.pi) for t in nodes])
     gaps = np.diff(np.concatenate([ang, [2 * math.pi]]))
-    if (gaps * rc < 4.0).any() or [t[1] for t in nodes] != ["x", "e"] * na:
+    if (gaps * rc < 4.0).any() or [t[1] for t in nodes] != ["x", "e"] * (len(nodes) // 2):
         raise GeometryError("roundabout arms too close")
-    # ring segments between consecutive nodes
+    return gaps
+
+
+def _ring_lanes(m: RoadMap, nodes: list[tuple], gaps: np.ndarray, rc: float) -> tuple[list[int], dict, dict]:
+    """The ring's lane segments between consecutive nodes, joined in a loop: (their lanes in ring order,
+    {(kind, arm): segment starting at that node}, {(kind, arm): segment ending there})."""
     seg_of_start, seg_of_end = {}, {}
     for k, (psi, kind, arm) in enumerate(nodes):
         x0, y0 = rc * math.cos(psi), rc * math.sin(psi)
@@ -617,6 +679,13 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
     ring = [seg_of_start[t[1], t[2]] for t in nodes]
     for k in range(len(ring)):
         m.edges.append((ring[k], ring[(k + 1) % len(ring)]))
+    return ring, seg_of_start, seg_of_end
+
+
+def _roundabout_arm_lanes(m: RoadMap, thetas, lengths, arm_data, rc, re, rx, w, seg_of_start: dict,
+                          seg_of_end: dict) -> tuple[dict, dict, dict, dict]:
+    """Each arm's inbound lane, entry arc onto the ring, exit arc off it and outbound lane, joined to the
+    ring: ({arm: lane} inbound, entry arcs, exit arcs, outbound)."""
     lane_in, lane_out, conn_e, conn_x = {}, {}, {}, {}
     for i, th in enumerate(thetas):
         u, n, te, tx, ce, cx, psi_e, psi_x = arm_data[i]
@@ -637,7 +706,13 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
             raise GeometryError("roundabout entry not a right turn")
         m.edges += [(lane_in[i], conn_e[i]), (conn_e[i], seg_of_start["e", i]),
                     (seg_of_end["x", i], conn_x[i]), (conn_x[i], lane_out[i])]
-    # routes: every arm to every other arm, counter-clockwise around the ring
+    return lane_in, conn_e, conn_x, lane_out
+
+
+def _roundabout_routes(m: RoadMap, nodes: list[tuple], ring: list[int], lane_in: dict, conn_e: dict,
+                       conn_x: dict, lane_out: dict) -> None:
+    """Routes from every arm to every other arm, counter-clockwise around the ring."""
+    na = len(lane_in)
     k_of = {(t[1], t[2]): k for k, t in enumerate(nodes)}
     for i in range(na):
         for j in range(na):
@@ -651,9 +726,11 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
                 if nodes[k][1] == "x" and nodes[k][2] == j:
                     break
             m.routes.append([lane_in[i], conn_e[i]] + segs + [conn_x[j], lane_out[j]])
-    for lid in ring:
-        m.spawn.append((lid, m.lanes[lid].path.length, 0.35))
-    # curbs: the island, and one outer curb per corner between consecutive arms
+
+
+def _roundabout_curbs(m: RoadMap, thetas, lengths, arm_data, rc, re, rx, w) -> None:
+    """The island's curb, and one outer curb per corner between consecutive arms."""
+    na = len(thetas)
     ri, ro = rc - w / 2, rc + w / 2
     m.curbs.append(Path.chain(ri, 0.0, math.pi / 2, [(2 * math.pi * ri, 1.0 / ri)]))
     for i in range(na):
@@ -668,11 +745,6 @@ def _roundabout_try(thetas, lengths, rc, re, rx, w) -> RoadMap:
         m.curbs.append(Path.chain(p[0], p[1], thetas[i] + math.pi, [
             (lengths[i] - te, 0.0), (rcurb_e * abs(dh_e), -1.0 / rcurb_e), (ro * sweep, 1.0 / ro),
             (rcurb_x * abs(dh_x), -1.0 / rcurb_x), (lengths[j] - txj, 0.0)]))
-    for i, th in enumerate(thetas):
-        u, n, te, tx = arm_data[i][:4]
-        t0 = max(te, tx)
-        m.lines.append(line(t0 * u[0], t0 * u[1], th, lengths[i] - t0))
-    return m
 
 
 def map_merge(rng, w, scale, lanes, crosswalks, parking=0.0, prng=None) -> RoadMap:

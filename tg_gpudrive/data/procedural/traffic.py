@@ -592,9 +592,29 @@ def _travel_time(d, v, a, vmax):
     return np.where(d <= d_acc, t1, t2)
 
 
-def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> TrafficLog:
-    """Integrate every vehicle along its route; see the module docstring for the rules.
-    `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone."""
+@dataclass
+class _RouteTables:
+    """Per-vehicle look-ups of the routes that `drive` reads every step."""
+
+    routes: list[Route]
+    kmax: int  # the most lanes on one route
+    bounds: np.ndarray  # (N, kmax + 1) m, route arc length where each lane starts (inf past the last)
+    lane_ids: np.ndarray  # (N, kmax) lane of each route position (the last lane repeated)
+    off_tab: np.ndarray  # (N, lanes) m, route arc length where each lane starts, NaN off the route
+    rlen: np.ndarray  # (N,) m, route lengths
+    vcap_all: np.ndarray  # the routes' curve speed caps on the DS grid, back to back
+    vcap_off: np.ndarray  # (N,) first entry of each route in vcap_all
+    vcap_last: np.ndarray  # (N,) last entry of each route in vcap_all
+    stop_s: np.ndarray  # (N,) m, junction entry (stop line), -inf without one
+    lim_s: np.ndarray  # (N,) m, end of the first junction lane, -inf without one
+
+    @property
+    def ends(self) -> np.ndarray:
+        return self.bounds[:, 1:]
+
+
+def _route_tables(tm: TrafficModel, veh: Vehicles) -> _RouteTables:
+    """The route look-ups of the vehicles `veh`."""
     n = len(veh)
     routes = [tm.route(k) for k in veh.routes]
     n_lanes = len(tm.map.lanes)
@@ -608,12 +628,7 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
         lane_ids[i, :k] = r.lanes
         lane_ids[i, k:] = r.lanes[-1]
         off_tab[i, list(r.lanes)] = r.starts[:-1]
-    ends = bounds[:, 1:]
-    rlen = np.array([r.length for r in routes])
-    vcap_all = np.concatenate([r.vcap for r in routes])
     vcap_off = np.concatenate([[0], np.cumsum([len(r.vcap) for r in routes])])[:-1]
-    vcap_last = vcap_off + np.array([len(r.vcap) for r in routes]) - 1
-    half = veh.length / 2
     # junction entry (stop line) of each vehicle and the end of its first junction lane: a vehicle that
     # must give way in a zone before that end waits at the stop line rather than inside the junction
     stop_s = np.full(n, -np.inf)
@@ -622,15 +637,41 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
         jl = np.flatnonzero(r.prio >= 0)
         if len(jl) and jl[0] > 0:
             stop_s[i], lim_s[i] = r.starts[jl[0]], r.starts[jl[0] + 1]
-    halfsum = half[:, None] + half[None, :]
-    # a kerb-stopping vehicle meets its stop as the IDM's standing obstacle (its centre comes to rest
-    # about at stop_s) and stops leading its followers once it is out of their lane
-    s_end = np.minimum(rlen, veh.stop_s + half - 1.0)
-    gone_s = veh.out_of_lane_s()
-    v_des, a_max, headway, min_gap = veh.v_des, veh.a_max, veh.headway, veh.min_gap
-    sqrt_ab = 2 * np.sqrt(veh.a_max * veh.b_comf)
+    return _RouteTables(routes, kmax, bounds, lane_ids, off_tab, np.array([r.length for r in routes]),
+                        np.concatenate([r.vcap for r in routes]), vcap_off,
+                        vcap_off + np.array([len(r.vcap) for r in routes]) - 1, stop_s, lim_s)
 
-    # one entry per conflict zone of each vehicle pair
+
+@dataclass
+class _Conflicts:
+    """One entry per conflict zone of each vehicle pair (a, b): the zone tables and the pair's decision."""
+
+    pa: np.ndarray  # (M,) vehicle a
+    pb: np.ndarray  # (M,) vehicle b
+    flat: np.ndarray  # the frontier tables, back to back: b's (given a's position), then a's, per pair
+    tb_off: np.ndarray
+    ta_off: np.ndarray
+    tb_last: np.ndarray
+    ta_last: np.ndarray
+    za0: np.ndarray  # m, zone entry and exit along a's route, then b's
+    za1: np.ndarray
+    zb0: np.ndarray
+    zb1: np.ndarray
+    pra: np.ndarray  # movement priorities
+    prb: np.ndarray
+    acc4: np.ndarray  # (4M,) accelerations and desired speeds of a, b, a, b for `_decide`
+    vdes4: np.ndarray
+    jz_a: np.ndarray  # the zone lies before the end of the vehicle's first junction lane
+    jz_b: np.ndarray
+    stop_a: np.ndarray  # m, the vehicles' stop lines
+    stop_b: np.ndarray
+    state: np.ndarray  # (M,) int8: 0 undecided, 1 a first, 2 b first, 3 done
+    lock: np.ndarray  # (M,) no re-evaluation before this step
+
+
+def _conflict_tables(tm: TrafficModel, veh: Vehicles, rt: _RouteTables) -> _Conflicts | None:
+    """The conflict zones of every pair of vehicles on different routes; None when there are none."""
+    n = len(veh)
     pa, pb, tabs, meta = [], [], [], []
     for i in range(n):
         for j in range(i + 1, n):
@@ -641,82 +682,85 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
                 pb.append(j)
                 tabs.append((c["b_given_a"], c["a_given_b"]))
                 meta.append((*c["za"], *c["zb"], c["prio_a"], c["prio_b"]))
+    if not pa:
+        return None
     pa, pb = np.array(pa, np.int64), np.array(pb, np.int64)
-    npair = len(pa)
-    if npair:
-        flat = np.concatenate([x for t in tabs for x in t])
-        sizes = np.array([len(x) for t in tabs for x in t])
-        offs = np.concatenate([[0], np.cumsum(sizes)])[:-1]
-        tb_off, ta_off = offs[0::2], offs[1::2]
-        tb_last, ta_last = tb_off + sizes[0::2] - 1, ta_off + sizes[1::2] - 1
-        za0, za1, zb0, zb1, pra, prb = np.array(meta).T
-        acc4 = np.concatenate([a_max[pa], a_max[pb], a_max[pa], a_max[pb]])
-        vdes4 = np.concatenate([v_des[pa], v_des[pb], v_des[pa], v_des[pb]])
-        jz_a, jz_b = za0 < lim_s[pa], zb0 < lim_s[pb]
-        stop_a, stop_b = stop_s[pa], stop_s[pb]
-    state = np.zeros(npair, np.int8)  # 0 undecided, 1 a first, 2 b first, 3 done
-    lock = np.zeros(npair, np.int64)  # no re-evaluation before this step
+    flat = np.concatenate([x for t in tabs for x in t])
+    sizes = np.array([len(x) for t in tabs for x in t])
+    offs = np.concatenate([[0], np.cumsum(sizes)])[:-1]
+    tb_off, ta_off = offs[0::2], offs[1::2]
+    za0, za1, zb0, zb1, pra, prb = np.array(meta).T
+    a_max, v_des = veh.a_max, veh.v_des
+    return _Conflicts(pa, pb, flat, tb_off, ta_off, tb_off + sizes[0::2] - 1, ta_off + sizes[1::2] - 1,
+                      za0, za1, zb0, zb1, pra, prb,
+                      np.concatenate([a_max[pa], a_max[pb], a_max[pa], a_max[pb]]),
+                      np.concatenate([v_des[pa], v_des[pb], v_des[pa], v_des[pb]]),
+                      za0 < rt.lim_s[pa], zb0 < rt.lim_s[pb], rt.stop_s[pa], rt.stop_s[pb],
+                      np.zeros(len(pa), np.int8), np.zeros(len(pa), np.int64))
 
-    s = np.empty((n, num_steps))
-    v = np.empty((n, num_steps))
-    s[:, 0], v[:, 0] = veh.s0, veh.v0
-    a_prev = np.zeros(n)
-    slow = np.zeros(n)  # s spent below 1 m/s
-    ticket = np.full(n, np.inf)
-    ar = np.arange(n)
-    for t in range(num_steps - 1):
-        st, vt = s[:, t], v[:, t]
-        # leader: nearest vehicle ahead whose lane lies on my route
-        k = np.minimum((st[:, None] >= ends).sum(1), kmax - 1)
-        ls = st - bounds[ar, k]
-        pos = off_tab[:, lane_ids[ar, k]] + ls[None, :]
-        with np.errstate(invalid="ignore"):
-            gap = np.where((pos > st[:, None]) & (st < gone_s)[None, :], pos - st[:, None] - halfsum, np.inf)
-        j = np.argmin(gap, 1)
-        g_lead = gap[ar, j]
-        dv = vt - vt[j]
-        g_obs = s_end - st - half + 2.0  # the route end (or the kerb stop) stands in the way
-        to_stop = np.maximum(stop_s - st, 0.0)
-        near = np.isinf(ticket) & (to_stop < 30.0 + 3.0 * vt)
-        if near.any():
-            ticket[near] = t * dt + _travel_time(to_stop[near], vt[near], a_max[near], v_des[near])
-        if npair:
-            sa, sb, va, vb = st[pa], st[pb], vt[pa], vt[pb]
-            room_b = flat[np.minimum(tb_off + (sa / DS).astype(np.int64), tb_last)] - sb  # if a goes first
-            room_a = flat[np.minimum(ta_off + (sb / DS).astype(np.int64), ta_last)] - sa
-            state[(sa > za1) | (sb > zb1)] = 3
-            da, db = za0 - sa, zb0 - sb
-            live = (state < 3) & ((da < 30 + 3 * va) | (db < 30 + 3 * vb))
-            if t % 2 == 0 and live.any():  # drivers re-assess every 0.2 s
-                state = _decide(state, lock, t, live, da, db, sa, sb, va, vb, za1, zb1, pra, prb, room_a, room_b,
-                                acc4, vdes4, slow[pa] > 2.0, slow[pb] > 2.0,
-                                (da <= 0) | (jz_a & (sa > stop_a + 0.5)), (db <= 0) | (jz_b & (sb > stop_b + 0.5)),
-                                ticket[pa] + 1e-6 * pa, ticket[pb] + 1e-6 * pb)
-            lose_b, lose_a = state == 1, state == 2
-            gb, ga = room_b - 0.3, room_a - 0.3
-            if hold_at_stop_line:
-                hold_b, hold_a = stop_b - sb - half[pb], stop_a - sa - half[pa]
-                ok_b = jz_b & (vb * vb <= 2 * B_HARD * np.maximum(hold_b - 1.0, 0.0))
-                ok_a = jz_a & (va * va <= 2 * B_HARD * np.maximum(hold_a - 1.0, 0.0))
-                gb = np.where(ok_b, np.minimum(gb, hold_b), gb)
-                ga = np.where(ok_a, np.minimum(ga, hold_a), ga)
-            np.minimum.at(g_obs, pb[lose_b], gb[lose_b])
-            np.minimum.at(g_obs, pa[lose_a], ga[lose_a])
-        # IDM against the leader and the nearest standing obstacle, curve speed, jerk limits
-        ss_lead = min_gap + np.maximum(0.0, vt * headway + vt * dv / sqrt_ab)
-        ss_obs = 1.0 + np.maximum(0.0, 0.5 * vt * headway + vt * vt / sqrt_ab)
-        inter = np.maximum((ss_lead / np.maximum(g_lead, 0.05)) ** 2, (ss_obs / np.maximum(g_obs, 0.05)) ** 2)
-        a_idm = a_max * (1.0 - (vt / v_des) ** 4 - inter)
-        a_curve = 1.5 * (vcap_all[np.minimum(vcap_off + (st / DS).astype(np.int64), vcap_last)] - vt)
-        a_t = np.minimum(a_idm, a_curve)
-        a = np.minimum(a_t, a_prev + 0.4)  # jerk limit when speeding up
-        a = np.where(a_t > -2.0, np.maximum(a, a_prev - 1.0), a)  # soften mild braking onsets
-        a = np.minimum(np.maximum(a, A_MIN), A_MAX_HARD)
-        vn = np.maximum(vt + a * dt, 0.0)
-        a_prev = (vn - vt) / dt
-        v[:, t + 1] = vn
-        s[:, t + 1] = np.minimum(st + 0.5 * (vt + vn) * dt, rlen)
-        slow = np.where(vn < 1.0, slow + dt, 0.0)
+
+def _leader_gap(rt: _RouteTables, st: np.ndarray, vt: np.ndarray, halfsum: np.ndarray,
+                gone_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gap to and speed difference with each vehicle's leader: the nearest vehicle ahead whose lane
+    lies on its route (inf gap without one)."""
+    ar = np.arange(len(st))
+    k = np.minimum((st[:, None] >= rt.ends).sum(1), rt.kmax - 1)
+    ls = st - rt.bounds[ar, k]
+    pos = rt.off_tab[:, rt.lane_ids[ar, k]] + ls[None, :]
+    with np.errstate(invalid="ignore"):
+        gap = np.where((pos > st[:, None]) & (st < gone_s)[None, :], pos - st[:, None] - halfsum, np.inf)
+    j = np.argmin(gap, 1)
+    return gap[ar, j], vt - vt[j]
+
+
+def _give_way(cf: _Conflicts, t: int, st: np.ndarray, vt: np.ndarray, ticket: np.ndarray, slow: np.ndarray,
+              half: np.ndarray, g_obs: np.ndarray, hold_at_stop_line: bool) -> None:
+    """Step t of the conflict pairs: decide who goes first (every 0.2 s) and shorten `g_obs` of each
+    second vehicle to the frontier the first one leaves free (or its stop line, `hold_at_stop_line`)."""
+    pa, pb = cf.pa, cf.pb
+    sa, sb, va, vb = st[pa], st[pb], vt[pa], vt[pb]
+    room_b = cf.flat[np.minimum(cf.tb_off + (sa / DS).astype(np.int64), cf.tb_last)] - sb  # if a goes first
+    room_a = cf.flat[np.minimum(cf.ta_off + (sb / DS).astype(np.int64), cf.ta_last)] - sa
+    cf.state[(sa > cf.za1) | (sb > cf.zb1)] = 3
+    da, db = cf.za0 - sa, cf.zb0 - sb
+    live = (cf.state < 3) & ((da < 30 + 3 * va) | (db < 30 + 3 * vb))
+    if t % 2 == 0 and live.any():  # drivers re-assess every 0.2 s
+        cf.state = _decide(cf.state, cf.lock, t, live, da, db, sa, sb, va, vb, cf.za1, cf.zb1, cf.pra, cf.prb,
+                           room_a, room_b, cf.acc4, cf.vdes4, slow[pa] > 2.0, slow[pb] > 2.0,
+                           (da <= 0) | (cf.jz_a & (sa > cf.stop_a + 0.5)),
+                           (db <= 0) | (cf.jz_b & (sb > cf.stop_b + 0.5)),
+                           ticket[pa] + 1e-6 * pa, ticket[pb] + 1e-6 * pb)
+    lose_b, lose_a = cf.state == 1, cf.state == 2
+    gb, ga = room_b - 0.3, room_a - 0.3
+    if hold_at_stop_line:
+        hold_b, hold_a = cf.stop_b - sb - half[pb], cf.stop_a - sa - half[pa]
+        ok_b = cf.jz_b & (vb * vb <= 2 * B_HARD * np.maximum(hold_b - 1.0, 0.0))
+        ok_a = cf.jz_a & (va * va <= 2 * B_HARD * np.maximum(hold_a - 1.0, 0.0))
+        gb = np.where(ok_b, np.minimum(gb, hold_b), gb)
+        ga = np.where(ok_a, np.minimum(ga, hold_a), ga)
+    np.minimum.at(g_obs, pb[lose_b], gb[lose_b])
+    np.minimum.at(g_obs, pa[lose_a], ga[lose_a])
+
+
+def _acceleration(veh: Vehicles, rt: _RouteTables, st: np.ndarray, vt: np.ndarray, dv: np.ndarray,
+                  g_lead: np.ndarray, g_obs: np.ndarray, a_prev: np.ndarray, sqrt_ab: np.ndarray) -> np.ndarray:
+    """IDM against the leader and the nearest standing obstacle, capped by the curve speed, with
+    jerk limits and the hard bounds."""
+    ss_lead = veh.min_gap + np.maximum(0.0, vt * veh.headway + vt * dv / sqrt_ab)
+    ss_obs = 1.0 + np.maximum(0.0, 0.5 * vt * veh.headway + vt * vt / sqrt_ab)
+    inter = np.maximum((ss_lead / np.maximum(g_lead, 0.05)) ** 2, (ss_obs / np.maximum(g_obs, 0.05)) ** 2)
+    a_idm = veh.a_max * (1.0 - (vt / veh.v_des) ** 4 - inter)
+    a_curve = 1.5 * (rt.vcap_all[np.minimum(rt.vcap_off + (st / DS).astype(np.int64), rt.vcap_last)] - vt)
+    a_t = np.minimum(a_idm, a_curve)
+    a = np.minimum(a_t, a_prev + 0.4)  # jerk limit when speeding up
+    a = np.where(a_t > -2.0, np.maximum(a, a_prev - 1.0), a)  # soften mild braking onsets
+    return np.minimum(np.maximum(a, A_MIN), A_MAX_HARD)
+
+
+def _poses(routes: list[Route], veh: Vehicles, s: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(xy, yaw) of every vehicle at its arc lengths `s`, moved sideways by its lateral plan; the
+    speeds `v` of those that move sideways are scaled in place to their path's."""
+    n, num_steps = s.shape
     xy = np.empty((n, num_steps, 2))
     yaw = np.empty((n, num_steps))
     for i, r in enumerate(routes):
@@ -733,6 +777,46 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
             xy[i, :, 1] -= d * np.cos(yaw[i])
             yaw[i] -= np.arctan(dd)
             v[i] *= np.sqrt(1.0 + dd * dd)
+    return xy, yaw
+
+
+def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> TrafficLog:
+    """Integrate every vehicle along its route; see the module docstring for the rules.
+    `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone."""
+    n = len(veh)
+    rt = _route_tables(tm, veh)
+    cf = _conflict_tables(tm, veh, rt)
+    half = veh.length / 2
+    halfsum = half[:, None] + half[None, :]
+    # a kerb-stopping vehicle meets its stop as the IDM's standing obstacle (its centre comes to rest
+    # about at stop_s) and stops leading its followers once it is out of their lane
+    s_end = np.minimum(rt.rlen, veh.stop_s + half - 1.0)
+    gone_s = veh.out_of_lane_s()
+    a_max, v_des = veh.a_max, veh.v_des
+    sqrt_ab = 2 * np.sqrt(veh.a_max * veh.b_comf)
+    s = np.empty((n, num_steps))
+    v = np.empty((n, num_steps))
+    s[:, 0], v[:, 0] = veh.s0, veh.v0
+    a_prev = np.zeros(n)
+    slow = np.zeros(n)  # s spent below 1 m/s
+    ticket = np.full(n, np.inf)
+    for t in range(num_steps - 1):
+        st, vt = s[:, t], v[:, t]
+        g_lead, dv = _leader_gap(rt, st, vt, halfsum, gone_s)
+        g_obs = s_end - st - half + 2.0  # the route end (or the kerb stop) stands in the way
+        to_stop = np.maximum(rt.stop_s - st, 0.0)
+        near = np.isinf(ticket) & (to_stop < 30.0 + 3.0 * vt)
+        if near.any():
+            ticket[near] = t * dt + _travel_time(to_stop[near], vt[near], a_max[near], v_des[near])
+        if cf is not None:
+            _give_way(cf, t, st, vt, ticket, slow, half, g_obs, hold_at_stop_line)
+        a = _acceleration(veh, rt, st, vt, dv, g_lead, g_obs, a_prev, sqrt_ab)
+        vn = np.maximum(vt + a * dt, 0.0)
+        a_prev = (vn - vt) / dt
+        v[:, t + 1] = vn
+        s[:, t + 1] = np.minimum(st + 0.5 * (vt + vn) * dt, rt.rlen)
+        slow = np.where(vn < 1.0, slow + dt, 0.0)
+    xy, yaw = _poses(rt.routes, veh, s, v)
     return TrafficLog(s, v, xy, yaw)
 
 

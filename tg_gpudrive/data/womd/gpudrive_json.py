@@ -355,32 +355,10 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
     if not objects:
         rd.fail("objects", "scene has no agents (empty list)")
     defaults: dict[str, int | str] = {}
-    ob = _objects(rd, objects, defaults)
-    t_steps, pos_a, vel_a, yaw_a, valid_a = ob["t_steps"], ob["pos"], ob["vel"], ob["yaw"], ob["valid"]
-    # a step is real only if flagged valid and free of the sentinel
-    sentinel = (pos_a == SENTINEL).any(-1) | (vel_a == SENTINEL).any(-1) | (yaw_a == SENTINEL)
-    valid_a &= ~sentinel
-    if not valid_a.any():
-        rd.fail("objects[*].valid", "no object has a single valid step")
-    if t_steps < 2:
-        rd.fail("objects[0].position", f"need at least 2 logged steps, got {t_steps}")
-    pos_a[~valid_a] = 0.0
-    vel_a[~valid_a] = 0.0
-    yaw_a[~valid_a] = 0.0
-    if heading_unit(yaw_a, vel_a, valid_a) == "degrees":
-        yaw_a = np.radians(yaw_a)
-        defaults["objects.heading"] = "degrees"
-    origin = scene_origin(pos_a, valid_a)
-
-    n = len(objects)
-    goal = ob["goal"]
-    last = t_steps - 1 - np.argmax(valid_a[:, ::-1], axis=1)
-    no_goal = (goal == SENTINEL).any(-1)
-    goal = np.where(no_goal[:, None], pos_a[np.arange(n), last], goal)
-    goal[~valid_a.any(1)] = origin  # such agents never appear; keep their goal finite and harmless
-
+    ob = _agent_logs(rd, objects, defaults)
+    origin = scene_origin(ob["pos"], ob["valid"])
     rs = _roads(rd, rd.list(raw, "roads", ""), origin, defaults)
-    tl_lane, tl_stop, tl_state, tl_dropped = _traffic_lights(raw.get("tl_states"), t_steps, origin)
+    tl_lane, tl_stop, tl_state, tl_dropped = _traffic_lights(raw.get("tl_states"), ob["t_steps"], origin)
     meta = raw.get("metadata") or {}
     if not isinstance(meta, dict):
         rd.fail("metadata", f"expected an object, got {type(meta).__name__}")
@@ -391,16 +369,7 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
     name = raw.get("name")
     scene = Scene(
         scene_id=str(raw.get("scenario_id") or name or os.path.splitext(os.path.basename(src))[0]),
-        log_pos=(pos_a - origin).astype(np.float32),
-        log_yaw=yaw_a.astype(np.float32),
-        log_vel=vel_a.astype(np.float32),
-        log_valid=valid_a,
-        length=ob["length"].astype(np.float32),
-        width=ob["width"].astype(np.float32),
-        height=ob["height"].astype(np.float32),
-        agent_type=ob["agent_type"],
-        agent_id=ob["agent_id"],
-        goal=(goal - origin).astype(np.float32),
+        **_agent_fields(ob, origin),
         is_sdc=is_sdc,
         is_interest=is_interest,
         road_points=rs["road_points"],
@@ -428,6 +397,50 @@ def load_gpudrive_json(path: str | os.PathLike, *, simplify_tolerance: float | N
     if simplify_tolerance is not None:
         scene, _ = simplify_scene(scene, simplify_tolerance)
     return scene
+
+
+def _agent_logs(rd: _Reader, objects: list, defaults: dict) -> dict:
+    """`_objects`' arrays with the validity settled: a step is real only if flagged valid and free of
+    the sentinel; invalid steps zeroed, degree headings converted to radians (and counted)."""
+    ob = _objects(rd, objects, defaults)
+    t_steps, pos_a, vel_a, yaw_a, valid_a = ob["t_steps"], ob["pos"], ob["vel"], ob["yaw"], ob["valid"]
+    sentinel = (pos_a == SENTINEL).any(-1) | (vel_a == SENTINEL).any(-1) | (yaw_a == SENTINEL)
+    valid_a &= ~sentinel
+    if not valid_a.any():
+        rd.fail("objects[*].valid", "no object has a single valid step")
+    if t_steps < 2:
+        rd.fail("objects[0].position", f"need at least 2 logged steps, got {t_steps}")
+    pos_a[~valid_a] = 0.0
+    vel_a[~valid_a] = 0.0
+    yaw_a[~valid_a] = 0.0
+    if heading_unit(yaw_a, vel_a, valid_a) == "degrees":
+        ob["yaw"] = np.radians(yaw_a)
+        defaults["objects.heading"] = "degrees"
+    return ob
+
+
+def _agent_fields(ob: dict, origin: np.ndarray) -> dict[str, np.ndarray]:
+    """The Scene's per-agent fields from `_agent_logs`, in the frame of `origin`; goals from the file, else
+    the last valid position."""
+    t_steps, pos_a, valid_a = ob["t_steps"], ob["pos"], ob["valid"]
+    n = len(pos_a)
+    goal = ob["goal"]
+    last = t_steps - 1 - np.argmax(valid_a[:, ::-1], axis=1)
+    no_goal = (goal == SENTINEL).any(-1)
+    goal = np.where(no_goal[:, None], pos_a[np.arange(n), last], goal)
+    goal[~valid_a.any(1)] = origin  # such agents never appear; keep their goal finite and harmless
+    return dict(
+        log_pos=(pos_a - origin).astype(np.float32),
+        log_yaw=ob["yaw"].astype(np.float32),
+        log_vel=ob["vel"].astype(np.float32),
+        log_valid=valid_a,
+        length=ob["length"].astype(np.float32),
+        width=ob["width"].astype(np.float32),
+        height=ob["height"].astype(np.float32),
+        agent_type=ob["agent_type"],
+        agent_id=ob["agent_id"],
+        goal=(goal - origin).astype(np.float32),
+    )
 
 
 def _traffic_lights(tl: Any, t_steps: int, origin: np.ndarray):

@@ -201,6 +201,9 @@ def _skip(buf: bytes, pos: int, end: int, wt: int, num: int) -> int:
 
 
 def _decode(msg: Message, buf: bytes, pos: int, end: int) -> dict[str, Any]:
+    """The fields of one `msg` in buf[pos:end]: length-delimited occurrences (sub-messages, columnar ones
+    only located; strings, bytes, packed runs) read here, varint and fixed-width ones by `_decode_scalar`;
+    repeated fields joined by `_join_repeated`, unknown ones skipped."""
     out: dict[str, Any] = {}
     rep: dict[Field, list] = {}
     by_number = msg.by_number
@@ -258,28 +261,44 @@ def _decode(msg: Message, buf: bytes, pos: int, end: int) -> dict[str, Any]:
                 raise DecodeError(f.name, f"wire type {wt} does not fit a single {kind}")
             pos = stop
         elif wt == f.wire_type and kind not in _LEN_KINDS:
-            if wt == VARINT:
-                b = buf[pos] if pos < end else 0x80
-                if b < 0x80:
-                    v, pos = b, pos + 1
-                else:
-                    try:
-                        v, pos = decode_varint(buf, pos, end)
-                    except DecodeError as e:
-                        raise e.under(f.name) from None
-                val = _signed(kind, v)
-            else:
-                s = _STRUCTS[kind]
-                if pos + s.size > end:
-                    raise DecodeError(f.name, f"truncated {kind}")
-                val = s.unpack_from(buf, pos)[0]
-                pos += s.size
-            if f.repeated:
-                rep.setdefault(f, []).append(val)
-            else:
-                out[f.name] = val
+            pos = _decode_scalar(f, wt, buf, pos, end, out, rep)
         else:
             raise DecodeError(f.name, f"wire type {wt} does not fit kind {kind}")
+    _join_repeated(out, rep, buf)
+    return out
+
+
+def _decode_scalar(f: Field, wt: int, buf: bytes, pos: int, end: int, out: dict[str, Any],
+                   rep: dict[Field, list]) -> int:
+    """One varint or fixed-width occurrence of `f` at `pos` (just past its key); set in `out` or appended
+    to `rep`. Returns the position after it."""
+    kind = f.kind
+    if wt == VARINT:  # a one-byte varint read inline, as in _decode: a helper call per field slows decoding
+        b = buf[pos] if pos < end else 0x80
+        if b < 0x80:
+            v, pos = b, pos + 1
+        else:
+            try:
+                v, pos = decode_varint(buf, pos, end)
+            except DecodeError as e:
+                raise e.under(f.name) from None
+        val = _signed(kind, v)
+    else:
+        s = _STRUCTS[kind]
+        if pos + s.size > end:
+            raise DecodeError(f.name, f"truncated {kind}")
+        val = s.unpack_from(buf, pos)[0]
+        pos += s.size
+    if f.repeated:
+        rep.setdefault(f, []).append(val)
+    else:
+        out[f.name] = val
+    return pos
+
+
+def _join_repeated(out: dict[str, Any], rep: dict[Field, list], buf: bytes) -> None:
+    """Sets in `out` each repeated field from its collected occurrences: columnar messages as columns,
+    messages, strings and bytes as lists, scalars as one array of the field's dtype."""
     for f, parts in rep.items():
         if f.columnar:
             out[f.name] = _columns(f, buf, parts)
@@ -289,7 +308,6 @@ def _decode(msg: Message, buf: bytes, pos: int, end: int) -> dict[str, Any]:
             out[f.name] = np.array(parts, dtype=f.dtype)
         else:
             out[f.name] = np.concatenate([np.atleast_1d(np.asarray(p, f.dtype)) for p in parts])
-    return out
 
 
 def _unpack(f: Field, buf: bytes, pos: int, stop: int) -> np.ndarray:

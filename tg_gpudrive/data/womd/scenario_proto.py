@@ -164,6 +164,64 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
     if not tracks:
         raise SceneError(source, f"{fp}tracks", "scenario has no tracks")
     n = len(tracks)
+    ag = _tracks(tracks, _track_steps(tracks, source, fp))
+    t_steps, pos, valid = ag["t_steps"], ag["pos"], ag["valid"]
+    origin = scene_origin(pos, valid)
+    pos[~valid] = origin
+    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
+    goal = pos[np.arange(n), last]
+    inter = _interest(msg, ag["agent_id"], source, fp)
+    mp = _map(msg)
+    pts = mp["pts"]
+    road_points = (np.concatenate(pts) - origin) if pts else np.zeros((0, 2))
+    tl_lane, tl_stop_point, tl_state = _traffic_signals(msg, t_steps, mp["lanes"], pts, origin)
+
+    ts = np.asarray(msg.get("timestamps_seconds", []), np.float64)
+    dt = log_period(np.diff(ts))
+    sid = msg.get("scenario_id", "")
+    sdc = msg.get("sdc_track_index")
+    scene = Scene(
+        scene_id=sid,
+        log_pos=(pos - origin).astype(np.float32),
+        log_yaw=ag["yaw"],
+        log_vel=ag["vel"],
+        log_valid=valid,
+        length=ag["dims"][:, 0],
+        width=ag["dims"][:, 1],
+        height=ag["dims"][:, 2],
+        agent_type=ag["agent_type"],
+        agent_id=ag["agent_id"],
+        goal=_f32(goal - origin),
+        is_sdc=inter["is_sdc"],
+        is_interest=inter["is_interest"],
+        road_points=_f32(road_points),
+        road_offsets=np.concatenate([[0], np.cumsum([len(p) for p in pts])]).astype(np.int64),
+        road_type=np.asarray(mp["road_type"], np.int8),
+        road_id=np.asarray(mp["road_id"], np.int64),
+        lane_edges=mp["lane_edges"],
+        tl_lane=tl_lane,
+        tl_stop_point=tl_stop_point.astype(np.float32),
+        tl_state=tl_state,
+        origin=origin,
+        dt=dt if dt > 0 else 0.1,
+        metadata={
+            "source": source,
+            "scenario_type": "womd",
+            "name": sid,
+            "current_time_index": int(msg.get("current_time_index", 0)),
+            "sdc_track_index": int(sdc) if sdc is not None and sdc >= 0 else None,
+            "tracks_to_predict": inter["tracks_to_predict"],
+            "objects_of_interest": inter["objects_of_interest"],
+            "road_subtype": mp["subtype"],
+            "dropped_empty_roads": mp["dropped"],
+        },
+    )
+    return scene.validate(source, field_prefix=fp)
+
+
+def _track_steps(tracks: list, source: str, fp: str) -> int:
+    """The number of states every track holds (tracks[0]'s); a track with another count, or fewer than
+    two states, raises SceneError."""
     lengths = []
     for tr in tracks:
         st = tr.get("states") or {}
@@ -174,7 +232,13 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
             raise SceneError(source, f"{fp}tracks[{i}].states", f"expected {t_steps} states (as tracks[0]), got {k}")
     if t_steps < 2:
         raise SceneError(source, f"{fp}tracks[0].states", f"need at least 2 states, got {t_steps}")
+    return t_steps
 
+
+def _tracks(tracks: list, t_steps: int) -> dict[str, Any]:
+    """Per-agent arrays of the tracks, positions still global (float64): pos, yaw, vel, valid, dims
+    (length, width, height: medians over the valid steps), agent_type, agent_id, and t_steps."""
+    n = len(tracks)
     pos = np.zeros((n, t_steps, 2))
     yaw = np.zeros((n, t_steps), np.float32)
     vel = np.zeros((n, t_steps, 2), np.float32)
@@ -196,11 +260,14 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
             dims[i, d] = np.median(np.asarray(st.get(name, zeros), np.float32)[steps])
         agent_type[i] = _OBJECT_TYPE.get(int(tr.get("object_type", 0)), AgentType.OTHER)
         agent_id[i] = int(tr.get("id", i))
-    origin = scene_origin(pos, valid)
-    pos[~valid] = origin
-    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
-    goal = pos[np.arange(n), last]
+    return {"t_steps": t_steps, "pos": pos, "yaw": yaw, "vel": vel, "valid": valid, "dims": dims,
+            "agent_type": agent_type, "agent_id": agent_id}
 
+
+def _interest(msg: dict[str, Any], agent_id: np.ndarray, source: str, fp: str) -> dict[str, Any]:
+    """is_sdc and is_interest (tracks_to_predict | objects_of_interest) of the agents, and the
+    tracks_to_predict / objects_of_interest metadata entries; out-of-range indices raise SceneError."""
+    n = len(agent_id)
     is_sdc = np.zeros(n, bool)
     sdc = msg.get("sdc_track_index")
     if sdc is not None and sdc >= 0:
@@ -221,8 +288,14 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
     for oid in ooi:
         if oid in index_of:
             is_interest[index_of[oid]] = True
+    return {"is_sdc": is_sdc, "is_interest": is_interest, "tracks_to_predict": tracks_to_predict,
+            "objects_of_interest": ooi}
 
-    # ----- map
+
+def _map(msg: dict[str, Any]) -> dict[str, Any]:
+    """The map features as polylines (global coordinates, float64) in file order: pts, road_type, road_id,
+    subtype, lanes ({feature id: polyline}), lane_edges, and how many features were dropped (no
+    feature data, or no points)."""
     pts, road_type, road_id, subtype = [], [], [], []
     lanes: dict[int, int] = {}
     links: list[tuple[int, np.ndarray, np.ndarray]] = []
@@ -253,15 +326,25 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
             lanes.setdefault(fid, r)
             links.append((r, np.asarray(body.get("entry_lanes", []), np.int64),
                           np.asarray(body.get("exit_lanes", []), np.int64)))
+    return {"pts": pts, "road_type": road_type, "road_id": road_id, "subtype": subtype, "lanes": lanes,
+            "lane_edges": _lane_edges(links, lanes), "dropped": dropped}
+
+
+def _lane_edges(links: list[tuple[int, np.ndarray, np.ndarray]], lanes: dict[int, int]) -> np.ndarray:
+    """(E, 2) int32 lane successor edges between polylines from each lane's (polyline, entry lane ids,
+    exit lane ids); ids of no lane polyline are left out."""
     edges = set()
     for r, entry, exit_ in links:
         edges.update((lanes[int(j)], r) for j in entry.tolist() if int(j) in lanes)
         edges.update((r, lanes[int(j)]) for j in exit_.tolist() if int(j) in lanes)
-    lane_edges = np.array(sorted(edges), np.int32).reshape(-1, 2)
-    road_points = (np.concatenate(pts) - origin) if pts else np.zeros((0, 2))
-    offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])]).astype(np.int64)
+    return np.array(sorted(edges), np.int32).reshape(-1, 2)
 
-    # ----- traffic signals
+
+def _traffic_signals(msg: dict[str, Any], t_steps: int, lanes: dict[int, int], pts: list[np.ndarray],
+                     origin: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(tl_lane, tl_stop_point in the scene frame (float64), tl_state (T, L)): one signal per controlled
+    lane in order of first appearance; without a stop point, the end of the controlled lane, and a
+    signal of neither is dropped."""
     tl_index: dict[int, int] = {}
     tl_stop: list[np.ndarray | None] = []
     cols: list[np.ndarray] = []
@@ -293,47 +376,7 @@ def scenario_to_scene(msg: dict[str, Any], source: str, *, field_prefix: str = "
         keep.append(l)
     tl_state = np.stack([cols[l] for l in keep], 1) if keep else np.zeros((t_steps, 0), np.int8)
     tl_stop_point = (np.asarray(stops) - origin) if stops else np.zeros((0, 2))
-
-    ts = np.asarray(msg.get("timestamps_seconds", []), np.float64)
-    dt = log_period(np.diff(ts))
-    sid = msg.get("scenario_id", "")
-    scene = Scene(
-        scene_id=sid,
-        log_pos=(pos - origin).astype(np.float32),
-        log_yaw=yaw,
-        log_vel=vel,
-        log_valid=valid,
-        length=dims[:, 0],
-        width=dims[:, 1],
-        height=dims[:, 2],
-        agent_type=agent_type,
-        agent_id=agent_id,
-        goal=_f32(goal - origin),
-        is_sdc=is_sdc,
-        is_interest=is_interest,
-        road_points=_f32(road_points),
-        road_offsets=offsets,
-        road_type=np.asarray(road_type, np.int8),
-        road_id=np.asarray(road_id, np.int64),
-        lane_edges=lane_edges,
-        tl_lane=np.asarray(tl_lane, np.int64),
-        tl_stop_point=tl_stop_point.astype(np.float32),
-        tl_state=tl_state,
-        origin=origin,
-        dt=dt if dt > 0 else 0.1,
-        metadata={
-            "source": source,
-            "scenario_type": "womd",
-            "name": sid,
-            "current_time_index": int(msg.get("current_time_index", 0)),
-            "sdc_track_index": int(sdc) if sdc is not None and sdc >= 0 else None,
-            "tracks_to_predict": tracks_to_predict,
-            "objects_of_interest": ooi,
-            "road_subtype": subtype,
-            "dropped_empty_roads": dropped,
-        },
-    )
-    return scene.validate(source, field_prefix=fp)
+    return np.asarray(tl_lane, np.int64), tl_stop_point, tl_state
 
 
 # -------------------------------------------------------------- Scene -> proto
@@ -344,12 +387,36 @@ def _points(xy: np.ndarray) -> dict[str, np.ndarray]:
 def scene_to_scenario(scene: Scene) -> dict[str, Any]:
     """Convert a Scene to a Scenario dict (global coordinates) for `encode_scenario`."""
     scene = scene.copy().validate()
-    n, t_steps = scene.num_agents, scene.num_steps
-    origin = scene.origin
-    world = scene.log_pos.astype(np.float64) + origin
+    t_steps = scene.num_steps
+    tracks = _scenario_tracks(scene)
+    features = _map_features(scene)
+    dynamic = _dynamic_map_states(scene)
+    meta = scene.metadata
+    msg: dict[str, Any] = {
+        "scenario_id": scene.scene_id,
+        "timestamps_seconds": np.arange(t_steps) * float(scene.dt),
+        "current_time_index": int(meta.get("current_time_index", min(10, t_steps - 1))),
+        "tracks": tracks,
+        "dynamic_map_states": dynamic,
+        "map_features": features,
+    }
+    if scene.is_sdc.any():
+        msg["sdc_track_index"] = int(np.argmax(scene.is_sdc))
+    ttp, ooi = _prediction_requests(scene)
+    msg["tracks_to_predict"] = [{"track_index": int(q["track_index"]), "difficulty": int(q.get("difficulty", 0))}
+                                for q in ttp or []]
+    if ooi:
+        msg["objects_of_interest"] = np.asarray(ooi, np.int64)
+    return msg
+
+
+def _scenario_tracks(scene: Scene) -> list[dict[str, Any]]:
+    """One Track per agent, its states in global coordinates (zero where invalid)."""
+    t_steps = scene.num_steps
+    world = scene.log_pos.astype(np.float64) + scene.origin
     valid = scene.log_valid
     tracks = []
-    for i in range(n):
+    for i in range(scene.num_agents):
         v = valid[i]
         tracks.append({
             "id": int(scene.agent_id[i]),
@@ -368,7 +435,12 @@ def scene_to_scenario(scene: Scene) -> dict[str, Any]:
                 "valid": v,
             },
         })
+    return tracks
 
+
+def _map_features(scene: Scene) -> list[dict[str, Any]]:
+    """One MapFeature per polyline (global coordinates), lanes with their entry and exit lanes; a road
+    type without a WOMD feature kind raises SceneError."""
     r_count = scene.num_polylines
     subtypes = scene.metadata.get("road_subtype")
     if subtypes is None or len(subtypes) != r_count:
@@ -386,7 +458,7 @@ def scene_to_scenario(scene: Scene) -> dict[str, Any]:
         if rtype not in _FEATURE_OF_TYPE:
             raise SceneError(scene.scene_id, f"road_type[{r}]", f"{RoadType(rtype).name} has no WOMD MapFeature kind")
         name, key, has_sub = _FEATURE_OF_TYPE[rtype]
-        xy = scene.polyline(r).astype(np.float64) + origin
+        xy = scene.polyline(r).astype(np.float64) + scene.origin
         if key is None:
             body: dict[str, Any] = {"position": {"x": float(xy[0, 0]), "y": float(xy[0, 1]), "z": 0.0}}
         else:
@@ -397,25 +469,23 @@ def scene_to_scenario(scene: Scene) -> dict[str, Any]:
             body["entry_lanes"] = np.asarray(entry[r], np.int64)
             body["exit_lanes"] = np.asarray(exit_[r], np.int64)
         features.append({"id": int(scene.road_id[r]), name: body})
+    return features
 
-    stops = scene.tl_stop_point.astype(np.float64) + origin
-    dynamic = [{"lane_states": [
+
+def _dynamic_map_states(scene: Scene) -> list[dict[str, Any]]:
+    """Per logged step, the state of every signal with its lane and stop point (global coordinates)."""
+    stops = scene.tl_stop_point.astype(np.float64) + scene.origin
+    return [{"lane_states": [
         {"lane": int(lane), "state": int(scene.tl_state[t, l]),
          "stop_point": {"x": float(stops[l, 0]), "y": float(stops[l, 1]), "z": 0.0}}
-        for l, lane in enumerate(scene.tl_lane.tolist())]} for t in range(t_steps)]
+        for l, lane in enumerate(scene.tl_lane.tolist())]} for t in range(scene.num_steps)]
 
+
+def _prediction_requests(scene: Scene) -> tuple[list | None, list | None]:
+    """(tracks_to_predict, objects_of_interest): the source's split of is_interest from the metadata
+    while it still matches is_interest, else every agent of interest as a track to predict."""
     meta = scene.metadata
-    msg: dict[str, Any] = {
-        "scenario_id": scene.scene_id,
-        "timestamps_seconds": np.arange(t_steps) * float(scene.dt),
-        "current_time_index": int(meta.get("current_time_index", min(10, t_steps - 1))),
-        "tracks": tracks,
-        "dynamic_map_states": dynamic,
-        "map_features": features,
-    }
-    if scene.is_sdc.any():
-        msg["sdc_track_index"] = int(np.argmax(scene.is_sdc))
-    # keep the source's split of interest into tracks_to_predict / objects_of_interest when it still matches
+    n = scene.num_agents
     ttp, ooi = meta.get("tracks_to_predict"), meta.get("objects_of_interest")
     index_of = {int(a): i for i, a in enumerate(scene.agent_id)}
     if ttp is not None or ooi is not None:
@@ -432,11 +502,7 @@ def scene_to_scenario(scene: Scene) -> dict[str, Any]:
             ttp = ooi = None
     if ttp is None and ooi is None:
         ttp = [{"track_index": int(i), "difficulty": 0} for i in np.nonzero(scene.is_interest)[0]]
-    msg["tracks_to_predict"] = [{"track_index": int(q["track_index"]), "difficulty": int(q.get("difficulty", 0))}
-                                for q in ttp or []]
-    if ooi:
-        msg["objects_of_interest"] = np.asarray(ooi, np.int64)
-    return msg
+    return ttp, ooi
 
 
 # ------------------------------------------------------------------- TFRecords

@@ -546,16 +546,8 @@ def load_scenarionet(path: str | os.PathLike) -> Scene:
     simplifies the road polylines when packing). `dataset_summary.pkl` / `dataset_mapping.pkl` raise a SceneError saying what they are.
     """
     src = str(path)
-    name = Path(src).name.lower()
-    if name in DATASET_FILES:
-        raise _not_a_scene(src, name.removeprefix("dataset_").removesuffix(".pkl"))
-    raw = load_pickle(path)
     rd = _Reader(src)
-    if not isinstance(raw, dict):
-        rd.fail("pickle", f"expected a dict at the top level, got {_describe(raw)}")
-    if "tracks" not in raw and raw and all(isinstance(k, str) and k.endswith(".pkl") for k in raw):
-        # a renamed index file: the summary maps files to metadata dicts, the mapping to directories
-        raise _not_a_scene(src, "summary" if all(isinstance(v, dict) for v in raw.values()) else "mapping")
+    raw = _scene_pickle(path, rd)
     meta = rd.dict(raw.get("metadata") or {}, "metadata")
     defaults: dict[str, int] = {}
 
@@ -577,7 +569,6 @@ def load_scenarionet(path: str | os.PathLike) -> Scene:
     dt = 0.1
     if isinstance(ts, (np.ndarray, list, tuple)) and len(ts) >= 2:
         dt = log_period(np.diff(rd.numbers(ts, "metadata.ts").reshape(-1)))
-    dataset = meta.get("dataset")
     sid = raw.get("id") or meta.get("scenario_id") or meta.get("id")
     return Scene(
         scene_id=str(sid) if sid is not None else Path(src).stem,
@@ -603,29 +594,53 @@ def load_scenarionet(path: str | os.PathLike) -> Scene:
         tl_state=tl_state,
         origin=origin,
         dt=dt,
-        metadata={
-            "source": src,
-            # per-type episode rates group on this: WOMD scenes as every other loader labels them
-            "scenario_type": "womd" if dataset in (None, "waymo", "womd") else str(dataset),
-            "name": Path(src).name,
-            "dataset": dataset if isinstance(dataset, str) else None,
-            "version": raw.get("version") if isinstance(raw.get("version"), str) else None,
-            "source_file": meta.get("source_file") if isinstance(meta.get("source_file"), str) else None,
-            "current_time_index": (int(meta["current_time_index"])
-                                   if isinstance(meta.get("current_time_index"), (int, np.integer)) else None),
-            "sdc_track_index": inter["sdc_track_index"],
-            "tracks_to_predict": inter["tracks_to_predict"],
-            "objects_of_interest": inter["objects_of_interest"],
-            "mark_as_expert": [],
-            "road_subtype": mp["subtype"],
-            "dropped_empty_roads": mp["dropped_empty"],
-            "dropped_feature_types": sorted(mp["unknown_types"]),
-            "tl_dropped": tl_dropped,
-            "defaults": defaults,
-            **({} if ag["ids_numeric"] else {"track_ids": [str(k) for k in ag["keys"]]}),
-            **({} if mp["ids_numeric"] else {"map_feature_ids": [str(k) for k in mp["keys"]]}),
-        },
+        metadata=_metadata(src, raw, meta, ag, mp, inter, tl_dropped, defaults),
     ).validate(src)
+
+
+def _scene_pickle(path: str | os.PathLike, rd: _Reader) -> dict:
+    """The unpickled top-level dict of a scenario file; a dataset index file (summary or mapping, also
+    renamed) or anything but a dict raises SceneError."""
+    src = str(path)
+    name = Path(src).name.lower()
+    if name in DATASET_FILES:
+        raise _not_a_scene(src, name.removeprefix("dataset_").removesuffix(".pkl"))
+    raw = load_pickle(path)
+    if not isinstance(raw, dict):
+        rd.fail("pickle", f"expected a dict at the top level, got {_describe(raw)}")
+    if "tracks" not in raw and raw and all(isinstance(k, str) and k.endswith(".pkl") for k in raw):
+        # a renamed index file: the summary maps files to metadata dicts, the mapping to directories
+        raise _not_a_scene(src, "summary" if all(isinstance(v, dict) for v in raw.values()) else "mapping")
+    return raw
+
+
+def _metadata(src: str, raw: dict, meta: dict, ag: dict, mp: dict, inter: dict, tl_dropped: int,
+              defaults: dict) -> dict[str, Any]:
+    """The Scene's metadata: where it came from, the prediction requests, what was dropped or filled in,
+    and the original track and feature ids where they are not integers."""
+    dataset = meta.get("dataset")
+    return {
+        "source": src,
+        # per-type episode rates group on this: WOMD scenes as every other loader labels them
+        "scenario_type": "womd" if dataset in (None, "waymo", "womd") else str(dataset),
+        "name": Path(src).name,
+        "dataset": dataset if isinstance(dataset, str) else None,
+        "version": raw.get("version") if isinstance(raw.get("version"), str) else None,
+        "source_file": meta.get("source_file") if isinstance(meta.get("source_file"), str) else None,
+        "current_time_index": (int(meta["current_time_index"])
+                               if isinstance(meta.get("current_time_index"), (int, np.integer)) else None),
+        "sdc_track_index": inter["sdc_track_index"],
+        "tracks_to_predict": inter["tracks_to_predict"],
+        "objects_of_interest": inter["objects_of_interest"],
+        "mark_as_expert": [],
+        "road_subtype": mp["subtype"],
+        "dropped_empty_roads": mp["dropped_empty"],
+        "dropped_feature_types": sorted(mp["unknown_types"]),
+        "tl_dropped": tl_dropped,
+        "defaults": defaults,
+        **({} if ag["ids_numeric"] else {"track_ids": [str(k) for k in ag["keys"]]}),
+        **({} if mp["ids_numeric"] else {"map_feature_ids": [str(k) for k in mp["keys"]]}),
+    }
 
 
 def _tracks(rd: _Reader, tracks: dict, defaults: dict) -> dict:

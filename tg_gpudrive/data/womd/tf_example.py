@@ -193,24 +193,86 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
     except DecodeError as e:
         raise SceneError(source, _where(data, e, fp), e.problem) from None
     fx = _Features(feats, source, fp)
+    rows = _agent_rows(fx)
+    state, steps = _agent_states(fx, len(rows["id"]))
+    ag = _agents(fx, rows, state)
+    origin = scene_origin(ag["pos"], ag["valid"])
+    ag["pos"][~ag["valid"]] = origin
+    t_steps, n = ag["valid"].shape[1], len(ag["keep"])
+    goal = ag["pos"][np.arange(n), t_steps - 1 - np.argmax(ag["valid"][:, ::-1], axis=1)]
+    inter = _interest(rows, ag["keep"], ag["agent_id"])
+    dt = _log_period(state)
+    rg = _roadgraph(fx, source, fp)
+    road_points = (np.concatenate(rg["pts"]) - origin) if rg["pts"] else np.zeros((0, 2))
+    tl = _traffic_lights(fx, steps, t_steps)
+    tl_stop_point = (np.asarray(tl["stop"], np.float64) - origin) if tl["stop"] else np.zeros((0, 2))
+    sid = _scenario_id(fx)
+    with np.errstate(over="ignore"):  # beyond float32 -> inf, which validate reports by field
+        scene = Scene(
+            scene_id=sid,
+            log_pos=(ag["pos"] - origin).astype(np.float32),
+            log_yaw=ag["yaw"],
+            log_vel=ag["vel"],
+            log_valid=ag["valid"],
+            length=ag["length"],
+            width=ag["width"],
+            height=ag["height"],
+            agent_type=ag["agent_type"],
+            agent_id=ag["agent_id"],
+            goal=(goal - origin).astype(np.float32),
+            is_sdc=inter["is_sdc"],
+            is_interest=inter["is_interest"],
+            road_points=road_points.astype(np.float32),
+            road_offsets=np.concatenate([[0], np.cumsum([len(p) for p in rg["pts"]])]).astype(np.int64),
+            road_type=np.asarray(rg["road_type"], np.int8),
+            road_id=np.asarray(rg["road_id"], np.int64),
+            tl_lane=np.asarray(tl["lane"], np.int64),
+            tl_stop_point=tl_stop_point.astype(np.float32),
+            tl_state=tl["state"],
+            origin=origin,
+            dt=dt,
+            metadata={
+                "source": source,
+                "scenario_type": "womd",
+                "format": "tf_example",
+                "name": sid,
+                "current_time_index": steps["past"],
+                "sdc_track_index": inter["sdc_track_index"],
+                "tracks_to_predict": inter["tracks_to_predict"],
+                "objects_of_interest": inter["objects_of_interest"],
+                "road_subtype": rg["subtype"],
+                "roadgraph_truncated": bool(rg["truncated"]),
+                "skipped_agent_rows": int(len(rows["id"]) - n),
+                "skipped_road_samples": rg["skipped"],
+                "tl_skipped": tl["skipped"],
+            },
+        )
+    return scene.validate(source, field_prefix=fp)
 
-    # ----- agents
+
+def _agent_rows(fx: _Features) -> dict[str, np.ndarray]:
+    """The per-row agent features: id, type, is_sdc, tracks_to_predict, objects_of_interest and
+    difficulty (the last three optional)."""
     ids = fx.array("state/id", "float_list")
     n_rows = len(ids)
     if n_rows == 0:
         fx.fail("state/id", "no agent rows")
     rows = f" ({n_rows} agent rows)"
-    kinds = fx.array("state/type", "float_list", n_rows, rows)
-    sdc_flag = fx.array("state/is_sdc", "int64_list", n_rows, rows)
-    ttp_flag = fx.optional("state/tracks_to_predict", "int64_list", n_rows, 0, rows)
-    ooi_flag = fx.optional("state/objects_of_interest", "int64_list", n_rows, 0, rows)
-    difficulty = fx.optional("state/difficulty_level", "int64_list", n_rows, 0, rows)
+    return {"id": ids,
+            "type": fx.array("state/type", "float_list", n_rows, rows),
+            "is_sdc": fx.array("state/is_sdc", "int64_list", n_rows, rows),
+            "tracks_to_predict": fx.optional("state/tracks_to_predict", "int64_list", n_rows, 0, rows),
+            "objects_of_interest": fx.optional("state/objects_of_interest", "int64_list", n_rows, 0, rows),
+            "difficulty": fx.optional("state/difficulty_level", "int64_list", n_rows, 0, rows)}
 
+
+def _agent_states(fx: _Features, n_rows: int) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """The per-step state features, (n_rows, T) each with the parts concatenated, and the steps of each
+    part; each part's valid mask fixes its step count, which every other feature of the part must match."""
     steps: dict[str, int] = {}
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "y", "bbox_yaw", "velocity_x", "velocity_y",
                                                        "length", "width", "height", "valid", "timestamp_micros")}
     for part in PARTS:
-        # the valid mask fixes the part's step count; every other feature of the part must match it
         vkey = f"state/{part}/valid"
         nv = len(fx.array(vkey, "int64_list"))
         if nv == 0 or nv % n_rows:
@@ -228,43 +290,58 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
     t_steps = sum(steps.values())
     if t_steps < 2:
         fx.fail("state/past/valid", f"need at least 2 logged steps over past, current and future, got {t_steps}")
+    return state, steps
 
+
+def _agents(fx: _Features, rows: dict[str, np.ndarray], state: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The agents (the rows with a valid step, `keep`): global positions (float64), yaw, vel, valid, box
+    size from the first valid step, agent_type and agent_id."""
     valid_all = state["valid"] != 0
     keep = np.nonzero(valid_all.any(1))[0]
     if len(keep) == 0:
         fx.fail("state/current/valid", "no agent has a single valid step")
-    n = len(keep)
     valid = valid_all[keep]
-    pos = np.stack([state["x"][keep], state["y"][keep]], -1).astype(np.float64)
-    yaw = state["bbox_yaw"][keep].astype(np.float32)
-    vel = np.stack([state["velocity_x"][keep], state["velocity_y"][keep]], -1).astype(np.float32)
     first = np.argmax(valid, axis=1)
-    dims = {name: state[name][keep, first].astype(np.float32) for name in ("length", "width", "height")}
-    agent_type = np.array([_AGENT_TYPE.get(int(k) if np.isfinite(k) else 0, AgentType.OTHER)
-                           for k in kinds[keep]], np.int8)
+    ag = {"keep": keep, "valid": valid,
+          "pos": np.stack([state["x"][keep], state["y"][keep]], -1).astype(np.float64),
+          "yaw": state["bbox_yaw"][keep].astype(np.float32),
+          "vel": np.stack([state["velocity_x"][keep], state["velocity_y"][keep]], -1).astype(np.float32),
+          **{name: state[name][keep, first].astype(np.float32) for name in ("length", "width", "height")},
+          "agent_type": np.array([_AGENT_TYPE.get(int(k) if np.isfinite(k) else 0, AgentType.OTHER)
+                                  for k in rows["type"][keep]], np.int8)}
+    ids = rows["id"]
     if not np.isfinite(ids[keep]).all():
         fx.fail("state/id", f"non-finite id in agent row {int(keep[~np.isfinite(ids[keep])][0])}")
-    agent_id = np.rint(ids[keep]).astype(np.int64)  # track ids are stored as floats, exact below 2**24
+    ag["agent_id"] = np.rint(ids[keep]).astype(np.int64)  # track ids are stored as floats, exact below 2**24
+    return ag
 
-    origin = scene_origin(pos, valid)
-    pos[~valid] = origin
-    last = t_steps - 1 - np.argmax(valid[:, ::-1], axis=1)
-    goal = pos[np.arange(n), last]
 
-    is_sdc = sdc_flag[keep] != 0
-    ttp = ttp_flag[keep] != 0
-    ooi = ooi_flag[keep] != 0
-    is_interest = ttp | ooi
-    tracks_to_predict = [{"track_index": int(i), "difficulty": int(difficulty[keep][i])} for i in np.nonzero(ttp)[0]]
-    objects_of_interest = [int(agent_id[i]) for i in np.nonzero(ooi)[0]]
-    sdc_index = int(np.argmax(is_sdc)) if is_sdc.any() else None
+def _interest(rows: dict[str, np.ndarray], keep: np.ndarray, agent_id: np.ndarray) -> dict[str, Any]:
+    """is_sdc, is_interest (tracks_to_predict | objects_of_interest) of the kept rows, and the
+    metadata entries: sdc_track_index, tracks_to_predict (scene indices), objects_of_interest (ids)."""
+    is_sdc = rows["is_sdc"][keep] != 0
+    ttp = rows["tracks_to_predict"][keep] != 0
+    ooi = rows["objects_of_interest"][keep] != 0
+    difficulty = rows["difficulty"]
+    return {"is_sdc": is_sdc, "is_interest": ttp | ooi,
+            "tracks_to_predict": [{"track_index": int(i), "difficulty": int(difficulty[keep][i])}
+                                  for i in np.nonzero(ttp)[0]],
+            "objects_of_interest": [int(agent_id[i]) for i in np.nonzero(ooi)[0]],
+            "sdc_track_index": int(np.argmax(is_sdc)) if is_sdc.any() else None}
 
+
+def _log_period(state: dict[str, np.ndarray]) -> float:
+    """The log period from the timestamps (one per step, from any valid agent); 0.1 s without two."""
     ts = state["timestamp_micros"].astype(np.float64)
-    ts = np.where(state["valid"] != 0, ts, -1).max(0)  # one timestamp per step, from any valid agent
+    ts = np.where(state["valid"] != 0, ts, -1).max(0)
     known = np.nonzero(ts >= 0)[0]
-    dt = log_period(np.diff(ts[known]) / np.diff(known) * 1e-6) if len(known) >= 2 else 0.1
+    return log_period(np.diff(ts[known]) / np.diff(known) * 1e-6) if len(known) >= 2 else 0.1
 
-    # ----- road graph
+
+def _roadgraph(fx: _Features, source: str, fp: str) -> dict[str, Any]:
+    """The valid roadgraph samples cut into polylines, a run of samples with one id (and one type, in
+    case a converter reuses ids): pts (global, float64), road_type, road_id, subtype, skipped samples
+    per unknown type, and whether the sample budget was probably exhausted (truncated, with a warning)."""
     rv = fx.array("roadgraph_samples/valid", "int64_list")
     p_count = len(rv)
     what = f" ({p_count} samples, as roadgraph_samples/valid)"
@@ -279,7 +356,6 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
         log.warning("%s%s: all %d roadgraph samples are valid, so Waymo's fixed sample budget probably cut the "
                     "map short; the Scenario flavour of this scenario holds the full map",
                     source, f" {fp.rstrip('.')}" if fp else "", p_count)
-    # a polyline is a run of samples with one id (and one type, in case a converter reuses ids)
     cut = np.nonzero((np.diff(rid) != 0) | (np.diff(rtype) != 0))[0] + 1
     starts = np.concatenate([[0], cut]).astype(np.int64) if len(sel) else np.zeros(0, np.int64)
     ends = np.concatenate([cut, [len(sel)]]).astype(np.int64) if len(sel) else np.zeros(0, np.int64)
@@ -294,13 +370,17 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
         road_type.append(int(_ROAD_TYPE[t]))
         road_id.append(int(rid[s]))
         subtype.append(WOMD_SUBTYPE_BY_MAP_ELEMENT.get(t, 0))
-    road_points = (np.concatenate(pts) - origin) if pts else np.zeros((0, 2))
-    offsets = np.concatenate([[0], np.cumsum([len(p) for p in pts])]).astype(np.int64)
+    return {"pts": pts, "road_type": road_type, "road_id": road_id, "subtype": subtype, "skipped": skipped,
+            "truncated": truncated}
 
-    # ----- traffic signals (optional as a whole: a converter may leave them out)
+
+def _traffic_lights(fx: _Features, steps: dict[str, int], t_steps: int) -> dict[str, Any]:
+    """The traffic signals, optional as a whole (a converter may leave them out): lane ids in order of
+    first appearance, stop points (global) from the first valid report, state (T, L), and the reports
+    skipped for a negative lane id."""
     tl_lane, tl_stop, tl_cols = [], [], []
     tl_skipped = 0
-    if any(k.startswith("traffic_light_state/") for k in feats):
+    if any(k.startswith("traffic_light_state/") for k in fx.feats):
         t0 = 0
         index: dict[int, int] = {}
         for part in PARTS:
@@ -328,55 +408,15 @@ def tf_example_to_scene(data: bytes, source: str, *, field_prefix: str = "") -> 
                 tl_cols[index[lane]][t0 + t] = state_v if state_v in _TL_VALUES else 0
             t0 += tp
     tl_state = np.stack(tl_cols, 1) if tl_cols else np.zeros((t_steps, 0), np.int8)
-    tl_stop_point = (np.asarray(tl_stop, np.float64) - origin) if tl_stop else np.zeros((0, 2))
+    return {"lane": tl_lane, "stop": tl_stop, "state": tl_state, "skipped": tl_skipped}
 
-    # ----- scenario id
+
+def _scenario_id(fx: _Features) -> str:
+    """The scenario id: one UTF-8 value of scenario/id."""
     sid_vals = fx.array("scenario/id", "bytes_list")
     if len(sid_vals) != 1:
         fx.fail("scenario/id", f"expected 1 value, got {len(sid_vals)}")
     try:
-        sid = sid_vals[0].decode("utf-8")
+        return sid_vals[0].decode("utf-8")
     except UnicodeDecodeError:
         fx.fail("scenario/id", "not UTF-8 text")
-
-    with np.errstate(over="ignore"):  # beyond float32 -> inf, which validate reports by field
-        scene = Scene(
-            scene_id=sid,
-            log_pos=(pos - origin).astype(np.float32),
-            log_yaw=yaw,
-            log_vel=vel,
-            log_valid=valid,
-            length=dims["length"],
-            width=dims["width"],
-            height=dims["height"],
-            agent_type=agent_type,
-            agent_id=agent_id,
-            goal=(goal - origin).astype(np.float32),
-            is_sdc=is_sdc,
-            is_interest=is_interest,
-            road_points=road_points.astype(np.float32),
-            road_offsets=offsets,
-            road_type=np.asarray(road_type, np.int8),
-            road_id=np.asarray(road_id, np.int64),
-            tl_lane=np.asarray(tl_lane, np.int64),
-            tl_stop_point=tl_stop_point.astype(np.float32),
-            tl_state=tl_state,
-            origin=origin,
-            dt=dt,
-            metadata={
-                "source": source,
-                "scenario_type": "womd",
-                "format": "tf_example",
-                "name": sid,
-                "current_time_index": steps["past"],
-                "sdc_track_index": sdc_index,
-                "tracks_to_predict": tracks_to_predict,
-                "objects_of_interest": objects_of_interest,
-                "road_subtype": subtype,
-                "roadgraph_truncated": bool(truncated),
-                "skipped_agent_rows": int(n_rows - n),
-                "skipped_road_samples": skipped,
-                "tl_skipped": tl_skipped,
-            },
-        )
-    return scene.validate(source, field_prefix=fp)
