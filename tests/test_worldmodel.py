@@ -11,6 +11,7 @@ from __future__ import annotations
 import copy
 import math
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -660,3 +661,23 @@ def test_shipped_continuous_model_drives_traffic_within_issue_12s_bar(heldout, w
     assert wm["offroad_rate"] - ex["offroad_rate"] <= 0.02
     assert not load_shipped(Simulator(heldout[:1], env, "cpu")).discrete
     assert load_shipped(Simulator(heldout[:1], wm_cfg.env, "cpu")).discrete
+
+
+def test_samples_of_dense_real_scenes_leave_no_agent_out(wm_cfg):
+    """On a real WOMD scene with more agents than env.max_agents, the teacher-forced and closed-loop samples
+    are those of worlds sized for every agent: the parked cars and pedestrians beyond the slot count stay
+    in the scene, so the observed partners are the same."""
+    from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
+    from tg_gpudrive.worldmodel.closed_loop import closed_loop_samples
+
+    scene = load_gpudrive_json(sorted((Path(__file__).parent / "data").glob("womd_*.json"))[0])
+    small = dataclasses.replace(wm_cfg.env, max_agents=4)
+    assert scene.num_agents > small.max_agents
+    big = dataclasses.replace(wm_cfg.env, max_agents=scene.num_agents)
+    taught = [_collect([scene], dataclasses.replace(wm_cfg, env=env))["obs"] for env in (small, big)]
+    assert taught[0].shape[0] > 0 and torch.equal(taught[0], taught[1])
+    model = WorldModel(hidden=16, heads=2, partner_k=min(small.partner_k, wm_cfg.max_partners),
+                       road_k=min(small.road_k, wm_cfg.max_roads), history=wm_cfg.history)
+    loop = [closed_loop_samples(model, [scene], env, horizon=5, history=wm_cfg.history, max_partners=wm_cfg.max_partners,
+                                max_roads=wm_cfg.max_roads)[0]["obs"] for env in (small, big)]
+    assert loop[0].shape[0] > 0 and torch.equal(loop[0], loop[1])

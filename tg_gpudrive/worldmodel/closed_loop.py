@@ -41,6 +41,7 @@ import dataclasses
 
 import torch
 
+from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import wrap_angle
 from tg_gpudrive.worldmodel.data import full_horizon_env, truncate_obs
@@ -163,7 +164,8 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
     was_training = model.training
     model.eval()
     for b in range(0, len(scenes), num_worlds):
-        sim = Simulator(scenes[b:b + num_worlds], env, device)
+        batch = scenes[b:b + num_worlds]
+        sim = Simulator(batch, sized_for(env, batch), device)  # every agent gets a slot: none is dropped
         sim.reset()
         driver = WorldModelDriver(model, rows="controlled", temperature=temperature, seed=seed + b)
         rows_all = sim.integrated != 0

@@ -18,6 +18,7 @@ import torch
 
 from tg_gpudrive.config import ConfigError, EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.engine.model import sized_for
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
@@ -42,7 +43,8 @@ def truncate_obs(obs: torch.Tensor, k: int, kr: int, kp: int, krr: int) -> torch
 @torch.no_grad()
 def collect(scenes, env: EngineConfig, *, history: int, max_partners: int, max_roads: int,
             num_worlds: int = 16, device: str = "cpu") -> dict:
-    """Teacher-forced samples of `scenes`, on the host: obs (N, D), hist (N, H, 7), target (N,) grid
+    """Teacher-forced samples of `scenes` (every agent of a scene has a slot, `env.max_agents` raised
+    where a scene needs more), on the host: obs (N, D), hist (N, H, 7), target (N,) grid
     indices (discrete) or (N, 2) expert (accel, curvature) (continuous), expert (N, 4) (the logged
     expert action and a validity flag, for the oracle bound), layout (partner_k, road_k) of obs."""
     require_bicycle(env)
@@ -50,7 +52,8 @@ def collect(scenes, env: EngineConfig, *, history: int, max_partners: int, max_r
     kp, krr = min(env.partner_k, max_partners), min(env.road_k, max_roads)
     out = {"obs": [], "hist": [], "target": [], "expert": []}
     for b in range(0, len(scenes), num_worlds):
-        sim = Simulator(scenes[b:b + num_worlds], env, device)
+        batch = scenes[b:b + num_worlds]
+        sim = Simulator(batch, sized_for(env, batch), device)  # every agent gets a slot: none is dropped
         sim.reset()
         hb = HistoryBuffer(history)
         for _ in range(sim.episode_length):

@@ -22,9 +22,10 @@ continuous head, whose drift it made worse on the CPU (BENCHMARKS.md, "World mod
 Shipped model: the two commands at the top of configs/worldmodel/gpu.yaml (teacher forcing, then
 closed-loop fine-tuning, on one GPU), then `cp runs/wm_gpu_dagger/model.pt tg_gpudrive/worldmodel/shipped.pt`.
 
-On a WOMD store, set `scenes: <store dir>` (made with `tg-gpudrive convert`), raise
-`env.max_agents` to 128, `num_scenes` to what fits in memory (a sample is about
-1.5 kB with the default `max_partners` / `max_roads`) and train on the GPU (`device: cuda`).
+On a WOMD store, set `scenes: <store dir>` (made with `tg-gpudrive convert`), `num_scenes` to what
+fits in memory (a sample is about 1.5 kB with the default `max_partners` / `max_roads`) and train on
+the GPU (`device: cuda`). Every agent of a scene gets a slot (`env.max_agents` is raised where a scene
+needs more), so no agent is left out of the samples.
 
 The metrics it logs come from metrics.py; the command line is cli.py. This
 module must not parse arguments or print: it returns its results.
