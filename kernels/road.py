@@ -236,10 +236,8 @@ def simplify_kernel(
 
 
 def launch_simplify(pts: wp.array, start: wp.array, count: wp.array, polygon: wp.array, tolerance: float,
-                    device) -> wp.array:
-    """The RDP keep mask (int32 per point) of the polylines [start, start + count) of `pts`."""
-    keep = wp.empty(len(pts), dtype=wp.int32, device=device)
-    stack = wp.empty(max(2 * len(pts), 1), dtype=wp.int32, device=device)
+                    stack: wp.array, keep: wp.array, device) -> None:
+    """The RDP keep mask (`keep`, int32 per point) of the polylines [start, start + count) of `pts`;
+    `stack`: int32 scratch of 2 per point."""
     wp.launch(simplify_kernel, dim=len(start), device=device,
               inputs=[pts, start, count, polygon, wp.float64(tolerance), stack], outputs=[keep])
-    return keep

@@ -107,12 +107,18 @@ def _simplified(pts: torch.Tensor, off: torch.Tensor, ptype: torch.Tensor, toler
         return pts, off
     counts = (off[1:] - off[:-1]).to(torch.int32)
     polygon = torch.isin(ptype, torch.tensor([int(t) for t in POLYGON_ROAD_TYPES], device=ptype.device)).to(torch.int32)
-    wdev = wp.device_from_torch(pts.device)
-    keep = launch_simplify(wp.from_torch(pts.contiguous(), dtype=wp.vec2), wp.from_torch(off[:-1].to(torch.int32).contiguous()),
-                           wp.from_torch(counts.contiguous()), wp.from_torch(polygon.contiguous()), tolerance, wdev)
-    keep = wp.to_torch(keep).bool()
-    if pts.device.type == "cuda":
-        wp.synchronize_device(wdev)
+    starts = off[:-1].to(torch.int32)
+    keep = torch.empty(len(pts), dtype=torch.int32, device=pts.device)
+    stack = torch.empty(2 * len(pts), dtype=torch.int32, device=pts.device)
+    args = (wp.from_torch(pts.contiguous(), dtype=wp.vec2), wp.from_torch(starts), wp.from_torch(counts),
+            wp.from_torch(polygon), tolerance, wp.from_torch(stack), wp.from_torch(keep),
+            wp.device_from_torch(pts.device))
+    if pts.is_cuda:  # on torch's stream: the inputs are ready and the scratch is freed after the kernel
+        with wp.ScopedStream(wp.stream_from_torch(torch.cuda.current_stream(pts.device))):
+            launch_simplify(*args)
+    else:
+        launch_simplify(*args)
+    keep = keep.bool()
     before = torch.cat([keep.new_zeros(1, dtype=torch.long), torch.cumsum(keep.long(), 0)])
     return pts[keep], before[off]
 
