@@ -38,11 +38,12 @@ mix() {  # the training scenes of a real store (- for none)
 
 world_model() {  # name store: the shipped world model fine-tuned on the run's scenes -> $runs/name_wm/model.pt
   local name=$1 scenes; scenes=$(mix "$2")
+  rm -rf "$runs/${name}_wm_tf" "$runs/${name}_wm"  # train-world-model writes into a fresh directory
   $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model=shipped --set steps=1500 \
-    --set "scenes=$scenes" --out "$runs/${name}_wm_tf" --overwrite > "$out/wm_$name.log" 2>&1 &&
+    --set "scenes=$scenes" --out "$runs/${name}_wm_tf" > "$out/wm_$name.log" 2>&1 &&
   $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model="$runs/${name}_wm_tf/model.pt" \
     --set steps=0 --set num_scenes=600 --set closed_loop_steps=600 --set closed_loop_rounds=1 \
-    --set "scenes=$scenes" --out "$runs/${name}_wm" --overwrite >> "$out/wm_$name.log" 2>&1
+    --set "scenes=$scenes" --out "$runs/${name}_wm" >> "$out/wm_$name.log" 2>&1
   tail -c 2000 "$out/wm_$name.log" > "$out/wm_$name.tail" && mv "$out/wm_$name.tail" "$out/wm_$name.log"
 }
 
