@@ -9,7 +9,8 @@
 # below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
 # is a store name under STORES (womd_dev_train, womd_dev_train_5, ...) or - for procedural scenes alone,
 # and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
-# first fine-tunes the shipped world model on the same real scenes and the procedural mix (teacher
+# first fine-tunes the shipped world model on the same real scenes and the procedural mix, on roads
+# simplified as real_mix.yaml's (teacher
 # forcing, then one closed-loop round) and trains with it as the magnet; its traffic rates on the held-out
 # scenes (scripts/wm_traffic.py) go to OUT_DIR too.
 # STORES holds the stores of scripts/split_dev.py (womd_dev_train*, womd_dev_heldout). Run it outside
@@ -40,10 +41,10 @@ world_model() {  # name store: the shipped world model fine-tuned on the run's s
   local name=$1 scenes; scenes=$(mix "$2")
   rm -rf "$runs/${name}_wm_tf" "$runs/${name}_wm"  # train-world-model writes into a fresh directory
   $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model=shipped --set steps=1500 \
-    --set "scenes=$scenes" --out "$runs/${name}_wm_tf" > "$out/wm_$name.log" 2>&1 &&
+    --set env.road_simplify=0.1 --set "scenes=$scenes" --out "$runs/${name}_wm_tf" > "$out/wm_$name.log" 2>&1 &&
   $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model="$runs/${name}_wm_tf/model.pt" \
     --set steps=0 --set num_scenes=600 --set closed_loop_steps=600 --set closed_loop_rounds=1 \
-    --set "scenes=$scenes" --out "$runs/${name}_wm" >> "$out/wm_$name.log" 2>&1
+    --set env.road_simplify=0.1 --set "scenes=$scenes" --out "$runs/${name}_wm" >> "$out/wm_$name.log" 2>&1
   tail -c 2000 "$out/wm_$name.log" > "$out/wm_$name.tail" && mv "$out/wm_$name.tail" "$out/wm_$name.log"
 }
 
