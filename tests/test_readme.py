@@ -29,6 +29,7 @@ SHRINK = [
      r"\1 --set updates=2 --set num_worlds=2 --set num_scenes=2 --set rollout_steps=8 --set hidden=32 "
      r"--set quantiles=8"),
     (re.compile(r"^(tg-gpudrive report .*)$"), r"\1 --scenes 2 --top 1"),
+    (re.compile(r"^(tg-gpudrive generate .*)$"), r"\1 --seconds 3 --num-scenes 2 --worlds 2 --no-gif"),
 ]
 
 

@@ -141,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     _evaluate_parser(sub)
     _render_parser(sub)
     _report_parser(sub)
+    _generate_parser(sub)
     _convert_parser(sub)
     for command in sub.choices.values():  # every option's help shows its default
         command.formatter_class = HelpFormatter
@@ -196,7 +197,7 @@ def _evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
-                                          "(the policy packaged with tg_gpudrive; shipped_v1: the one before it); this or --policy is required")
+                                          "(the policy packaged with tg_gpudrive; shipped_v2, shipped_v1: the ones before it); this or --policy is required")
     who.add_argument("--policy", choices=BUILTIN,
                      help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
@@ -298,6 +299,30 @@ def _report_br_args(p: argparse.ArgumentParser, d: ReportOptions) -> None:
                    help="fresh evaluation batches of J(pi) and of J(BR) each")
     p.add_argument("--br-gamma", type=float, default=None,
                    help="discount of the best response's returns (default: the run's gamma)")
+
+
+def _generate_parser(sub) -> None:
+    from tg_gpudrive.evaluation import generate as gen_module
+
+    d = gen_module.GenerateOptions
+    p = sub.add_parser("generate", description=gen_module.__doc__,
+                       help="the main job in one command: fine-tune under beta and alpha, export the most critical scenarios")
+    p.add_argument("--scenes", required=True,
+                   help="scene spec: procedural:<type>, a store, .json/.tfrecord file or directory, mix:... (required)")
+    p.add_argument("--beta", type=float, required=True, help="m, the distance constraint (required)")
+    p.add_argument("--alpha", type=float, required=True, help="the CVaR risk level in [0, 1): lower is less risk-averse (required)")
+    p.add_argument("--num", type=positive_int, default=d.num, help="scenarios to export")
+    p.add_argument("--out", default=d.out, metavar="DIR", help="where the scenarios, their table and the policy go")
+    p.add_argument("--seconds", type=float, default=d.seconds, help="training time budget (s)")
+    p.add_argument("--num-scenes", type=positive_int, default=d.num_scenes, help="distinct scenes to draw")
+    p.add_argument("--worlds", type=positive_int, default=None, help="training worlds (default: 8 on the CPU, 256 on a GPU)")
+    p.add_argument("--rollout-seeds", type=positive_int, default=d.rollout_seeds, help="episodes per scene after training")
+    p.add_argument("--max-hellinger", type=float, default=d.max_hellinger,
+                   help="export only episodes at most this far from the logs (mean Hellinger, 0-1; 1: all)")
+    p.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
+    p.add_argument("--seed", type=int, default=d.seed, help="training, scene and rollout seed")
+    p.add_argument("--no-gif", action="store_true", help="skip the GIF of each scenario")
+    p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
 
 def _convert_parser(sub) -> None:
@@ -578,8 +603,32 @@ def cmd_train_world_model(args) -> int:
     return run_world_model(args) or 0
 
 
+def cmd_generate(args) -> int:
+    from tg_gpudrive.evaluation.generate import GenerateOptions, generate
+
+    opts = GenerateOptions(scenes=args.scenes, beta=args.beta, alpha=args.alpha, num=args.num, out=args.out,
+                           seconds=args.seconds, num_scenes=args.num_scenes, num_worlds=args.worlds or 0,
+                           rollout_seeds=args.rollout_seeds, max_hellinger=args.max_hellinger, device=args.device,
+                           seed=args.seed, gif=not args.no_gif)
+    if not 0 <= opts.max_hellinger <= 1:
+        raise ValueError(f"--max-hellinger: expected a number in [0, 1], got {opts.max_hellinger}")
+    if not opts.seconds > 0:
+        raise ValueError(f"--seconds: expected a positive number, got {opts.seconds}")
+    res = generate(opts)
+    if args.json:
+        print(json.dumps({k: v for k, v in res.items() if k != "rows"} | {"rows": res["rows"]}, default=str))
+        return 0
+    print(f"{len(res['scenarios'])} of {res['episodes']} episodes exported to {opts.out}/scenarios "
+          f"(policy fine-tuned for {res['updates']} updates: {res['policy']}); table: {res['table']}")
+    for r in res["rows"]:
+        print(f"  {r['file']}: collisions {r['collisions']}, min TTC {r['min_ttc_s']:.2f} s, min gap "
+              f"{r['min_gap_m']:.2f} m, hard brakes {r['hard_brakes']}, Hellinger to the logs {r['hellinger_to_logs']:.3f}")
+    return 0
+
+
 COMMANDS = {"simulate": cmd_simulate, "train-world-model": cmd_train_world_model, "benchmark": cmd_benchmark, "convert": cmd_convert, "train": cmd_train,
-            "evaluate": cmd_evaluate, "render": cmd_render, "report": cmd_report}
+            "evaluate": cmd_evaluate, "render": cmd_render, "report": cmd_report,
+            "generate": cmd_generate}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,4 +12,5 @@
     report_stats.py    the report's figures of merit: per-policy measures, knob directions, worst scenes
     report_figures.py  its plots: the grid of trajectories, multipliers, gaps and their curves, worst scenes
     report_markdown.py report.md (the findings) and per_agent.csv / per_scene.csv beside it
+    generate.py        `tg-gpudrive generate`: fine-tune under beta and alpha, export the critical scenarios
 """

@@ -1,0 +1,155 @@
+"""`tg-gpudrive generate`: the main job in one command, scenes and knobs in, critical scenarios out.
+
+Given scenes (real or procedural), the distance constraint `beta`, the risk level `alpha` and a time
+budget, it fine-tunes the shipped policy on those scenes under those knobs (CCE-MAPPO, the shipped
+policy's own training settings otherwise), rolls the result out on the same scenes, and writes the `num`
+most safety-critical episodes (most collisions, then the shortest time to collision, the smallest gap,
+the most hard brakes; evaluation/risk.py) as:
+
+    OUT/scenarios/<name>.json   GPUDrive processed JSON: `--scenes OUT/scenarios` plays them back
+    OUT/scenarios/<name>.gif    each scenario replayed (every agent on its generated track)
+    OUT/scenarios.csv           their risk (collisions, min TTC, min gap, hard brakes, who was involved)
+                                and their fidelity to the logs (mean Hellinger distance over the speed,
+                                acceleration, nearest-agent and curvature histograms; 0: the logs' own)
+    OUT/policy/                 the fine-tuned policy's run (checkpoint, metrics.csv, curves.png)
+
+`max_hellinger` keeps only episodes at most that far from the logs: critical but realistic.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from tg_gpudrive.checkpoint import load_checkpoint
+from tg_gpudrive.config import AugmentConfig, EngineConfig, TrainConfig, from_dict, to_dict
+from tg_gpudrive.data.sources import resolve_scenes
+from tg_gpudrive.enums import ControlMode
+from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts
+from tg_gpudrive.evaluation.export import export_episodes
+from tg_gpudrive.evaluation.fidelity import episode_histograms, hellinger_of_sums, histograms
+from tg_gpudrive.evaluation.risk import collision_partners, episode_risk, rank_scenarios
+
+TABLE = ("file", "scene_id", "seed", "collisions", "min_ttc_s", "min_gap_m", "hard_brakes", "involved",
+         "hellinger_to_logs")
+
+
+@dataclasses.dataclass(frozen=True)
+class GenerateOptions:
+    """What `tg-gpudrive generate` takes (see the module docstring)."""
+
+    scenes: str
+    beta: float
+    alpha: float
+    num: int = 5
+    out: str = "generated"
+    seconds: float = 120.0  # training wall-clock budget
+    updates: int = 10_000  # at most this many updates (the time budget usually ends first)
+    num_scenes: int = 16
+    num_worlds: int = 0  # 0: 8 on the CPU, 256 on a GPU
+    rollout_seeds: int = 2  # episodes per scene after training
+    max_hellinger: float = 1.0  # 1.0: no realism filter
+    device: str = "cpu"
+    seed: int = 0
+    gif: bool = True
+
+
+def training_config(opts: GenerateOptions) -> TrainConfig:
+    """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: no
+    augmentation, no resampling, the time budget, one checkpoint at the end. Every value is checked
+    as a config file's are (ConfigError naming the key)."""
+    base = to_dict(from_dict(TrainConfig, load_checkpoint("shipped", "shipped")["config"], "the shipped policy"))
+    base["augment"] = to_dict(AugmentConfig())
+    worlds = opts.num_worlds or (8 if opts.device == "cpu" else 256)
+    settings = {"scenes": opts.scenes, "num_scenes": opts.num_scenes, "num_worlds": worlds, "resample_every": 0,
+                "init_policy": "shipped", "device": opts.device, "seed": opts.seed, "updates": opts.updates,
+                "time_limit_s": opts.seconds, "alpha": opts.alpha,
+                "checkpoint_every": opts.updates, "keep_policy_every": 0, "target_goal_rate": 0.0,
+                "target_heldout": "", "out_dir": str(Path(opts.out) / "policy")}
+    base.update(settings)
+    base["env"] = {**base["env"], "beta": opts.beta}
+    return from_dict(TrainConfig, base, "tg-gpudrive generate")
+
+
+def _involved(partners: list[dict], episode: int) -> str:
+    """Who collided in `episode`: slot -> partner slot (the partner's kind), `;`-separated."""
+    rows = [p for p in partners if p["episode"] == episode]
+    return ";".join(f"{p['agent']}->{p['partner']} ({'policy' if p['partner_policy'] else 'replayed'}, "
+                    f"{p['contact']})" for p in rows)
+
+
+def episode_hellinger(logged, generated) -> np.ndarray:
+    """(E,) mean Hellinger distance of each generated episode's feature histograms (its policy agents)
+    to the logs' (all of their policy agents)."""
+    rows = episode_histograms(generated, generated.policy)
+    episode_of_row = np.nonzero(generated.policy)[0]  # row-major order of the (E, A) mask
+    sums = np.zeros((generated.num_episodes, rows.shape[1]))
+    np.add.at(sums, episode_of_row, rows)
+    return hellinger_of_sums(histograms(logged), sums)
+
+
+def critical_scenarios(logged, generated, num: int, max_hellinger: float) -> list[dict]:
+    """The `num` most critical episodes whose distance to the logs is at most `max_hellinger`, with
+    their risk, who collided and that distance."""
+    risk = episode_risk(generated)
+    far = episode_hellinger(logged, generated)
+    partners = collision_partners(generated)
+    rows = [r for r in rank_scenarios(generated, risk, top=generated.num_episodes)
+            if not far[r["episode"]] > max_hellinger][:num]
+    for r in rows:
+        r["involved"] = _involved(partners, r["episode"])
+        r["hellinger_to_logs"] = float(far[r["episode"]])
+    return rows
+
+
+def write_table(rows: list[dict], path: Path) -> Path:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(TABLE)
+        for r in rows:
+            w.writerow([r.get(k, "") for k in TABLE])
+    return path
+
+
+def replay_gif(scene_file: Path, device: str) -> Path:
+    """A GIF of the exported scenario: every agent on its generated track (log replay)."""
+    from tg_gpudrive.agents.worlds import open_policy
+    from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
+    from tg_gpudrive.render import render_episode
+
+    replay = EngineConfig(control=ControlMode.NONE)  # nobody drives: every agent replays its track
+    opened = open_policy("expert", [load_gpudrive_json(scene_file)], device, engine=replay, auto_reset=False)
+    out = scene_file.with_suffix(".gif")
+    render_episode(opened.sim, opened.policy, out=out, fit="scene")
+    return out
+
+
+def generate(opts: GenerateOptions, progress: bool = True) -> dict:
+    """Fine-tune, roll out, export (see the module docstring); returns what was written and the rows."""
+    from tg_gpudrive.agents.worlds import open_policy
+    from tg_gpudrive.learn.rundir import claim_run_dir
+    from tg_gpudrive.learn.train import train_main
+
+    out = Path(opts.out)
+    cfg = training_config(opts)  # bad knobs fail here, before anything is written
+    run_dir, lock = claim_run_dir(out / "policy", overwrite=True)
+    with lock:
+        trained = train_main(cfg, str(run_dir), progress=progress)
+    src = resolve_scenes(opts.scenes, n=opts.num_scenes, seed=opts.seed)
+    scenes = [src[i] for i in range(len(src))]
+    opened = open_policy(str(run_dir), scenes, opts.device, seed=opts.seed)
+    logged = logged_episodes(opened.sim)
+    generated = record_rollouts(opened.sim, opened.policy, range(opts.seed, opts.seed + opts.rollout_seeds),
+                                label=f"beta{opts.beta:g}_alpha{opts.alpha:g}")
+    rows = critical_scenarios(logged, generated, opts.num, opts.max_hellinger)
+    files = export_episodes(generated, [r["episode"] for r in rows], out / "scenarios", rows)
+    for r, f in zip(rows, files):
+        r["file"] = str(f.relative_to(out))
+        if opts.gif:
+            replay_gif(f, opts.device)
+    return {"scenarios": [str(f) for f in files], "table": str(write_table(rows, out / "scenarios.csv")),
+            "policy": str(run_dir), "updates": trained.get("update"), "rows": rows,
+            "episodes": generated.num_episodes}
