@@ -3,7 +3,8 @@
 `save_atomic` writes beside the target and renames, so a run killed mid-write
 leaves the previous checkpoint whole; `load_checkpoint` accepts a file, a run
 directory (its checkpoint.pt) or the name "shipped" (the policy packaged at
-tg_gpudrive/policies/shipped.pt; "shipped_v1" the one shipped before it, kept for comparison) and
+tg_gpudrive/policies/shipped.pt; "shipped_v2" and "shipped_v1" the ones shipped before it, kept for
+comparison: SHIPPED_EARLIER) and
 names the command-line option in its error.
 `policy_engine_config` gives a policy checkpoint's engine config with slots for
 every agent of the scenes it is evaluated or rendered on.

@@ -220,7 +220,7 @@ def _render_parser(sub) -> None:
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--policy", default="expert",
-                   help="expert | random | constant | shipped (the packaged policy; shipped_v1 the one before) | a training checkpoint "
+                   help="expert | random | constant | shipped (the packaged policy; shipped_v2, shipped_v1: the ones before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
@@ -610,10 +610,6 @@ def cmd_generate(args) -> int:
                            seconds=args.seconds, num_scenes=args.num_scenes, num_worlds=args.worlds or 0,
                            rollout_seeds=args.rollout_seeds, max_hellinger=args.max_hellinger, device=args.device,
                            seed=args.seed, gif=not args.no_gif)
-    if not 0 <= opts.max_hellinger <= 1:
-        raise ValueError(f"--max-hellinger: expected a number in [0, 1], got {opts.max_hellinger}")
-    if not opts.seconds > 0:
-        raise ValueError(f"--seconds: expected a positive number, got {opts.seconds}")
     res = generate(opts)
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "rows"} | {"rows": res["rows"]}, default=str))

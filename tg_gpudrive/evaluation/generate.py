@@ -56,6 +56,13 @@ class GenerateOptions:
     seed: int = 0
     gif: bool = True
 
+    def __post_init__(self):
+        # the knobs and sizes are checked with the training config (training_config); these two are not in it
+        if not 0 <= self.max_hellinger <= 1:
+            raise ValueError(f"max_hellinger (--max-hellinger): expected a number in [0, 1], got {self.max_hellinger}")
+        if not self.seconds > 0:  # 0 would switch the time limit off, not train for no time
+            raise ValueError(f"seconds (--seconds): expected a positive number, got {self.seconds}")
+
 
 def training_config(opts: GenerateOptions) -> TrainConfig:
     """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: no
