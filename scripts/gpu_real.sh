@@ -5,7 +5,8 @@
 # expert replay.
 #   (cd /tmp && [PHASE=train|eval|all] [PLAN=file] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
-# TIME_LIMIT (s, default 470) bounds each training. The plan (PLAN names a file of such lines; the default
+# TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
+# evaluation in ignore mode. The plan (PLAN names a file of such lines; the default
 # below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
 # is a store name under STORES (womd_dev_train, womd_dev_train_5, ...) or - for procedural scenes alone,
 # and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
@@ -72,9 +73,14 @@ rates() {  # gpu who scenes extra...
 
 evaluate() {  # gpu name
   local gpu=$1 name=$2
-  for mode in ignore stop remove; do
+  for seed in ${EVAL_SEEDS:-0}; do
+    rates "$gpu" "--checkpoint $runs/$name" "$held" --episodes 17 --seed "$seed" --collision-mode ignore
+  done
+  for mode in stop remove; do
     rates "$gpu" "--checkpoint $runs/$name" "$held" --episodes 17 --seed 0 --collision-mode $mode
   done
+  # the training scenes, unaugmented: the rates to choose between runs by, leaving the held-out ones for the report
+  rates "$gpu" "--checkpoint $runs/$name" "$stores/womd_dev_train" --episodes 44 --seed 0 --collision-mode ignore
   rates "$gpu" "--checkpoint $runs/$name" procedural:all --num-scenes 256 --episodes 256 --seed 90000
 }
 
