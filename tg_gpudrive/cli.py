@@ -183,6 +183,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--overwrite", action="store_true",
                    help="replace the run already in the run directory (default: a new directory NAME-2, ...)")
     p.add_argument("--out", default=None, help="run directory (default: out_dir of the config)")
+    p.add_argument("--auto-resume", action="store_true",
+                   help="continue the run in --out exactly if it has a checkpoint, else start it there: the flag "
+                        "for torchrun --max-restarts, whose restarts rerun the same command (default: off)")
     p.add_argument("--nproc", type=int, default=1,
                    help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
@@ -418,6 +421,13 @@ def cmd_benchmark(args) -> int:
 
 
 def cmd_train(args) -> int:
+    if args.auto_resume:
+        if args.resume or not args.out:
+            raise ValueError("--auto-resume: give the run directory as --out (and no --resume)")
+        if (Path(args.out) / "checkpoint.pt").is_file():
+            args.resume = args.out
+        else:  # a start that died before its first checkpoint left nothing to keep
+            args.overwrite = True
     if args.resume:  # the run's own config, then any new overrides
         if not (Path(args.resume) / "checkpoint.pt").is_file() and not Path(args.resume).is_file():
             raise FileNotFoundError(f"--resume: no run to continue at {args.resume} (no checkpoint.pt)")

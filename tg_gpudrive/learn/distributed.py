@@ -5,8 +5,10 @@ source (scene i belongs to rank i % world); actor and critic are wrapped in
 DistributedDataParallel, so gradients are averaged over ranks in backward();
 the constraint estimate behind the Lagrange multiplier and the logged
 statistics are all-reduced, so lambda stays identical everywhere; rank 0 alone
-logs and writes checkpoints. Launch with `tg-gpudrive train --nproc N` or with
-`torchrun --nproc_per_node N -m tg_gpudrive.cli train ...`. NCCL's NVLink
+logs and writes checkpoints, holding every rank's own state (engine, sampler, random streams), so a
+relaunch with as many processes continues exactly. Launch with `tg-gpudrive train --nproc N` or with
+`torchrun --nproc_per_node N -m tg_gpudrive.cli train ...`, on several machines with torchrun's c10d
+rendezvous and `--auto-resume` (README, "Several machines"). NCCL's NVLink
 multicast setting (NCCL_NVLS_ENABLE) is left as the environment has it.
 """
 
@@ -58,6 +60,16 @@ def gather_floats(values: list[float], device) -> list[list[float]]:
     out = [torch.empty_like(t) for _ in range(dist.get_world_size())]
     dist.all_gather(out, t)
     return [o.tolist() for o in out]
+
+
+def gather_to_lead(obj) -> list | None:
+    """Every rank's picklable `obj`, in rank order, on rank 0 (None on the others); [obj] when not
+    distributed. Under NCCL the calling rank's CUDA device must be current (`torch.cuda.set_device`)."""
+    if not is_dist():
+        return [obj]
+    out = [None] * dist.get_world_size() if dist.get_rank() == 0 else None
+    dist.gather_object(obj, out, dst=0)
+    return out
 
 
 def free_port() -> int:

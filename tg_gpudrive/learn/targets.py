@@ -25,6 +25,12 @@ class RateWindow:
         now = tuple(float(stats[k]) for k in ("goal", "collided", "offroad", "episodes"))
         self.recent = (self.recent + [now])[-RATE_WINDOW:]
 
+    def state_dict(self) -> dict:
+        return {"recent": [list(x) for x in self.recent]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.recent = [tuple(x) for x in state.get("recent", [])]
+
     def rates(self) -> dict | None:
         """Goal, collision and off-road rates over the window's episodes (None before one ended)."""
         if not self.recent:

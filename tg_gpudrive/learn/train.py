@@ -128,6 +128,8 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
+        if self.world > 1 and self.device.startswith("cuda"):
+            torch.cuda.set_device(self.device)  # object collectives (the checkpoint's gather) run on it
         per_mb = cfg.num_worlds * cfg.rollout_steps // cfg.minibatches
         if self.lead and cfg.minibatches > 1 and per_mb < SMALL_MINIBATCH:
             log.warning("minibatches=%d: each minibatch holds %d world-steps (of %d worlds x %d steps), so an update "
@@ -137,8 +139,8 @@ class Trainer:
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.rank)
         # exact resume needs the same process count: engine states and samplers are per rank
-        exact = ck is not None and ck.get("world_size", 1) == self.world == 1
-        self._build_worlds(ck if exact else None)
+        mine = rank_state(ck, self.rank, self.world)
+        self._build_worlds(mine)
         self._build_learner(ck)
         self.update = 0
         self.agent_steps = 0
@@ -154,7 +156,7 @@ class Trainer:
             self.budget = cfg.cost_limit * self.logged_cvar
         self.sim.reset()
         if ck is not None:
-            self._load(ck, exact)
+            self._load(ck, mine)
 
     # ------------------------------------------------------------ setup bits
     def _build_worlds(self, ck: dict | None) -> None:
@@ -324,9 +326,9 @@ class Trainer:
                 reached = self._heldout_check(bar)
             out_of_time = 0 < cfg.time_limit_s <= self.wall
             interrupted = stop.requested(self.device)
-            if self.lead and (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached
-                              or out_of_time or interrupted):
-                self.save()
+            if (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached or out_of_time
+                    or interrupted):
+                self.save()  # every rank: each hands its own state to the lead, which writes
             if interrupted:
                 last["interrupted"] = True
                 break
@@ -360,7 +362,7 @@ class Trainer:
         phases = dist_util.gather_floats([t_own, t_roll - t_own, dt - t_roll], self.device)
         row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
                     "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
-        self.wall += dt
+        self.wall += max(sum(p) for p in phases)  # the slowest rank's: every rank reads the same clock
         self.elapsed = elapsed0 + time.perf_counter() - t_start
         steps = int(stats["alive"])
         self.agent_steps += steps
@@ -438,28 +440,40 @@ class Trainer:
             torch.cuda.synchronize(self.device)
 
     # -------------------------------------------------------- checkpoints
-    def state_dict(self) -> dict:
-        """The checkpoint: everything an exact resume reads (`_load`), and the config and actor that
-        evaluation and init_policy read."""
+    def rank_state(self) -> dict:
+        """What this rank alone holds and an exact resume restores: RNG states, the scene sampler and
+        the scenes of its worlds, the engine mid-episode, the prior's and the actor's motion windows."""
         rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
                "gen": self.gen.get_state()}
         if torch.cuda.is_available():
             rng["cuda"] = torch.cuda.get_rng_state_all()
+        return {"rng": rng, "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
+                "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
+                "actor_history": {} if self.actor_hist is None else self.actor_hist.state_dict()}
+
+    def state_dict(self) -> dict:
+        """The checkpoint: everything an exact resume reads (`_load`), and the config and actor that
+        evaluation and init_policy read. The lead's own rank state sits at the top level, the other
+        ranks' in `other_ranks` (rank 1 first). Every rank calls it (a gather); the others get None."""
+        ranks = dist_util.gather_to_lead(self.rank_state())
+        if not self.lead:
+            return None
         return {
             "kind": POLICY, "config": to_dict(self.cfg), "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(), "opt": self.opt.state_dict(),
             "lagrange": self.lagrange.state_dict(), "cost_budget": float(self.budget),
             "update": self.update, "agent_steps": self.agent_steps, "wall": self.wall, "elapsed": self.elapsed,
-            "rng": rng,
-            "sampler": self.sampler.state_dict(), "scene_indices": self.sampler.last_indices.tolist(),
-            "world_size": self.world,
-            "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
-            "actor_history": {} if self.actor_hist is None else self.actor_hist.state_dict(),
+            "window": self.window.state_dict(), "world_size": self.world,
+            **ranks[0], "other_ranks": ranks[1:],
         }
 
-    def save(self) -> Path:
-        """checkpoint.pt (the previous one kept beside it) and config.json of the run directory."""
-        path = save_atomic(self.state_dict(), self.out / "checkpoint.pt", keep_previous=True)
+    def save(self) -> Path | None:
+        """checkpoint.pt (the previous one kept beside it) and config.json of the run directory, written
+        by the lead; every rank calls it."""
+        state = self.state_dict()
+        if not self.lead:
+            return None
+        path = save_atomic(state, self.out / "checkpoint.pt", keep_previous=True)
         (self.out / "config.json").write_text(json.dumps(to_dict(self.cfg), indent=1))
         return path
 
@@ -471,32 +485,46 @@ class Trainer:
         (self.out / POLICY_DIR).mkdir(exist_ok=True)
         return save_atomic(snap, self.out / POLICY_DIR / f"update_{self.update:06d}.pt")
 
-    def _load(self, ck: dict, exact: bool) -> None:
-        """Continue from the checkpoint `ck` (whose weights are in already): exactly (RNG states, engine
-        state mid-episode, the prior's and the actor's motion windows) when `exact`, else its optimiser,
-        lambda and counters; the logs lose the rows written after it."""
+    def _load(self, ck: dict, mine: dict | None) -> None:
+        """Continue from the checkpoint `ck` (whose weights are in already): exactly from this rank's
+        state `mine` (RNG states, engine state mid-episode, the prior's and the actor's motion windows),
+        or, without one (another process count), its optimiser, lambda and counters; the logs lose the
+        rows written after it."""
         self.opt.load_state_dict(ck["opt"])
         self.lagrange.load_state_dict(ck["lagrange"])
         self.update, self.agent_steps, self.wall = ck["update"], ck["agent_steps"], ck["wall"]
         self.elapsed = ck.get("elapsed", self.wall)  # checkpoints before elapsed_s existed
-        if not exact:
+        self.window.load_state_dict(ck.get("window", {}))
+        if mine is None:
             # another process count: weights, optimiser, lambda and counters carry over; episodes
             # start afresh on each rank's own scene shard
             self.gen.manual_seed(self.cfg.seed + self.rank + 7919 * self.update)
             self.runlog.trim(self.update)
             return
-        rng = ck["rng"]
+        rng = mine["rng"]
         torch.set_rng_state(rng["torch"])
         np.random.set_state(rng["numpy"])
         random.setstate(rng["python"])
         self.gen.set_state(rng["gen"])
         if "cuda" in rng and torch.cuda.is_available():
             torch.cuda.set_rng_state_all(rng["cuda"])
-        self.sim.restore(ck["engine"])
-        self.prior.load_state_dict(self.sim, ck.get("prior", {}))
+        self.sim.restore(mine["engine"])
+        self.prior.load_state_dict(self.sim, mine.get("prior", {}))
         if self.actor_hist is not None:
-            self.actor_hist.load_state_dict(self.sim, ck.get("actor_history", {}))
+            self.actor_hist.load_state_dict(self.sim, mine.get("actor_history", {}))
         self.runlog.trim(self.update)
+
+
+def rank_state(ck: dict | None, rank: int, world: int) -> dict | None:
+    """Rank `rank`'s own state in the checkpoint `ck` (Trainer.rank_state), when an exact resume can
+    continue it: the checkpoint was written by `world` processes and holds every rank's state. None
+    otherwise (no checkpoint, another process count, or a multi-process checkpoint without them)."""
+    if ck is None or ck.get("world_size", 1) != world:
+        return None
+    others = ck.get("other_ranks", [])
+    if len(others) != world - 1:
+        return None
+    return ck if rank == 0 else others[rank - 1]
 
 
 def train_main(cfg: TrainConfig, out_dir=None, resume=None, progress=True) -> dict:
