@@ -15,6 +15,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 import torch
+from torch.profiler import record_function as phase  # named ranges for scripts/profile_train.py
 
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead
 from tg_gpudrive.config import TrainConfig
@@ -129,10 +130,12 @@ class RolloutCollector:
         bad = torch.zeros((), dtype=torch.bool, device=self.device)
         for t in range(T):
             bad |= self._act(buf, t, C)
-            sim.step()
-            self._record_step(buf, stats, t, C)
+            with phase("rollout/engine"):
+                sim.step()
+            with phase("rollout/buffers"):
+                self._record_step(buf, stats, t, C)
         obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
-        with nets.autocast():
+        with phase("rollout/critic"), nets.autocast():
             buf.value[T], buf.quant[T] = nets.critic(obs, mask)
         if bool(bad):
             raise NonFinite("non-finite policy output")
@@ -143,43 +146,54 @@ class RolloutCollector:
         policy's output, the observations, the critic's values and the magnet, and hand the actions to
         the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
-        obs = sim.obs[:, :C]
-        mask = sim.active[:, :C] != 0
-        # the other slots get the no-op action, which the engine ignores for agents that do not act
-        w_idx, c_idx = mask.nonzero(as_tuple=True)
+        with phase("rollout/live_rows"):  # the one host sync of a step: how many rows act
+            obs = sim.obs[:, :C]
+            mask = sim.active[:, :C] != 0
+            # the other slots get the no-op action, which the engine ignores for agents that do not act
+            w_idx, c_idx = mask.nonzero(as_tuple=True)
         hist = None
         if self.actor_hist is not None:  # the actor's motion window, synced once per step
             self.actor_hist.sync(sim)
             buf.hist[t] = self.actor_hist.features(sim, slice(0, C))
             hist = buf.hist[t][w_idx, c_idx]
-        with nets.autocast():
+        with phase("rollout/actor"), nets.autocast():
             out = nets.float_out(nets.actor(obs[w_idx, c_idx], c_idx, hist))
-        if head.discrete:
-            bad = ~torch.isfinite(out).all()
-            out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
-        else:
-            bad = ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
-            out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
-        d = head.dist(out)
-        a = self._sample(out, len(w_idx))
-        act = buf.act[t]
-        act.fill_(self.cfg.env.noop_index if head.discrete else 0.0)  # rows that do not act
-        act[w_idx, c_idx] = a.to(act.dtype)
-        buf.logp[t][w_idx, c_idx] = d.log_prob(a)
-        if head.discrete:
-            buf.old[t][w_idx, c_idx] = out
-        else:
-            buf.old[0][t][w_idx, c_idx], buf.old[1][t][w_idx, c_idx] = out
-        buf.obs[t].copy_(obs)
-        buf.mask[t] = mask
-        with nets.autocast():
+        with phase("rollout/sample"):
+            if head.discrete:
+                bad = ~torch.isfinite(out).all()
+                out = torch.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0)
+            else:
+                bad = ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
+                out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
+            d = head.dist(out)
+            a = self._sample(out, len(w_idx))
+        with phase("rollout/buffers"):
+            self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out)
+        with phase("rollout/critic"), nets.autocast():
             buf.value[t], buf.quant[t] = nets.critic(obs, mask, w_idx * C + c_idx)
-        self._magnet(buf, t, C, obs, w_idx, c_idx)
+        with phase("rollout/magnet"):
+            self._magnet(buf, t, C, obs, w_idx, c_idx)
+        act = buf.act[t]
         if head.discrete:
             sim.actions_index[:, :C] = act.to(torch.int32)
         else:
             sim.actions[:, :C, : act.shape[-1]] = act
         return bad
+
+    def _store(self, buf: Rollout, t: int, obs: Tensor, mask: Tensor, w_idx: Tensor, c_idx: Tensor, a: Tensor,
+               logp: Tensor, out) -> None:
+        """Step t's observations, live mask, actions (the no-op where not live), their log-probabilities and
+        the rollout policy's output into the buffers."""
+        act = buf.act[t]
+        act.fill_(self.cfg.env.noop_index if self.nets.head.discrete else 0.0)  # rows that do not act
+        act[w_idx, c_idx] = a.to(act.dtype)
+        buf.logp[t][w_idx, c_idx] = logp
+        if self.nets.head.discrete:
+            buf.old[t][w_idx, c_idx] = out
+        else:
+            buf.old[0][t][w_idx, c_idx], buf.old[1][t][w_idx, c_idx] = out
+        buf.obs[t].copy_(obs)
+        buf.mask[t] = mask
 
     def _sample(self, out, n: int) -> Tensor:
         """Actions of the n live rows, drawn with the trainer's generator."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+from torch.profiler import record_function as phase  # named ranges for scripts/profile_train.py
 
 from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.config import TrainConfig
@@ -157,15 +158,18 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
     for _ in range(cfg.epochs):
         perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
         for s in range(0, n_groups, mb):
-            loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior)
-            bad |= ~torch.isfinite(loss)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()  # under DDP the gradients are averaged over the ranks here
-            # actor and critic clipped apart: one joint norm lets the critic's large early
-            # regression gradients scale the policy's step down to nothing
-            torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
-            torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
-            opt.step()
+            with phase("update/forward"):
+                loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior)
+                bad |= ~torch.isfinite(loss)
+            with phase("update/backward"):
+                opt.zero_grad(set_to_none=True)
+                loss.backward()  # under DDP the gradients are averaged over the ranks here
+            with phase("update/optimizer"):
+                # actor and critic clipped apart: one joint norm lets the critic's large early
+                # regression gradients scale the policy's step down to nothing
+                torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
+                torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
+                opt.step()
             for k, val in parts.items():
                 acc[k] = acc.get(k, 0.0) + val.detach()
             n_mb += 1
@@ -182,8 +186,10 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
     """Learn from one rollout (steps 1-3 of the module docstring): the update's row of metrics (the mean
     loss parts, CVaR, lambda and the budget). `gen` shuffles the minibatches; `prior` rebuilds a
     continuous magnet from its stored context."""
-    tg = advantages(cfg, batch)
-    lam, seen = lagrange_step(cfg, batch.mask, tg.cvar, lagrange, budget)
+    with phase("update/advantages"):
+        tg = advantages(cfg, batch)
+    with phase("update/lagrange"):
+        lam, seen = lagrange_step(cfg, batch.mask, tg.cvar, lagrange, budget)
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
