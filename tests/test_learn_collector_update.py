@@ -105,3 +105,46 @@ def test_a_nan_reward_stops_the_update_with_nonfinite(tmp_path):
     with pytest.raises(NonFinite, match="non-finite loss") as e:
         ppo_update(cfg, batch, nets, opt, lagrange, torch.tensor(1.0), gen, prior)
     assert e.value.what == "non-finite loss" and "mean policy" in e.value.detail
+
+
+def test_magnet_fraction_computes_the_prior_on_that_share_of_live_rows_and_weighs_their_kl(tmp_path):
+    """magnet_fraction 0.25: per step, ceil(n / 4) of the n live rows get the prior's logits (those of the
+    full computation) and weight 4, the other rows weight 0, so their stored logits, whatever they hold,
+    do not reach the loss."""
+    CASES["quarter"] = dict(magnet_fraction=0.25)
+    try:
+        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / "q", "quarter")
+        full = _setup(tmp_path / "f", "discrete")[3]
+    finally:
+        del CASES["quarter"]
+    batch, ref = collector.collect(), full.collect()
+    assert ref.prior_weight is None and batch.prior_weight.shape == batch.mask.shape
+    for t in range(cfg.rollout_steps):
+        live = int(batch.mask[t].sum())
+        w = batch.prior_weight[t]
+        assert int((w > 0).sum()) == math.ceil(0.25 * live) and set(w.unique().tolist()) <= {0.0, 4.0}
+        assert bool(batch.mask[t][w > 0].all())  # only live rows are picked
+    picked = batch.prior_weight[0] > 0  # step 0: the same state in both rollouts
+    torch.testing.assert_close(batch.prior[0][picked], ref.prior[0][picked])
+    # the loss reads the picked rows only
+    groups = flatten(batch, advantages(cfg, batch), True)
+    idx = torch.arange(groups.mask.shape[0])
+    lam = torch.zeros(cfg.env.max_agents)
+    from tg_gpudrive.learn.update import minibatch_loss
+    loss, parts = minibatch_loss(cfg, groups, idx, lam[: groups.mask.shape[1]], nets, prior)
+    junk = dataclasses.replace(groups, prior=torch.where((groups.prior_weight > 0)[..., None], groups.prior,
+                                                         torch.full_like(groups.prior, 30.0).index_fill_(-1, torch.tensor([0]), -30.0)))
+    loss2, parts2 = minibatch_loss(cfg, junk, idx, lam[: groups.mask.shape[1]], nets, prior)
+    assert float(parts2["kl/prior"]) == pytest.approx(float(parts["kl/prior"]), rel=1e-6) and float(parts["kl/prior"]) > 0
+    # and they weigh 1 / fraction: the mean weighted KL estimates the mean KL over all live rows
+    g, c = groups.mask.nonzero(as_tuple=True)
+    assert float(groups.prior_weight[g, c].mean()) == pytest.approx(1.0, abs=0.25)
+
+
+def test_magnet_fraction_is_for_the_discrete_magnet():
+    from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig
+
+    with pytest.raises(ConfigError, match="magnet_fraction"):
+        TrainConfig(magnet_fraction=0.5, env=EngineConfig(action_space="continuous"))
+    with pytest.raises(ConfigError, match="magnet_fraction"):
+        TrainConfig(magnet_fraction=0.0)

@@ -221,6 +221,10 @@ class TrainConfig:
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
     eta1: float = 0.05
+    # discrete magnet: the share of the live rows whose prior logits are computed at each rollout step
+    # (a random subset, the same size every step); their KL to the prior weighs 1 / magnet_fraction, so
+    # the loss's expectation is unchanged at that share of the world model's cost. 1: every row
+    magnet_fraction: float = 1.0
     eta2: float = 20.0
     alpha: float = 0.5  # CVaR level of the cost critic (lower: less risk-averse)
     cost_limit: float = 1.0  # budget on CVaR_alpha of the discounted cost-to-go (see cost_limit_mode)
@@ -279,11 +283,15 @@ class TrainConfig:
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",
+            "magnet_fraction": "(0, 1]",
             "quantiles": "[2, 4096]", "prior_sigma_accel": "(0, inf)", "prior_sigma_curvature": "(0, inf)",
             "prior_floor": "[0, 1]", "time_limit_s": "[0, inf)", "target_goal_rate": "[0, 1]",
             "target_max_collision": "[0, 1]", "target_max_offroad": "[0, 1]", "checkpoint_every": "[1, inf)",
             "cost_limit": "[0, inf)", "lambda_init": "[0, inf)", "lambda_lr": "[0, inf)",
             "keep_policy_every": "[0, inf)"})
+        if self.magnet_fraction < 1 and not self.env.discrete:
+            raise ConfigError(f"magnet_fraction: {self.magnet_fraction} subsamples the discrete magnet's logits; the "
+                              "continuous magnet is rebuilt in the update from its stored context (use 1)")
         if self.minibatches > self.num_worlds * self.rollout_steps:
             raise ConfigError(f"minibatches: {self.minibatches} minibatches of a batch of {self.num_worlds} worlds x "
                               f"{self.rollout_steps} steps would leave some with less than one step of each world; "

@@ -12,6 +12,7 @@ once per shape (several GB at 4,096 worlds) and overwritten by every rollout.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -74,6 +75,9 @@ class Rollout(ByName):
     prior: Tensor  # (T, W, C, P) the magnet: its logits (discrete), its context (continuous), P 0 (eta1 0)
     old: Tensor | tuple[Tensor, Tensor]  # the rollout policy's output: logits, or (mean, log_std)
     hist: Tensor | None = None  # (T, W, C, actor_history, HIST_DIM) the actor's motion window, if it has one
+    # (T, W, C) the weight of each row's KL to the magnet: 1 / magnet_fraction on the rows whose prior
+    # logits were computed, 0 elsewhere; None: every live row has them (magnet_fraction 1)
+    prior_weight: Tensor | None = None
     # the rollout's counters, summed on the device (and over the ranks by the trainer): reward `terms`,
     # `alive` agent-steps, their `speed`, and the `episodes` that ended with their `goal`, `collided`,
     # `offroad` and `min_dist` outcomes
@@ -208,6 +212,12 @@ class RolloutCollector:
         per minibatch and epoch instead doubled the update time with the world model), else its context."""
         if self.prior_logits:
             ctx = self.prior.context(self.sim, C)
+            if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
+                frac = self.cfg.magnet_fraction
+                pick = torch.randperm(len(w_idx), generator=self.gen, device=self.device)[:math.ceil(frac * len(w_idx))]
+                w_idx, c_idx = w_idx[pick], c_idx[pick]
+                buf.prior_weight[t].zero_()
+                buf.prior_weight[t][w_idx, c_idx] = 1.0 / frac
             with self.nets.autocast():
                 buf.prior[t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
         elif self.cfg.eta1 > 0:
@@ -249,7 +259,8 @@ class RolloutCollector:
             value=torch.zeros((T + 1, W, C), device=dev), quant=torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
             prior=steps(self._prior_dim()),
             old=steps(sim.num_actions) if discrete else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)),
-            hist=steps(cfg.actor_history, HIST_DIM) if self.actor_hist is not None else None)
+            hist=steps(cfg.actor_history, HIST_DIM) if self.actor_hist is not None else None,
+            prior_weight=steps() if self.prior_logits and cfg.magnet_fraction < 1 else None)
         self._buf_key = key
         return self._buf
 

@@ -61,6 +61,7 @@ class Groups(ByName):
     ret_r: Tensor
     q_target: Tensor
     hist: Tensor | None = None
+    prior_weight: Tensor | None = None
 
 
 def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
@@ -102,7 +103,8 @@ def flatten(batch: Rollout, tg: Targets, discrete: bool) -> Groups:
     old = flat(batch.old) if discrete else (flat(batch.old[0]), flat(batch.old[1]))
     return Groups(obs=flat(batch.obs), act=flat(batch.act), logp=flat(batch.logp), mask=flat(batch.mask),
                   prior=flat(batch.prior), old=old, adv_r=flat(tg.adv_r), adv_c=flat(tg.adv_c),
-                  ret_r=flat(tg.ret_r), q_target=flat(tg.q_target), hist=flat(batch.hist))
+                  ret_r=flat(tg.ret_r), q_target=flat(tg.q_target), hist=flat(batch.hist),
+                  prior_weight=flat(batch.prior_weight))
 
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
@@ -129,6 +131,8 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     else:  # the discrete magnet's logits are stored; the continuous one is rebuilt from its context
         prior_out = b.prior[rows, c] if head.discrete else prior.distribution(b.prior[rows, c], b.obs[rows, c].float())
         kl_prior = head.kl(out, prior_out)
+        if b.prior_weight is not None:  # the magnet of a share of the rows (magnet_fraction)
+            kl_prior = kl_prior * b.prior_weight[rows, c]
     loss_pi, st = L.cce_mappo_actor_loss(
         logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam[c] if cfg.per_agent_lambda else lam,
         d.entropy(), kl_prior, head.kl(out, old_out), clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef,
