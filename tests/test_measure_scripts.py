@@ -117,3 +117,24 @@ def test_plot_curves(tmp_path):
     out = run("plot_curves", tmp_path / "metrics.csv", tmp_path / "curves.png")
     assert out.returncode == 0, out.stderr
     assert (tmp_path / "curves.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_profile_train_names_every_phase_of_an_iteration():
+    """scripts/profile_train.py on two CPU worlds: every named phase of the rollout and the update is
+    there, with host time, and the iteration's own wall clock is split into rollout and update."""
+    import json
+
+    r = subprocess.run([sys.executable, str(SCRIPTS / "profile_train.py"), "--config",
+                        str(SCRIPTS.parent / "configs" / "train" / "small_cpu.yaml"), "--set", "num_worlds=2",
+                        "--set", "rollout_steps=4", "--set", "hidden=16", "--set", "quantiles=4",
+                        "--warmup", "1", "--iters", "1", "--rows", "0", "--json"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    res = json.loads(r.stdout.strip().splitlines()[-1])
+    phases = res["phases"]
+    want = {f"rollout/{p}" for p in ("live_rows", "actor", "sample", "buffers", "critic", "magnet", "engine")}
+    want |= {f"update/{p}" for p in ("advantages", "lagrange", "forward", "backward", "optimizer")}
+    assert want <= set(phases), sorted(phases)
+    assert all(phases[p]["host_ms"] > 0 for p in want)
+    assert phases["rollout/engine"]["calls"] == 4 and phases["rollout/critic"]["calls"] == 5  # + the bootstrap
+    assert res["rollout_s"] > 0 and res["update_s"] > 0 and res["agent_steps_per_s"] > 0
