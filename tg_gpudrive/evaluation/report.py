@@ -107,14 +107,14 @@ class ReportOptions:
     cce_gap: bool = True  # the CCE-gaps (PPO best responses: the report's GPU time); False: rollouts only
     seeds: tuple[int, ...] = (0, 1)  # rollout seeds (diversity needs >= 2)
     # CCE-gap (exploitability.py): a PPO best response per agent, trained until its return plateaus
-    br_iters: int = 100  # cap on the PPO iterations of one best response
+    br_iters: int = 200  # cap on the PPO iterations of one best response
     br_seeds: tuple[int, ...] = (0, 1)
     br_lr: float = 3e-3
     br_rounds: int = 2  # fresh evaluation batches of J_pi and of J_br
     br_tol: float = 0.01  # plateau: no new best moving mean by tol * max(1, |best|) ...
     br_window: int = 5  # ... of this many iterations ...
     br_patience: int = 10  # ... for this many iterations ...
-    br_min_iters: int = 20  # ... and never before this many
+    br_min_iters: int = 100  # ... and never before this many
     br_copies: int | None = None  # episodes per agent and PPO iteration; None: 16 on a GPU, 4 on the CPU
     # the first br_scenes evaluation scenes play the deviation game (None: all of them); scene sources
     # cycle over the scenario types, so a multiple of their number keeps the types balanced

@@ -161,14 +161,19 @@ def _gap_type_section(gapped: list[tuple[str, dict]]) -> list[str]:
     for label, g in gapped:
         cells = [f"{_pm(v['mean_gap'], v['ci95'])} ({v['agents']})" if v else "-"
                  for v in (g["per_type"].get(t) for t in types)]
-        rows.append([label, len(g["agents"]), _pm(g["mean_gap"], g["ci95"]), g["mean_gain"], fmt(g["ci95_seeds"]),
+        share = f"{g['exploitable_agents']} ({g['exploitable_share']:.0%})" if "exploitable_agents" in g else "-"
+        rows.append([label, len(g["agents"]), _pm(g["mean_gap"], g["ci95"]), fmt(g.get("median_gap")),
+                     fmt(g.get("trimmed_mean_gap")), share, g["mean_gain"], fmt(g["ci95_seeds"]),
                      g["mean_iters"], *cells])
     return ["\n## CCE-gap per scenario type\n\nMean gap over the agents of each scenario type with its "
             "Student-t 95 % interval over those agents (each agent's gap averaged over the seeds), the number of "
             "those agents in parentheses; all: every agent, with the interval over seeds of the mean over agents "
-            "beside it. The mean raw gain of each type: summary.json (cce_gap.per_type).\n\n",
-            _table(["policy", "agents", "CCE-gap ± 95% CI (agents)", "mean raw gain", "95% CI (seeds)",
-                    "mean PPO iterations", *types], rows)]
+            "beside it; the median and the 10 % trimmed mean of the agents' gaps, and the agents whose gain's "
+            "95 % interval lies above 0 (significantly exploitable). The mean raw gain of each type: summary.json "
+            "(cce_gap.per_type).\n\n",
+            _table(["policy", "agents", "CCE-gap ± 95% CI (agents)", "median gap", "trimmed mean gap",
+                    "significantly exploitable", "mean raw gain", "95% CI (seeds)", "mean PPO iterations", *types],
+                   rows)]
 
 
 def _gap_curve_section(results: list[dict]) -> list[str]:
