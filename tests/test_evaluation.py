@@ -510,6 +510,12 @@ def test_report_on_tiny_runs(tmp_path):
     worst = summary["meta"]["worst_scenes"]
     assert worst["label"] == "cce" and worst["scenes"] and "## Worst scenes of cce" in md
     _check_report_tables(out, summary, md)
+    # the CCE-MAPPO run's gap in its own constrained game too, beside the task game; MAPPO has no multipliers
+    by = {r["label"]: r for r in summary["results"]}
+    con = by["cce"]["cce_gap_constrained"]
+    assert math.isfinite(con["mean_gap"]) and con["agents"] == by["cce"]["cce_gap"]["agents"]
+    assert "cce_gap_constrained" not in by["mappo"] and "| cce (constrained game) |" in md
+    assert all(k in con for k in ("median_gap", "trimmed_mean_gap", "exploitable_agents"))
 
     assert main(["--runs", str(tmp_path / "nope"), "--out", str(out)]) == 2
     assert main(["--runs", *runs, "--out", str(out), "--scenes", "2", "--grid-scene", "2"]) == 2
@@ -530,7 +536,8 @@ def test_report_on_tiny_runs(tmp_path):
     # rollouts only: no best response, no CCE-gap anywhere, the rest of the report as before
     assert main(["--runs", *runs, "--out", str(tmp_path / "nogap"), "--no-cce-gap", *args]) == 0
     nogap = json.loads((tmp_path / "nogap" / "summary.json").read_text())
-    assert not any(r["cce_gap"] or r.get("gap_curve") for r in nogap["results"]) and len(nogap["results"]) == 6
+    assert not any(r["cce_gap"] or r.get("gap_curve") or r.get("cce_gap_constrained") for r in nogap["results"])
+    assert len(nogap["results"]) == 6
     md = (tmp_path / "nogap" / "report.md").read_text()
     assert "not computed (--no-cce-gap)" in md and "Not computed (--no-cce-gap)" in md
     assert not csv_rows(tmp_path / "nogap" / "per_agent.csv", PER_AGENT_COLUMNS)  # the header alone
@@ -708,3 +715,26 @@ def test_cce_gap_reports_robust_summaries_beside_the_mean():
     assert res["median_gap"] == pytest.approx(float(np.median(gaps)))
     assert res["trimmed_mean_gap"] == pytest.approx(float(gaps.mean()))  # two agents: nothing trimmed
     assert res["exploitable_agents"] == 1 and res["exploitable_share"] == 0.5, res["gain_per_agent"]
+
+
+def test_constrained_game_charges_the_deviator_its_multiplier_times_the_cost():
+    """SimGame(cost_weight=lambda per slot): every step's reward of the deviator in slot s is the task
+    reward minus lambda_s times the distance cost (which fires on part of the steps at beta 8 m on a merge); the
+    expert profile plays the same episodes in both games."""
+    scenes = [generate_scene("merge", 0)]
+    cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8, beta=8.0)
+    masks = control_masks(scenes, cfg, "nearest_conflict", 2, None)
+    sim = ex.deviation_sim(scenes, masks, cfg, "cpu", 1)
+    lam = torch.arange(1, 17, dtype=torch.float32) / 4  # slot s pays (s + 1) / 4
+    task = ex.SimGame(sim, expert_policy).play(None)
+    game = ex.SimGame(sim, expert_policy, cost_weight=lam)
+    con = game.play(None)
+    assert torch.equal(task.mask, con.mask)
+    diff = task.reward - con.reward  # (T, N, M)
+    w = lam[game.slot].view(1, *game.slot.shape)
+    ratio = diff / w
+    assert bool(((ratio.abs() < 1e-5) | ((ratio - 1).abs() < 1e-5)).all())  # 0 or lambda_s: the cost is 0/1
+    assert bool((ratio[con.mask] > 0.5).any()) and bool((ratio[con.mask] < 0.5).any())
+    assert bool((diff[~con.mask] == 0).all())
+    with pytest.raises(ValueError, match="cost_weight"):
+        ex.SimGame(sim, expert_policy, cost_weight=-1.0)

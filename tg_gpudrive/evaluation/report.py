@@ -300,6 +300,12 @@ def _read_metrics(run: Path) -> list[dict]:
     return list(csv.DictReader(path.open())) if path.exists() else []
 
 
+def run_multipliers(ckpt: Path) -> torch.Tensor:
+    """The Lagrange multipliers a CCE-MAPPO run ended with: one per controlled slot (or one for all)."""
+    ck = load_checkpoint(ckpt, "report")
+    return torch.as_tensor(ck["lagrange"]["lam"], dtype=torch.float32).cpu()
+
+
 def policy_gap(ckpt: Path, gsim, opts: ReportOptions, gamma: float) -> dict:
     """The CCE-gap of the policy in checkpoint `ckpt` on the deviation game of `gsim`."""
     actor = load_actor(ckpt, gsim)[0]  # once, shared by the seeds
@@ -418,6 +424,10 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
         actor = load_actor(ckpt, gsim)[0]
         res, gen = _evaluate(label, sim, load_policy(ckpt, sim), logged, opts,
                              lambda s: ex.SimGame(gsim, actor=actor), bar, cfg.gamma)
+        if opts.cce_gap and run_kind(cfg) == "CCE-MAPPO":  # the game its agents were trained to play too
+            lam = run_multipliers(ckpt)
+            res["cce_gap_constrained"] = ex.cce_gap(lambda s: ex.SimGame(gsim, actor=actor, cost_weight=lam),
+                                                    seeds=opts.br_seeds, config=br_config(opts, cfg.gamma))
         if kept:
             bar.set_postfix_str(f"{label}: CCE-gap of {len(kept)} kept policies")
         res["kept_gaps"] = kept_gaps(kept, gsim, opts, cfg.gamma, last_update) if opts.cce_gap else []

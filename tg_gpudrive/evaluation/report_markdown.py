@@ -168,9 +168,11 @@ def _gap_type_section(gapped: list[tuple[str, dict]]) -> list[str]:
     return ["\n## CCE-gap per scenario type\n\nMean gap over the agents of each scenario type with its "
             "Student-t 95 % interval over those agents (each agent's gap averaged over the seeds), the number of "
             "those agents in parentheses; all: every agent, with the interval over seeds of the mean over agents "
-            "beside it; the median and the 10 % trimmed mean of the agents' gaps, and the agents whose gain's "
-            "95 % interval lies above 0 (significantly exploitable). The mean raw gain of each type: summary.json "
-            "(cce_gap.per_type).\n\n",
+            "beside it, the median and the 10 % trimmed mean of the agents' gaps, and the count (share) of agents "
+            "whose gain's 95 % interval lies above 0 (significantly exploitable). Rows marked (constrained game) "
+            "play TrafficGamer's objective: the deviator pays its slot's final multiplier lambda_i times the "
+            "distance cost each step, as the run's own agents did; the other rows play the task reward alone. "
+            "The mean raw gain of each type: summary.json (cce_gap.per_type).\n\n",
             _table(["policy", "agents", "CCE-gap ± 95% CI (agents)", "median gap", "trimmed mean gap",
                     "significantly exploitable", "mean raw gain", "95% CI (seeds)", "mean PPO iterations", *types],
                    rows)]
@@ -196,7 +198,10 @@ def _gap_sections(results: list[dict], computed: bool = True) -> list[str]:
     if not computed:
         return ["\n## CCE-gap\n\nNot computed (--no-cce-gap): this report has rollouts only. The same command "
                 "without the flag adds a PPO best response per agent (GPU time).\n"]
-    gapped = [(r["label"], r["cce_gap"]) for r in results if r.get("cce_gap")]
+    gapped = []
+    for r in results:  # the task game, then for CCE-MAPPO runs the constrained one
+        gapped += [(r["label"], r["cce_gap"])] if r.get("cce_gap") else []
+        gapped += [(f"{r['label']} (constrained game)", r["cce_gap_constrained"])] if r.get("cce_gap_constrained") else []
     return [*_gap_agent_section(), *_gap_type_section(gapped), *_gap_curve_section(results)]
 
 
