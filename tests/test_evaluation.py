@@ -738,3 +738,28 @@ def test_constrained_game_charges_the_deviator_its_multiplier_times_the_cost():
     assert bool((diff[~con.mask] == 0).all())
     with pytest.raises(ValueError, match="cost_weight"):
         ex.SimGame(sim, expert_policy, cost_weight=-1.0)
+
+
+def test_best_response_to_the_world_model_starts_at_its_distribution():
+    """A world-model profile is its own base: the driver keeps the logits it sampled from, and each
+    deviator's response corrects them from zero, so it starts at the world model's distribution (not
+    at the expert prior's, the base of profiles that show none)."""
+    from tg_gpudrive.worldmodel import WorldModelDriver, load_world_model
+
+    scenes = [generate_scene("merge", 0)]
+    cfg = EngineConfig(max_agents=16, partner_k=4, road_k=8)
+    masks = control_masks(scenes, cfg, "nearest_conflict", 2, None)
+    sim = ex.deviation_sim(scenes, masks, cfg, "cpu", 2)
+    driver = WorldModelDriver(load_world_model("small_cpu", sim), rows="policy", seed=0, temperature=0.7)
+    game = ex.SimGame(sim, driver)
+    assert game.policy_base and game.prior is None and ex.SimGame(sim, expert_policy).prior is not None
+    ep = game.play(game.make_response(0))
+    m = ep.mask
+    assert bool(m.any())
+    base = ep.inputs["base"]
+    want = torch.log_softmax(base, -1).gather(-1, ep.act[..., None])[..., 0]
+    np.testing.assert_allclose(ep.logp[m].numpy(), want[m].numpy(), atol=1e-5)
+    assert bool((base[m].abs().sum(-1) > 0).all())
+    # the driver's logits are the model's, tempered, on the rows it drove (the policy agents) only
+    pa = sim.policy_agents
+    assert bool((driver.last_out[~pa].abs().sum(-1) == 0).all()) and bool((driver.last_out[pa].abs().sum(-1) > 0).any())

@@ -201,6 +201,9 @@ class WorldModelDriver:
         self.history = HistoryBuffer(model.history)
         self.seed = seed
         self.gen: torch.Generator | None = None
+        # discrete: the logits the last call sampled from, (W, A, num_actions), zero on rows it left alone:
+        # the distribution a best response to this driver starts from (evaluation.exploitability.SimGame)
+        self.last_out: torch.Tensor | None = None
 
     @torch.no_grad()
     def __call__(self, sim) -> None:
@@ -217,6 +220,8 @@ class WorldModelDriver:
             sel = sim.policy_agents
         sel = sel & (sim.present != 0)
         if not bool(sel.any()):
+            if self.last_out is not None:
+                self.last_out.zero_()
             return
         w, a = sel.nonzero(as_tuple=True)
         hist = self.history.features(sim)[w, a]
@@ -226,9 +231,13 @@ class WorldModelDriver:
             box = torch.tensor([sim.cfg.max_accel, sim.cfg.max_curvature], device=act.device, dtype=act.dtype)
             sim.actions[w, a, :2] = torch.maximum(torch.minimum(act, box), -box).to(sim.actions.dtype)
             return
+        logits = out.float() if self.greedy else out.float() / self.temperature
+        if self.last_out is None or self.last_out.shape[:2] != sel.shape:
+            self.last_out = torch.zeros((*sel.shape, out.shape[-1]), device=out.device)
+        self.last_out.zero_()
+        self.last_out[w, a] = logits
         if self.greedy:
             act = out.argmax(-1)
         else:
-            p = torch.softmax(out / self.temperature, -1)
-            act = torch.multinomial(p, 1, generator=self.gen)[:, 0]
+            act = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[:, 0]
         sim.actions_index[w, a] = act.to(sim.actions_index.dtype)
