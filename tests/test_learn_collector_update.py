@@ -89,7 +89,7 @@ def test_one_update_moves_the_weights_and_reports_finite_numbers(tmp_path, case)
     lam0 = lagrange.value.detach().clone()
     out = ppo_update(cfg, batch, nets, opt, lagrange, budget, gen, prior)
     want = {"loss/policy", "loss/value", "loss/cost_quantile", "kl/prior", "kl/prev", "entropy", "clip_frac",
-            "cvar", "lambda", "lambda_max", "cost_budget"}
+            "cvar", "cost_to_go", "lambda", "lambda_max", "cost_budget"}
     assert set(out) == want and all(math.isfinite(v) for v in out.values()), out
     after = [p.detach() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
     moved = [not torch.equal(a, b) for a, b in zip(before, after)]
@@ -148,3 +148,51 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.5, env=EngineConfig(action_space="continuous"))
     with pytest.raises(ConfigError, match="magnet_fraction"):
         TrainConfig(magnet_fraction=0.0)
+
+
+def test_lambda_on_mean_steps_the_multipliers_on_the_expected_cost_to_go(tmp_path):
+    """lambda_on mean (TrafficGamer's Algorithm 1): each slot's multiplier moves by lambda_lr times the mean
+    over its live states of E[Z(o)] (the quantiles' mean, inside the cost-to-go's support) minus the
+    budget; lambda_on cvar uses CVaR_alpha(Z(o)), which is larger."""
+    from tg_gpudrive.learn.update import lagrange_step
+
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete")
+    batch = collector.collect()
+    with torch.no_grad():  # a cost critic with spread: CVaR and mean differ
+        batch.quant.copy_(torch.linspace(0.0, 4.0, cfg.quantiles).expand_as(batch.quant))
+    cfg = dataclasses.replace(cfg, lambda_on="mean", alpha=0.5)
+    tg = advantages(cfg, batch)
+    want_value = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma)).mean(-1)
+    torch.testing.assert_close(tg.ctg_mean, want_value)
+    assert torch.equal(tg.constraint(cfg), tg.ctg_mean)
+    assert float(tg.cvar.mean()) > float(tg.ctg_mean.mean()) + 0.5
+    m = batch.mask
+    C = m.shape[-1]
+    cnt = m.sum((0, 1))
+    jc = (want_value[:-1] * m).sum((0, 1)) / cnt.clamp(min=1)
+    budget = torch.tensor(0.5)
+    lam0 = lagrange.value.clone()
+    lagrange_step(cfg, m, tg.constraint(cfg), lagrange, budget)
+    seen = cnt > 0
+    want = (lam0[:C] + cfg.lambda_lr * (jc - budget)).clamp(min=0)
+    torch.testing.assert_close(lagrange.value[:C][seen], want[seen])
+    assert bool(seen.any()) and bool((lagrange.value[:C][seen] > 0).all())
+
+
+def test_lambda_on_mean_budget_is_one_per_beta_for_every_alpha(tmp_path):
+    """With cost_limit_mode logs, lambda_on mean asks the logs' mean cost-to-go as the budget: the same
+    at every alpha. lambda_on cvar asks their CVaR_alpha, which grows with alpha."""
+    from tg_gpudrive.learn.train import Trainer
+
+    from test_train import tiny
+
+    def budget(**kw):
+        cfg = tiny(tmp_path / str(len(kw)) / "_".join(f"{k}{v}" for k, v in kw.items()), cost_limit_mode="logs",
+                   cost_limit=1.0, num_worlds=4, **kw)
+        cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=12.0))
+        return float(Trainer(cfg, progress=False).budget)
+
+    mean_lo, mean_hi = budget(lambda_on="mean", alpha=0.25), budget(lambda_on="mean", alpha=0.75)
+    cvar_lo, cvar_hi = budget(lambda_on="cvar", alpha=0.25), budget(lambda_on="cvar", alpha=0.75)
+    assert mean_lo == pytest.approx(mean_hi) and mean_lo > 0
+    assert cvar_hi > cvar_lo >= mean_lo

@@ -229,6 +229,10 @@ class TrainConfig:
     alpha: float = 0.5  # CVaR level of the cost critic (lower: less risk-averse)
     cost_limit: float = 1.0  # budget on CVaR_alpha of the discounted cost-to-go (see cost_limit_mode)
     cost_limit_mode: str = "logs"  # logs: cost_limit x the logged drivers' own CVaR; absolute: cost_limit itself
+    # what lambda is stepped on: cvar, the CVaR_alpha of the discounted cost-to-go; mean, its expectation
+    # E[c] (TrafficGamer's Algorithm 1), whose "logs" budget is the logs' mean, one per beta for every alpha
+    # (alpha then shapes the actor's cost advantage alone)
+    lambda_on: str = "cvar"
     lambda_init: float = 0.0
     lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
     per_agent_lambda: bool = True  # one multiplier per controlled slot (TrafficGamer's lambda_i)
@@ -275,6 +279,8 @@ class TrainConfig:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):
             raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
+        if self.lambda_on not in ("cvar", "mean"):
+            raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
         if self.prior not in ("expert", "world_model"):
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         check_ranges(self, {

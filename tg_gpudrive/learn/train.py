@@ -152,7 +152,9 @@ class Trainer:
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
-            self.logged_cvar = dist_util.all_reduce_mean(logged_cost_cvar(self.sim, cfg.alpha, cfg.gamma))
+            # the logs' own value of what lambda is stepped on: their CVaR_alpha, or their mean (alpha 0)
+            level = cfg.alpha if cfg.lambda_on == "cvar" else 0.0
+            self.logged_cvar = dist_util.all_reduce_mean(logged_cost_cvar(self.sim, level, cfg.gamma))
             self.budget = cfg.cost_limit * self.logged_cvar
         self.sim.reset()
         if ck is not None:

@@ -36,13 +36,19 @@ MAX_TARGET_SAMPLES = 16  # target quantiles per row in the quantile loss (its N 
 @dataclass
 class Targets:
     """What step 1 computes, (T, W, C, ...) like the rollout: the reward advantages and lambda-returns,
-    the cost advantages, CVaR_alpha of every state's cost-to-go ((T + 1, W, C)) and the quantile targets."""
+    the cost advantages, CVaR_alpha and the mean of every state's cost-to-go ((T + 1, W, C)) and the
+    quantile targets."""
 
     adv_r: Tensor
     ret_r: Tensor
     adv_c: Tensor
     cvar: Tensor
     q_target: Tensor
+    ctg_mean: Tensor
+
+    def constraint(self, cfg: TrainConfig) -> Tensor:
+        """The per-state value lambda is stepped on (`lambda_on`)."""
+        return self.cvar if cfg.lambda_on == "cvar" else self.ctg_mean
 
 
 @dataclass
@@ -70,19 +76,20 @@ def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
     quant = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
     adv_c, cvar = L.cvar_gae(batch.cost, quant, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
     q_target = L.cost_quantile_targets(batch.cost, quant, batch.done, cfg.gamma, cfg.cost_nstep)
-    return Targets(adv_r, ret_r, adv_c, cvar, q_target)
+    return Targets(adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1))
 
 
-def lagrange_step(cfg: TrainConfig, mask: Tensor, cvar: Tensor, lagrange: L.LagrangeMultiplier,
+def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
                   budget: Tensor) -> tuple[Tensor, Tensor]:
-    """Step the multipliers on this rollout's constraint (equal on all ranks). (the multipliers the actor
-    loss uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
+    """Step the multipliers on this rollout's constraint (equal on all ranks); `value` (T + 1, W, C) is
+    each state's CVaR_alpha or mean cost-to-go (`Targets.constraint`). (the multipliers the actor loss
+    uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
     agents in the rollout on any rank)."""
     C = mask.shape[-1]
-    # the constraint per agent slot: the mean over its live states of CVaR_alpha(Z(o))
+    # the constraint per agent slot: the mean over its live states of the value
     cnt = mask.sum((0, 1))
     jc = torch.zeros(cfg.env.max_agents, device=mask.device)
-    jc[:C] = (cvar[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
+    jc[:C] = (value[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
     seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=mask.device)
     seen[:C] = cnt > 0
     jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0
@@ -193,9 +200,10 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
     with phase("update/advantages"):
         tg = advantages(cfg, batch)
     with phase("update/lagrange"):
-        lam, seen = lagrange_step(cfg, batch.mask, tg.cvar, lagrange, budget)
+        lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget)
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
+    out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
     out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
     out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
