@@ -196,3 +196,49 @@ def test_lambda_on_mean_budget_is_one_per_beta_for_every_alpha(tmp_path):
     cvar_lo, cvar_hi = budget(lambda_on="cvar", alpha=0.25), budget(lambda_on="cvar", alpha=0.75)
     assert mean_lo == pytest.approx(mean_hi) and mean_lo > 0
     assert cvar_hi > cvar_lo >= mean_lo
+
+
+def test_vehicle_lagrange_step_by_hand():
+    """lambda_per_vehicle: worlds 0 and 2 hold scene 0, world 1 scene 1; each (scene, slot) multiplier
+    moves by lambda_lr times the mean of the value over that vehicle's live states in all its worlds,
+    minus the budget; vehicles without states keep theirs; the actor reads each world's own rows."""
+    from tg_gpudrive.config import TrainConfig
+    from tg_gpudrive.learn.update import vehicle_lagrange_step
+
+    cfg = TrainConfig(per_agent_lambda=True, lambda_per_vehicle=True, lambda_lr=0.1)
+    value = torch.tensor([[[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]],
+                          [[7.0, 8.0], [9.0, 10.0], [11.0, 12.0]],
+                          [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]]])  # (T + 1, W, C)
+    mask = torch.tensor([[[1, 0], [1, 1], [1, 0]],
+                         [[1, 0], [0, 1], [0, 0]]], dtype=torch.bool)  # (T, W, C)
+    keys = torch.tensor([0, 1, 0])
+    lagrange = L.LagrangeMultiplier(0.2, 0.1, (3, 4))
+    lam, seen = vehicle_lagrange_step(cfg, mask, value, lagrange, torch.tensor(2.0), keys)
+    assert lam.shape == (3, 2) and bool((lam == 0.2).all())  # the multipliers before the step
+    want = torch.full((3, 4), 0.2)
+    want[0, 0] = 0.2 + 0.1 * ((1 + 7 + 5) / 3 - 2.0)  # scene 0, slot 0: worlds 0 (t 0, 1) and 2 (t 0)
+    want[1, 0] = 0.2 + 0.1 * (3 - 2.0)  # scene 1, slot 0: world 1, t 0
+    want[1, 1] = 0.2 + 0.1 * ((4 + 10) / 2 - 2.0)
+    torch.testing.assert_close(lagrange.value, want)
+    assert seen.tolist() == [[True, False, False, False], [True, True, False, False], [False] * 4]
+
+
+def test_training_with_a_multiplier_per_vehicle(tmp_path):
+    """A run with lambda_per_vehicle keeps a (scenes, slots) table; the vehicles of the scenes its worlds
+    held move (the cost fires at beta 12 m against a zero budget), the others stay at lambda_init, and
+    the run resumes with its table."""
+    from tg_gpudrive.learn.train import Trainer
+
+    from test_train import tiny
+
+    cfg = tiny(tmp_path / "run", lambda_per_vehicle=True, num_scenes=12, num_worlds=2, resample_every=1,
+               updates=3, cost_limit_mode="absolute", cost_limit=0.0, lambda_lr=0.5)
+    cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=12.0))
+    tr = Trainer(cfg, progress=False)
+    tr.train()
+    lam = tr.lagrange.value
+    assert lam.shape == (12, cfg.env.max_agents)
+    moved = (lam > 0).any(1)  # 3 draws of 2 worlds: at most 6 of the 12 scenes were played
+    assert 1 <= int(moved.sum()) <= 6 and bool((lam[~moved] == 0).all())
+    again = Trainer(dataclasses.replace(cfg, updates=4), resume=tmp_path / "run", progress=False)
+    torch.testing.assert_close(again.lagrange.value, lam)

@@ -236,6 +236,10 @@ class TrainConfig:
     lambda_init: float = 0.0
     lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
     per_agent_lambda: bool = True  # one multiplier per controlled slot (TrafficGamer's lambda_i)
+    # ... and per scene of the source too: one multiplier per vehicle (scene x slot), stepped on that
+    # vehicle's own states whenever its scene is in the worlds, as Algorithm 1 has one lambda_i per agent
+    # of a game; off: a slot's multiplier pools every scene it has held
+    lambda_per_vehicle: bool = False
     constraint: bool = True  # false: no CVaR constraint (lambda = 0), i.e. plain MAPPO with eta1 = 0
     quantiles: int = 64
     cost_nstep: int = 8  # steps of the cost critic's distributional Bellman target (1: the one-step target)
@@ -279,6 +283,8 @@ class TrainConfig:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):
             raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
+        if self.lambda_per_vehicle and not self.per_agent_lambda:
+            raise ConfigError("lambda_per_vehicle: needs per_agent_lambda (a multiplier per slot of each scene)")
         if self.lambda_on not in ("cvar", "mean"):
             raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
         if self.prior not in ("expert", "world_model"):

@@ -301,9 +301,14 @@ def _read_metrics(run: Path) -> list[dict]:
 
 
 def run_multipliers(ckpt: Path) -> torch.Tensor:
-    """The Lagrange multipliers a CCE-MAPPO run ended with: one per controlled slot (or one for all)."""
+    """The Lagrange multipliers a CCE-MAPPO run ended with: one per controlled slot (or one for all). A
+    run with one per vehicle of its training scenes (`lambda_per_vehicle`) gives each slot the mean of
+    its vehicles' nonzero multipliers: the deviation game's scenes are other scenes."""
     ck = load_checkpoint(ckpt, "report")
-    return torch.as_tensor(ck["lagrange"]["lam"], dtype=torch.float32).cpu()
+    lam = torch.as_tensor(ck["lagrange"]["lam"], dtype=torch.float32).cpu()
+    if lam.dim() == 2:
+        lam = lam.sum(0) / (lam > 0).sum(0).clamp(min=1)
+    return lam
 
 
 def policy_gap(ckpt: Path, gsim, opts: ReportOptions, gamma: float) -> dict:

@@ -200,6 +200,8 @@ class Trainer:
         self.params = [*actor.parameters(), *critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
+        if cfg.lambda_per_vehicle:  # a row per scene of the whole source (every rank's shard in it)
+            shape = (len(getattr(self.source, "source", self.source)), cfg.env.max_agents)
         self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
         self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
@@ -275,11 +277,19 @@ class Trainer:
             raise self._spoilt(f"{e.what} during the rollout of update {self.update}") from None
         return batch, batch.stats
 
+    def world_keys(self) -> torch.Tensor:
+        """Each world's scene as an index into the whole source (a rank's shard maps its own indices
+        back): the row of its vehicles in the per-vehicle multiplier table."""
+        idx = np.asarray(self.sampler.last_indices, np.int64)
+        if isinstance(self.source, dist_util.ShardSource):
+            idx = self.source.indices[idx]
+        return torch.as_tensor(idx, device=self.device)
+
     def learn(self, batch: Rollout | dict) -> dict:
         """One CCE-MAPPO update on `batch` (update.ppo_update): the update's row of metrics."""
         try:
             return ppo_update(self.cfg, Rollout.of(batch), self.nets, self.opt, self.lagrange, self.budget,
-                              self.gen, self.prior)
+                              self.gen, self.prior, self.world_keys() if self.cfg.lambda_per_vehicle else None)
         except NonFinite as e:
             raise self._spoilt(f"{e.what} in update {self.update} ({e.detail})") from None
 

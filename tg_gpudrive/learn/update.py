@@ -79,6 +79,29 @@ def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
     return Targets(adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1))
 
 
+def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
+                          budget: Tensor, world_keys: Tensor) -> tuple[Tensor, Tensor]:
+    """`lambda_per_vehicle`: the multipliers are a (scenes, env.max_agents) table; world w holds scene
+    `world_keys[w]` (its index in the whole source, the same on every rank), so its slot c is the vehicle
+    (world_keys[w], c). Each vehicle's constraint is the mean of `value` over its live states in every world
+    that holds its scene, on every rank; only vehicles with states move. (the multipliers before the step
+    per world and slot, (W, C); which vehicles had states)."""
+    C = mask.shape[-1]
+    S, A = lagrange.value.shape
+    total = torch.zeros((S, A), device=mask.device)
+    count = torch.zeros((S, A), device=mask.device)
+    total[:, :C].index_add_(0, world_keys, (value[:-1] * mask).sum(0))
+    count[:, :C].index_add_(0, world_keys, mask.sum(0).float())
+    dist_util.all_reduce_sum_({"total": total, "count": count})
+    seen = count > 0
+    lam = lagrange.value.detach().clone()
+    if cfg.constraint:  # a vehicle without states keeps its multiplier
+        lagrange.update(torch.where(seen, total / count.clamp(min=1), budget), budget)
+    else:
+        lam = torch.zeros_like(lam)
+    return lam[world_keys, :C], seen
+
+
 def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
                   budget: Tensor) -> tuple[Tensor, Tensor]:
     """Step the multipliers on this rollout's constraint (equal on all ranks); `value` (T + 1, W, C) is
@@ -125,6 +148,10 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
             1, dtype=torch.long, device=idx.device), 0.0
     rows = idx[g]
+    if lam.dim() == 2:  # per vehicle: (W, C) of the rollout's worlds; group t * W + w is world w at step t
+        lam_rows = lam[rows % lam.shape[0], c]
+    else:
+        lam_rows = lam[c] if cfg.per_agent_lambda else lam
     with nets.autocast():
         out = nets.actor_fwd(b.obs[rows, c], c, None if b.hist is None else b.hist[rows, c])
         v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
@@ -141,7 +168,7 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         if b.prior_weight is not None:  # the magnet of a share of the rows (magnet_fraction)
             kl_prior = kl_prior * b.prior_weight[rows, c]
     loss_pi, st = L.cce_mappo_actor_loss(
-        logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam[c] if cfg.per_agent_lambda else lam,
+        logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam_rows,
         d.entropy(), kl_prior, head.kl(out, old_out), clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef,
         eta1=cfg.eta1, eta2=cfg.eta2, normalize_advantages=cfg.normalize_advantages)
     loss_v = (v[g, c] - b.ret_r[rows, c]).pow(2).mean()
@@ -193,14 +220,17 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
 
 def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.optim.Optimizer,
                lagrange: L.LagrangeMultiplier, budget: Tensor, gen: torch.Generator,
-               prior: BehaviourPrior) -> dict:
+               prior: BehaviourPrior, world_keys: Tensor | None = None) -> dict:
     """Learn from one rollout (steps 1-3 of the module docstring): the update's row of metrics (the mean
     loss parts, CVaR, lambda and the budget). `gen` shuffles the minibatches; `prior` rebuilds a
     continuous magnet from its stored context."""
     with phase("update/advantages"):
         tg = advantages(cfg, batch)
     with phase("update/lagrange"):
-        lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget)
+        if cfg.lambda_per_vehicle:
+            lam, seen = vehicle_lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, world_keys)
+        else:
+            lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget)
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
