@@ -138,3 +138,21 @@ def test_profile_train_names_every_phase_of_an_iteration():
     assert all(phases[p]["host_ms"] > 0 for p in want)
     assert phases["rollout/engine"]["calls"] == 4 and phases["rollout/critic"]["calls"] == 5  # + the bootstrap
     assert res["rollout_s"] > 0 and res["update_s"] > 0 and res["agent_steps_per_s"] > 0
+
+
+def test_budget_by_knob_prints_the_logs_and_the_policys_risk_per_knob():
+    """scripts/budget_by_knob.py on two procedural scenes: a row per (beta, alpha), the budget is cost_limit
+    times the logs' CVaR, CVaR grows with alpha, and no cost fires for anyone at beta 0.5 m (closer than
+    any two boxes' centres can come without a collision)."""
+    import json
+
+    r = subprocess.run([sys.executable, str(SCRIPTS / "budget_by_knob.py"), "--checkpoint", "constant",
+                        "--num-scenes", "2", "--betas", "0.5", "6", "--alphas", "0", "0.5", "--cost-limit", "0.5",
+                        "--json"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = [json.loads(x) for x in r.stdout.strip().splitlines()]
+    assert [(x["beta"], x["alpha"]) for x in rows] == [(0.5, 0.0), (0.5, 0.5), (6.0, 0.0), (6.0, 0.5)]
+    for x in rows:
+        assert x["budget"] == pytest.approx(0.5 * x["logs_cvar"]) and x["logs_states"] > 0
+    assert rows[0]["logs_cvar"] == 0 and rows[0]["policy_cvar"] == 0
+    assert rows[3]["logs_cvar"] >= rows[2]["logs_cvar"] > 0 and rows[3]["policy_cvar"] >= rows[2]["policy_cvar"]

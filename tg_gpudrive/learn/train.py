@@ -82,12 +82,21 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
     """CVaR_alpha of the logged drivers' discounted cost-to-go: what the constraint's budget is
     measured against (`cost_limit_mode: logs`).
 
-    Replays the expert (inverse-dynamics actions of the logs) for one episode in every world
-    and computes, for every controlled agent and step it was driven, the discounted cost-to-go
-    G_t = c_t + gamma G_{t+1} to the end of its episode; returns the mean of the upper
-    (1 - alpha) tail of those values (a scalar tensor). Over a mixture of states this is at
-    least the mean over states of their own CVaR_alpha, the estimate the multipliers compare
-    with the budget, so a budget of 1 x this is one the logs themselves satisfy. Leaves the
+    The values are `cost_to_go(sim, gamma)` under the expert (inverse-dynamics actions of the logs);
+    returns the mean of their upper (1 - alpha) tail (a scalar tensor). Over a mixture of states
+    this is at least the mean over states of their own CVaR_alpha, the estimate the multipliers
+    compare with the budget, so a budget of 1 x this is one the logs themselves satisfy. Leaves the
+    simulator to be reset by the caller."""
+    vals = cost_to_go(sim, gamma)
+    if vals.numel() == 0:
+        return torch.zeros((), device=sim.reward.device)
+    return L.cvar_from_quantiles(vals.sort().values, alpha)
+
+
+def cost_to_go(sim: Simulator, gamma: float, act=None) -> torch.Tensor:
+    """The discounted cost-to-go G_t = c_t + gamma G_{t+1} (to the end of its episode) of every
+    controlled policy agent at every step it was driven, over one episode in every world, as a flat
+    tensor. `act(sim)` writes the actions before each step; None replays the expert. Leaves the
     simulator to be reset by the caller."""
     sim.reset()
     C = max(sim.max_controlled, 1)
@@ -96,7 +105,10 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
     live = torch.zeros_like(cost, dtype=torch.bool)
     first = torch.ones(sim.num_worlds, dtype=torch.bool, device=cost.device)  # still in its first episode
     for t in range(steps):
-        sim.use_expert_actions()
+        if act is None:
+            sim.use_expert_actions()
+        else:
+            act(sim)
         live[t] = (sim.active[:, :C] != 0) & sim.policy_agents[:, :C] & first[:, None]
         sim.step()
         cost[t] = sim.cost[:, :C] * live[t]
@@ -106,10 +118,7 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
     for t in range(steps - 1, -1, -1):
         run = (cost[t] + gamma * run) * live[t]  # a step the agent did not act cuts the sum
         ctg[t] = run
-    vals = ctg[live]
-    if vals.numel() == 0:
-        return torch.zeros((), device=cost.device)
-    return L.cvar_from_quantiles(vals.sort().values, alpha)
+    return ctg[live]
 
 
 class Trainer:
