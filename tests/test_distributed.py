@@ -120,3 +120,30 @@ def test_shards_are_disjoint_cover_the_source_and_mix_scene_types():
         counts = np.bincount(s.indices % 6, minlength=6)
         assert counts.min() >= 2, counts
     assert shards[1].get(0).scene_id == src.get(int(shards[1].indices[0])).scene_id
+
+
+def _gather_worker(rank, world, port, backend_seen, result):
+    from tg_gpudrive.learn import distributed
+
+    with distributed.process_group(rank, world, port, "cpu"):
+        if backend_seen != "gloo":  # as under NCCL: objects go through a gloo group of their own
+            distributed.dist.get_backend = lambda group=None: backend_seen
+        got = distributed.gather_to_lead({"rank": rank, "state": np.arange(3) + rank})
+        made = distributed._OBJECT_GROUP is not None
+        if rank == 0:
+            result.put(([g["rank"] for g in got], [g["state"].tolist() for g in got], made))
+        else:
+            assert got is None
+
+
+@pytest.mark.parametrize("backend", ["gloo", "nccl"])
+def test_every_rank_state_reaches_the_lead(backend):
+    """gather_to_lead: rank 0 gets every rank's object in rank order, the others None; with a backend
+    other than gloo (NCCL on GPUs) the objects travel through a gloo group made for them."""
+    from tg_gpudrive.learn.distributed import free_port
+
+    ctx = mp.get_context("spawn")
+    q = ctx.SimpleQueue()
+    mp.spawn(_gather_worker, args=(2, free_port(), backend, q), nprocs=2)
+    ranks, states, made = q.get()
+    assert ranks == [0, 1] and states == [[0, 1, 2], [1, 2, 3]] and made == (backend != "gloo")

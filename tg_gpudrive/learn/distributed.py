@@ -62,13 +62,28 @@ def gather_floats(values: list[float], device) -> list[list[float]]:
     return [o.tolist() for o in out]
 
 
+_OBJECT_GROUP = None  # a gloo group beside an NCCL one, for Python objects (pickled on the host)
+
+
+def object_group():
+    """The group that carries Python objects: the default one under gloo; under another backend a gloo
+    group over the same ranks, made on first use (every rank reaches that use together), so objects
+    travel over the host and never need a current CUDA device or device buffers."""
+    global _OBJECT_GROUP
+    if dist.get_backend() == "gloo":
+        return None
+    if _OBJECT_GROUP is None:
+        _OBJECT_GROUP = dist.new_group(backend="gloo")
+    return _OBJECT_GROUP
+
+
 def gather_to_lead(obj) -> list | None:
     """Every rank's picklable `obj`, in rank order, on rank 0 (None on the others); [obj] when not
-    distributed. Under NCCL the calling rank's CUDA device must be current (`torch.cuda.set_device`)."""
+    distributed."""
     if not is_dist():
         return [obj]
     out = [None] * dist.get_world_size() if dist.get_rank() == 0 else None
-    dist.gather_object(obj, out, dst=0)
+    dist.gather_object(obj, out, dst=0, group=object_group())
     return out
 
 
@@ -143,11 +158,13 @@ def cleanup(together: bool = True) -> None:
     group while rank 0 was still writing the final checkpoint could abort at exit (seen once in CI
     as SIGABRT, "terminate called without an active exception"). A rank leaving on an error
     passes together=False: its peers may never reach the barrier."""
+    global _OBJECT_GROUP
     if is_dist():
         gc.collect()
         if together:
             dist.barrier()
-        dist.destroy_process_group()
+        dist.destroy_process_group()  # every group, the object group too
+    _OBJECT_GROUP = None
 
 
 @contextlib.contextmanager
