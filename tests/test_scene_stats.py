@@ -38,9 +38,29 @@ def test_features_of_a_hand_made_street():
     np.testing.assert_allclose(f["lane_width"], 3.5, atol=1e-6)
     assert f["lanes"][0] == 1
     np.testing.assert_allclose(f["lateral_shift"], [0.0], atol=1e-6)  # straight down its lane
+    assert len(f["closing_speed"]) == 0  # the parked car stands 3 m to the side: nobody ahead in the lane
     # within 50 m of the car's init position (10, 0): both edges from x = -20 (their start) to 60, 2 x 80 m,
     # over a disc of pi 50^2 m^2 (sampled on a 5 m grid: a few per cent)
     assert f["edge_density"][0] == pytest.approx(160 / (np.pi * 2500 / 1e4), rel=0.05)
+
+
+def test_closing_speed_of_a_fast_car_behind_a_slow_one():
+    """A car at 12 m/s 25 m behind one at 3 m/s in its lane closes at 9 m/s from init_step (t = 1 s, gap
+    16 m) until it passes through the slow car (t = 2.78 s): one sample per step, 9 m/s each. From then
+    on the slow car has the fast one ahead, pulling away: -9 m/s to the end of the log. A car in the next
+    lane (3.5 m to the side) is outside the corridor."""
+    t = np.arange(T) * 0.1
+    pos = np.zeros((3, T, 2))
+    pos[0, :, 0] = 12 * t
+    pos[1, :, 0] = 25 + 3 * t
+    pos[2, :, 0], pos[2, :, 1] = 10 + 3 * t, 3.5
+    f = scene_features(make_scene(pos, np.zeros((3, T)), roads=[(RoadType.LANE, [[-20, 0], [150, 0]])]))
+    closing = [k for k in range(10, T) if 0 < 25 - 9 * t[k] < 30]
+    opening = [k for k in range(10, T) if 0 < 9 * t[k] - 25 < 30]
+    got = np.sort(f["closing_speed"])
+    assert (len(closing), len(opening)) == (18, 13) and len(got) == 31
+    np.testing.assert_allclose(got[:13], -9.0, atol=1e-3)
+    np.testing.assert_allclose(got[13:], 9.0, atol=1e-3)
 
 
 def test_lateral_shift_of_a_lane_change_and_not_of_a_turn():

@@ -11,6 +11,13 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
     accel              m/s^2    vehicle steps               change of that path speed per step / dt
     curvature          1/m      vehicle steps               change of path heading / arc, where both arcs
                                                             are at least 0.5 m
+    closing_speed      m/s      vehicle steps with a leader how fast a candidate closes on the nearest
+                                                            vehicle ahead in its corridor (centre within
+                                                            AHEAD_M ahead and CORRIDOR_M to the side, in its
+                                                            heading frame): the relative velocity along the
+                                                            line between them, > 0 approaching; the fast-
+                                                            onto-slow encounters (merges, queues) a driver
+                                                            must brake for
     goal_distance      m        candidates                  straight line from the init position to the goal
     route_length       m        candidates                  path length of the log from init_step to its last
                                                             valid step
@@ -49,9 +56,9 @@ from tg_gpudrive.engine import control
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
-FEATURES = ("speed", "accel", "curvature", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
+FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
             "pedestrians", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
-UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "goal_distance": "m", "route_length": "m",
+UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m", "route_length": "m",
          "lateral_shift": "m",
          "edge_density": "m/ha", "lane_width": "m"}
 PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
@@ -59,6 +66,35 @@ EDGE_REACH_M = 50.0  # m around the candidates' init positions where road-edge d
 LANE_SIDE_M = 4.0  # m: a lane's bounding line or edge lies within this of its centre
 STRAIGHT_DEG = 10.0  # a log whose heading turns less than this from init to its end drives straight
 STRAIGHT_MIN_M = 15.0  # m: the goal of a straight log counted for lateral_shift is at least this far
+AHEAD_M = 30.0  # m: how far ahead of a candidate closing_speed looks for a leader ...
+CORRIDOR_M = 2.0  # m: ... and how far to its side
+
+
+def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:
+    """closing_speed of the module docstring: one sample per step of each candidate in `rows` that has a
+    vehicle ahead in its corridor, from init_step on."""
+    vehicles = np.nonzero(scene.agent_type == AgentType.VEHICLE)[0]
+    pos, vel = scene.log_pos.astype(np.float64), scene.log_vel.astype(np.float64)
+    out = []
+    for t in range(init, scene.num_steps):
+        others = vehicles[scene.log_valid[vehicles, t]]
+        me = rows[scene.log_valid[rows, t]]
+        if len(others) < 2 or len(me) == 0:
+            continue
+        d = pos[others, t][None] - pos[me, t][:, None]  # (me, others, 2)
+        c, s_ = np.cos(scene.log_yaw[me, t])[:, None], np.sin(scene.log_yaw[me, t])[:, None]
+        ahead, side = c * d[..., 0] + s_ * d[..., 1], -s_ * d[..., 0] + c * d[..., 1]
+        dist = np.linalg.norm(d, axis=-1)
+        inside = (ahead > 0) & (ahead < AHEAD_M) & (np.abs(side) < CORRIDOR_M) & (others[None] != me[:, None])
+        dist = np.where(inside, dist, np.inf)
+        lead = dist.argmin(1)
+        has = np.isfinite(dist[np.arange(len(me)), lead])
+        if not has.any():
+            continue
+        m, j = me[has], others[lead[has]]
+        unit = (pos[j, t] - pos[m, t]) / dist[np.nonzero(has)[0], lead[has]][:, None]
+        out.append(((vel[m, t] - vel[j, t]) * unit).sum(-1))
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 def _kinematics(scene: Scene, rows: np.ndarray, init: int) -> dict[str, np.ndarray]:
@@ -138,6 +174,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     init = min(cfg.init_steps, scene.num_steps - 1)
     cand = np.nonzero(candidates(scene, init, cfg.goal_radius))[0]
     out = _kinematics(scene, cand, init)
+    out["closing_speed"] = _closing_speeds(scene, cand, init)
     goal_d, route, shift = [], [], []
     for i in cand:
         ok = np.nonzero(scene.log_valid[i, init:])[0] + init
