@@ -22,12 +22,7 @@ import torch
 from tg_gpudrive.agents import open_policy
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
-from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.train import cost_to_go
-
-
-def cvar(vals: torch.Tensor, alpha: float) -> float:
-    return float(L.cvar_from_quantiles(vals.sort().values, alpha)) if vals.numel() else 0.0
+from tg_gpudrive.learn.train import cost_to_go, sample_cvar
 
 
 def main(argv=None) -> int:
@@ -54,7 +49,7 @@ def main(argv=None) -> int:
         torch.manual_seed(args.seed)
         pol = cost_to_go(opened.sim, gamma, opened.policy)
         for alpha in args.alphas:
-            lc, pc = cvar(logs, alpha), cvar(pol, alpha)
+            lc, pc = float(sample_cvar(logs, alpha)), float(sample_cvar(pol, alpha))
             rows.append({"beta": beta, "alpha": alpha, "logs_cvar": lc, "budget": args.cost_limit * lc,
                          "policy_cvar": pc, "policy_meets_budget": pc <= args.cost_limit * lc,
                          "logs_states": int(logs.numel()), "policy_states": int(pol.numel())})

@@ -87,9 +87,13 @@ def logged_cost_cvar(sim: Simulator, alpha: float, gamma: float) -> torch.Tensor
     this is at least the mean over states of their own CVaR_alpha, the estimate the multipliers
     compare with the budget, so a budget of 1 x this is one the logs themselves satisfy. Leaves the
     simulator to be reset by the caller."""
-    vals = cost_to_go(sim, gamma)
+    return sample_cvar(cost_to_go(sim, gamma), alpha)
+
+
+def sample_cvar(vals: torch.Tensor, alpha: float) -> torch.Tensor:
+    """CVaR_alpha of a flat sample: the mean of its upper (1 - alpha) tail (0 for an empty one)."""
     if vals.numel() == 0:
-        return torch.zeros((), device=sim.reward.device)
+        return torch.zeros((), device=vals.device)
     return L.cvar_from_quantiles(vals.sort().values, alpha)
 
 
@@ -138,7 +142,7 @@ class Trainer:
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
         if self.world > 1 and self.device.startswith("cuda"):
-            torch.cuda.set_device(self.device)  # object collectives (the checkpoint's gather) run on it
+            torch.cuda.set_device(self.device)  # this rank's NCCL collectives and DDP buckets live on it
         per_mb = cfg.num_worlds * cfg.rollout_steps // cfg.minibatches
         if self.lead and cfg.minibatches > 1 and per_mb < SMALL_MINIBATCH:
             log.warning("minibatches=%d: each minibatch holds %d world-steps (of %d worlds x %d steps), so an update "
@@ -148,7 +152,7 @@ class Trainer:
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.rank)
         # exact resume needs the same process count: engine states and samplers are per rank
-        mine = rank_state(ck, self.rank, self.world)
+        mine = saved_rank_state(ck, self.rank, self.world)
         self._build_worlds(mine)
         self._build_learner(ck)
         self.update = 0
@@ -472,7 +476,7 @@ class Trainer:
                 "engine": self.sim.snapshot(), "prior": self.prior.state_dict(),
                 "actor_history": {} if self.actor_hist is None else self.actor_hist.state_dict()}
 
-    def state_dict(self) -> dict:
+    def state_dict(self) -> dict | None:
         """The checkpoint: everything an exact resume reads (`_load`), and the config and actor that
         evaluation and init_policy read. The lead's own rank state sits at the top level, the other
         ranks' in `other_ranks` (rank 1 first). Every rank calls it (a gather); the others get None."""
@@ -536,7 +540,7 @@ class Trainer:
         self.runlog.trim(self.update)
 
 
-def rank_state(ck: dict | None, rank: int, world: int) -> dict | None:
+def saved_rank_state(ck: dict | None, rank: int, world: int) -> dict | None:
     """Rank `rank`'s own state in the checkpoint `ck` (Trainer.rank_state), when an exact resume can
     continue it: the checkpoint was written by `world` processes and holds every rank's state. None
     otherwise (no checkpoint, another process count, or a multi-process checkpoint without them)."""

@@ -201,9 +201,22 @@ class WorldModelDriver:
         self.history = HistoryBuffer(model.history)
         self.seed = seed
         self.gen: torch.Generator | None = None
-        # discrete: the logits the last call sampled from, (W, A, num_actions), zero on rows it left alone:
-        # the distribution a best response to this driver starts from (evaluation.exploitability.SimGame)
-        self.last_out: torch.Tensor | None = None
+        # discrete: the rows the last call drove and the logits it sampled them from (kept as they are;
+        # `last_out` spreads them over the world's slots only when a best response asks)
+        self._last: tuple | None = None
+
+    @property
+    def last_out(self) -> torch.Tensor | None:
+        """Discrete: the logits the last call sampled from, (W, A, num_actions), zero on the rows it left
+        alone: the distribution a best response to this driver starts from
+        (evaluation.exploitability.SimGame). None before the first call."""
+        if self._last is None:
+            return None
+        w, a, logits, shape = self._last
+        out = torch.zeros((*shape, self.model.num_actions), device=self.model.ego_scale.device)
+        if logits is not None:
+            out[w, a] = logits
+        return out
 
     @torch.no_grad()
     def __call__(self, sim) -> None:
@@ -220,8 +233,7 @@ class WorldModelDriver:
             sel = sim.policy_agents
         sel = sel & (sim.present != 0)
         if not bool(sel.any()):
-            if self.last_out is not None:
-                self.last_out.zero_()
+            self._last = (None, None, None, sel.shape)  # no row driven: zero logits everywhere
             return
         w, a = sel.nonzero(as_tuple=True)
         hist = self.history.features(sim)[w, a]
@@ -232,10 +244,7 @@ class WorldModelDriver:
             sim.actions[w, a, :2] = torch.maximum(torch.minimum(act, box), -box).to(sim.actions.dtype)
             return
         logits = out.float() if self.greedy else out.float() / self.temperature
-        if self.last_out is None or self.last_out.shape[:2] != sel.shape:
-            self.last_out = torch.zeros((*sel.shape, out.shape[-1]), device=out.device)
-        self.last_out.zero_()
-        self.last_out[w, a] = logits
+        self._last = (w, a, logits, sel.shape)
         if self.greedy:
             act = out.argmax(-1)
         else:
