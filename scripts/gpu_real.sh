@@ -8,7 +8,8 @@
 # TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
 # evaluation in ignore mode. The plan (PLAN names a file of such lines; the default
 # below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
-# is a store name under STORES (womd_dev_train, womd_dev_train_5, ...) or - for procedural scenes alone,
+# is a store name under STORES (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the
+# worlds to procedural scenes at real speeds, taken from the urban half) or - for procedural scenes alone,
 # and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
 # first fine-tunes the shipped world model on the same real scenes and the procedural mix, on roads
 # simplified as real_mix.yaml's (teacher
@@ -34,8 +35,16 @@ real44 womd_dev_train -"
 [ -z "${PLAN:-}" ] || plan=$(grep -v '^#' "$PLAN")
 mkdir -p "$out" "$runs"
 
-mix() {  # the training scenes of a real store (- for none)
-  if [ "$1" = - ]; then echo "$proc"; else echo "mix:$proc=0.5,$stores/$1=0.5"; fi
+# the procedural part at real speeds: longer arms, desired speeds N(16, 4) m/s, vehicles placed up to 120 m
+# upstream (against the urban mix, vehicle steps above 10 m/s rise from 7 % to 26 %, real logs 26 %)
+fast="${proc%]},speed_mean=16,speed_std=4,size_scale=2,spawn_range=120]"
+mix() {  # the training scenes of a real store (- for none); store+fastNN gives NN % of the worlds to $fast
+  local store=${1%+fast*} share=0
+  [[ $1 == *+fast* ]] && share=${1##*+fast}
+  local urban fastw; read -r urban fastw <<< "$(python3 -c "print(round(0.5 - $share / 100, 2), $share / 100)")"
+  if [ "$store" = - ]; then echo "$proc"
+  elif [ "$share" = 0 ]; then echo "mix:$proc=0.5,$stores/$store=0.5"
+  else echo "mix:$proc=$urban,$fast=$fastw,$stores/$store=0.5"; fi
 }
 
 world_model() {  # name store: the shipped world model fine-tuned on the run's scenes -> $runs/name_wm/model.pt
