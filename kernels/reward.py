@@ -14,8 +14,12 @@ this step (`alive`) earn anything; every other row is zero.
     lane_deviation  m      distance to the nearest lane centerline, capped
     overspeed       m/s    speed above the limit
 
-cost = 1 when the nearest other present agent is closer than `beta` metres
-(centre to centre), the constraint signal of CCE-MAPPO. `nearest` is capped at
+cost, the constraint signal of CCE-MAPPO, from the centre distance d to the nearest
+other present agent (`cost_shape`):
+    step   1 when d < beta (TrafficGamer's distance cost)
+    hinge  max(beta - d, 0) / beta: how deep the neighbour is inside beta, so a contact
+           costs nearly 1 and a pass just inside beta nearly 0
+`nearest` is capped at
 the world's `nearest_cap` (kernels/collision.py); the cost is exact only because
 the Model builder keeps that cap >= beta.
 """
@@ -32,6 +36,7 @@ NUM_TERMS = len(REWARD_TERMS)
 def reward_kernel(
     goal_radius: float,
     beta: float,
+    cost_hinge: int,  # 0: step, 1: hinge (config.COST_SHAPES)
     speed_limit: float,
     lane_cap: float,
     weights: wp.array(dtype=float),  # (NUM_TERMS,)
@@ -84,12 +89,14 @@ def reward_kernel(
     c = float(0.0)
     if nearest[i] < beta:
         c = 1.0
+        if cost_hinge == 1:
+            c = (beta - nearest[i]) / beta
     cost_out[i] = c
 
 
 def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.goal_radius, model.beta, model.speed_limit, model.lane_cap, model.reward_weights, model.goal,
+              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.speed_limit, model.lane_cap, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
                       state.nearest, state.ep_goal, state.ep_offroad, state.goal_dist],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

@@ -308,6 +308,8 @@ def test_modes_parse_print_and_round_trip_as_their_yaml_names():
         EngineConfig(control="ids")
     with pytest.raises(ConfigError, match="collision_mode"):
         from_dict(EngineConfig, {"collision_mode": 1})
+    with pytest.raises(ConfigError, match="cost_shape: expected one of step, hinge, got 'linear'"):
+        EngineConfig(cost_shape="linear")
 
 
 def test_simulator_views_are_the_state_fields_declared_once():

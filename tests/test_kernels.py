@@ -279,6 +279,13 @@ def test_reward_terms_and_cost_match_hand_computation(device):
     sim2.reset()
     sim2.step(torch.zeros((1, 32, 2), device=device))
     np.testing.assert_allclose(sim2.cost[0, :2].cpu().numpy(), [0.0, 0.0])
+    # the hinge cost: how deep the neighbour is inside beta, as a share of beta
+    sim3 = Simulator([sc], cfg(action_space="continuous", control="all_agents", beta=6.0, cost_shape="hinge",
+                               reward=rw), device)
+    sim3.reset()
+    sim3.step(torch.zeros((1, 32, 2), device=device))
+    np.testing.assert_allclose(sim3.cost[0, :2].cpu().numpy(), [(6.0 - gap) / 6.0] * 2, atol=1e-4)
+    assert 0.0 < (6.0 - gap) / 6.0 < 1.0
 
 
 def test_goal_reached_term(device):

@@ -33,6 +33,7 @@ from tg_gpudrive.enums import (
     NamedMode,
 )
 
+COST_SHAPES = ("step", "hinge")  # EngineConfig.cost_shape, in the order of the reward kernel's codes
 REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
@@ -107,6 +108,9 @@ class EngineConfig:
     control: ControlMode = ControlMode.VEHICLES  # vehicles | all_agents | none: whom the policy drives by default
     replay_infeasible: bool = True  # marked and log-infeasible agents replay their logs, counted apart
     beta: float = 4.0  # m, distance under which the cost is 1
+    # step: the cost is 1 whenever the nearest other agent is nearer than beta (TrafficGamer's); hinge:
+    # (beta - d) / beta, so a deeper intrusion costs more and a contact nearly 1, a pass at beta nothing
+    cost_shape: str = "step"
     partner_k: int = 16
     partner_radius: float = 50.0
     road_k: int = 128
@@ -132,6 +136,8 @@ class EngineConfig:
         _set_mode(self, "collision_mode", CollisionMode)
         _set_mode(self, "goal_behaviour", GoalBehaviour)
         _set_mode(self, "control", ControlMode, ENGINE_CONTROL)
+        if self.cost_shape not in COST_SHAPES:
+            raise ConfigError(f"cost_shape: expected one of {', '.join(COST_SHAPES)}, got {self.cost_shape!r}")
         if self.dynamics == Dynamics.DELTA_LOCAL and self.action_space == ActionSpace.DISCRETE:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
         # sizes and search radii are bounded above too: beyond these the engine would allocate or

@@ -49,7 +49,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_behaviour      GoalBehaviour value
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
-    goal_radius, beta, speed_limit, lane_cap                            reward and cost parameters
+    goal_radius, beta, cost_hinge, speed_limit, lane_cap                reward and cost parameters
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     view_cos            cos of half the view cone (EngineConfig.view_angle): partners and road
                         points outside it are not observed; -1 sees all around
@@ -74,7 +74,7 @@ from typing import Generic, TypeVar
 import numpy as np
 import warp as wp
 
-from tg_gpudrive.config import EngineConfig
+from tg_gpudrive.config import COST_SHAPES, EngineConfig
 from tg_gpudrive.data.log_audit import candidates
 from tg_gpudrive.engine.control import exclusions, init_index, select_slots, slot_masks
 from tg_gpudrive.engine.roads import build_road_tables
@@ -351,6 +351,7 @@ class Model:
         self.accel_bins, self.curvature_bins = int(cfg.accel_bins), int(cfg.curvature_bins)
         self.delta_max = wp.vec3(*cfg.delta_max)
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
+        self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
         self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
@@ -453,7 +454,7 @@ class StepState(Generic[ArrayT]):
     # reward and cost
     reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
     reward_terms: ArrayT = array_field(Dims.TERMS, wp.float32, "the named terms (kernels/reward.py), unweighted")
-    cost: ArrayT = array_field(SLOT, wp.float32, "0/1, a present agent is nearer than beta")
+    cost: ArrayT = array_field(SLOT, wp.float32, "in [0, 1], a present agent is nearer than beta (cost_shape)")
     # the running episode
     ep_goal: ArrayT = array_field(SLOT, wp.int32, "0/1, reached its goal")
     ep_collided: ArrayT = array_field(SLOT, wp.int32, "0/1, collided")
