@@ -10,8 +10,10 @@ Narrow phase: separating axis test on the two boxes (4 axes). Boxes that only
 touch (zero-length overlap on some axis) do not collide.
 
 The same neighbour pass also yields the distance to the nearest other present
-agent (centre to centre), used by the distance cost. Agents farther than one cell
-may sit outside the 3 x 3 cells visited, so the distance is capped at the world's
+agent (centre to centre), and the distance the cost reads: to the nearest agent of
+any kind, or (`cost_players`) to the nearest one the policy drives, as TrafficGamer's
+cost counts only the agents of its game. Agents farther than one cell may sit
+outside the 3 x 3 cells visited, so both distances are capped at the world's
 `nearest_cap` (the cell size): a capped metric, exact below the cap. The cost
 compares it with beta, which is right because the builder keeps the cap >= beta.
 """
@@ -138,6 +140,9 @@ def collide_kernel(
     length: wp.array(dtype=float),
     width: wp.array(dtype=float),
     present: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),
+    background: wp.array(dtype=wp.int32),
+    cost_players: int,  # 1: the cost's distance counts only the policy's agents (integrated, not background)
     agent_cell: wp.array(dtype=wp.int32),
     cell_start: wp.array(dtype=wp.int32),
     cell_fill: wp.array(dtype=wp.int32),  # after scatter: end of each cell
@@ -145,12 +150,14 @@ def collide_kernel(
     # out
     collided_out: wp.array(dtype=wp.int32),  # (world * agent,) boxes overlap this step
     nearest_out: wp.array(dtype=float),  # (world * agent,) m, centre distance to nearest, <= nearest_cap
+    cost_dist_out: wp.array(dtype=float),  # (world * agent,) m, the same to the nearest the cost counts
 ):
     i = wp.tid()
     collided_out[i] = 0
     w = i / agents_per_world
     c = cell_size[w]
     nearest_out[i] = nearest_cap[w]
+    cost_dist_out[i] = nearest_cap[w]
     if present[i] == 0:
         return
     base = w * agents_per_world
@@ -158,6 +165,7 @@ def collide_kernel(
     cx = cell_coord(p[0], c)
     cy = cell_coord(p[1], c)
     nearest = nearest_cap[w]
+    cost_dist = nearest_cap[w]
     hit = int(0)
     for k in range(9):
         h = cell_hash(cx + k / 3 - 1, cy + k % 3 - 1, n_cells)
@@ -176,6 +184,8 @@ def collide_kernel(
                 q = pos[j]
                 d = wp.length(q - p)
                 nearest = wp.min(nearest, d)
+                if cost_players == 0 or (integrated[j] != 0 and background[j] == 0):
+                    cost_dist = wp.min(cost_dist, d)
                 if hit == 0:
                     reach = 0.5 * (wp.sqrt(length[i] * length[i] + width[i] * width[i])
                                    + wp.sqrt(length[j] * length[j] + width[j] * width[j]))
@@ -184,6 +194,7 @@ def collide_kernel(
                             hit = 1
     collided_out[i] = hit
     nearest_out[i] = nearest
+    cost_dist_out[i] = cost_dist
 
 
 def launch_collision(model, state, control) -> None:
@@ -198,6 +209,6 @@ def launch_collision(model, state, control) -> None:
               inputs=[model.max_agents, g, state.agent_cell, state.grid_fill], outputs=[state.grid_items])
     wp.launch(collide_kernel, dim=n, device=dev,
               inputs=[model.max_agents, g, model.collision_cell_size, model.nearest_cap, state.pos, state.yaw,
-                      model.length, model.width, state.present, state.agent_cell, state.grid_start,
-                      state.grid_fill, state.grid_items],
-              outputs=[state.collided, state.nearest])
+                      model.length, model.width, state.present, model.integrated, model.background,
+                      model.cost_players, state.agent_cell, state.grid_start, state.grid_fill, state.grid_items],
+              outputs=[state.collided, state.nearest, state.cost_dist])

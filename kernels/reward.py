@@ -15,11 +15,12 @@ this step (`alive`) earn anything; every other row is zero.
     overspeed       m/s    speed above the limit
 
 cost, the constraint signal of CCE-MAPPO, from the centre distance d to the nearest
-other present agent (`cost_shape`):
+other present agent (of the policy's own, with `cost_partners: players`; `cost_dist`
+of kernels/collision.py) (`cost_shape`):
     step   1 when d < beta (TrafficGamer's distance cost)
     hinge  max(beta - d, 0) / beta: how deep the neighbour is inside beta, so a contact
            costs nearly 1 and a pass just inside beta nearly 0
-`nearest` is capped at
+The distance is capped at
 the world's `nearest_cap` (kernels/collision.py); the cost is exact only because
 the Model builder keeps that cap >= beta.
 """
@@ -48,7 +49,7 @@ def reward_kernel(
     collided: wp.array(dtype=wp.int32),
     offroad: wp.array(dtype=wp.int32),
     lane_dist: wp.array(dtype=float),
-    nearest: wp.array(dtype=float),
+    cost_dist: wp.array(dtype=float),
     ep_goal: wp.array(dtype=wp.int32),
     ep_offroad: wp.array(dtype=wp.int32),
     goal_dist: wp.array(dtype=float),  # in: distance before the step; out: after
@@ -87,10 +88,10 @@ def reward_kernel(
     reward_out[i] = (weights[0] * t0 + weights[1] * t1 + weights[2] * t2
                      + weights[3] * t3 + weights[4] * t4 + weights[5] * t5)
     c = float(0.0)
-    if nearest[i] < beta:
+    if cost_dist[i] < beta:
         c = 1.0
         if cost_hinge == 1:
-            c = (beta - nearest[i]) / beta
+            c = (beta - cost_dist[i]) / beta
     cost_out[i] = c
 
 
@@ -98,5 +99,5 @@ def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
               inputs=[model.goal_radius, model.beta, model.cost_hinge, model.speed_limit, model.lane_cap, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
-                      state.nearest, state.ep_goal, state.ep_offroad, state.goal_dist],
+                      state.cost_dist, state.ep_goal, state.ep_offroad, state.goal_dist],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

@@ -34,6 +34,8 @@ def main(argv=None) -> int:
     p.add_argument("--betas", type=float, nargs="+", default=[2, 3, 4, 5, 6])
     p.add_argument("--alphas", type=float, nargs="+", default=[0.0, 0.125, 0.5, 0.875])
     p.add_argument("--cost-limit", type=float, default=0.5, help="the budget as a multiple of the logs' CVaR")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an engine setting for every beta, e.g. --set cost_partners=players --set cost_shape=hinge")
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -42,8 +44,9 @@ def main(argv=None) -> int:
     rows = []
     for beta in args.betas:
         # a checkpoint runs in its own engine with beta set; a built-in policy in the default one
-        opened = open_policy(args.checkpoint, scenes, args.device, overrides=[f"beta={beta}"],
-                             engine=EngineConfig(beta=beta), seed=args.seed, auto_reset=False)
+        sets = dict(kv.split("=", 1) for kv in args.set)
+        opened = open_policy(args.checkpoint, scenes, args.device, overrides=[f"beta={beta}", *args.set],
+                             engine=EngineConfig(beta=beta, **sets), seed=args.seed, auto_reset=False)
         gamma = opened.trained.gamma if opened.trained else 0.99
         logs = cost_to_go(opened.sim, gamma)
         torch.manual_seed(args.seed)

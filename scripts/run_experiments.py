@@ -48,14 +48,13 @@ def _yaml(v) -> str:
 def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
     """(run name, train overrides) for every cell and baseline."""
     common = [f"{k}={_yaml(v)}" for k, v in (exp.get("overrides") or {}).items()]
-    runs = []
-    for beta in exp["beta"]:
-        for alpha in exp["alpha"]:
-            runs.append((f"beta{beta}_alpha{alpha}", common + [f"env.beta={beta}", f"alpha={alpha}"] + extra))
-    for name, over in (exp.get("baselines") or {}).items():
-        sets = [f"{k}={_yaml(v)}" for k, v in over.items()]
-        runs.append((name, common + sets + extra))
-    return runs
+    cells = [(f"beta{beta}_alpha{alpha}", [f"env.beta={beta}", f"alpha={alpha}"])
+             for beta in exp["beta"] for alpha in exp["alpha"]]
+    cells += [(name, [f"{k}={_yaml(v)}" for k, v in over.items()]) for name, over in (exp.get("baselines") or {}).items()]
+    seeds = exp.get("seeds")  # training seeds: every cell and baseline once per seed, named <run>_s<seed>
+    if seeds is None:
+        return [(name, common + sets + extra) for name, sets in cells]
+    return [(f"{name}_s{seed}", common + sets + [f"seed={seed}"] + extra) for name, sets in cells for seed in seeds]
 
 
 FLEX_COLUMNS = ("lambda", "cvar", "mean_min_distance", "mean_speed", "cost", "collision_rate", "goal_rate")

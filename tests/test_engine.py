@@ -310,6 +310,8 @@ def test_modes_parse_print_and_round_trip_as_their_yaml_names():
         from_dict(EngineConfig, {"collision_mode": 1})
     with pytest.raises(ConfigError, match="cost_shape: expected one of step, hinge, got 'linear'"):
         EngineConfig(cost_shape="linear")
+    with pytest.raises(ConfigError, match="cost_partners: expected all or players, got 'others'"):
+        EngineConfig(cost_partners="others")
 
 
 def test_simulator_views_are_the_state_fields_declared_once():

@@ -616,6 +616,13 @@ def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
     assert [x.split("--out ")[1].split()[0].rsplit("/", 1)[1] for x in lines] == ["beta2.0_alpha0.5", "beta4.0_alpha0.5", "mappo"]
     assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--dry-run"]) == 0
     assert not any(x.startswith("CUDA_VISIBLE_DEVICES") for x in capsys.readouterr().out.splitlines())
+    # training seeds: every cell and baseline once per seed, each with its seed
+    exp.write_text("base: small_cpu.yaml\nbeta: [2.0]\nalpha: [0.5]\nseeds: [0, 3]\nbaselines:\n  mappo: {eta1: 0.0}\n")
+    assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--dry-run"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if " train " in x]
+    assert [x.split("--out ")[1].split()[0].rsplit("/", 1)[1] for x in lines] == [
+        "beta2.0_alpha0.5_s0", "beta2.0_alpha0.5_s3", "mappo_s0", "mappo_s3"]
+    assert [x.rsplit("--set seed=", 1)[1].split()[0] for x in lines] == ["0", "3", "0", "3"]
 
 
 def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):

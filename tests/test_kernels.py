@@ -288,6 +288,32 @@ def test_reward_terms_and_cost_match_hand_computation(device):
     assert 0.0 < (6.0 - gap) / 6.0 < 1.0
 
 
+def test_cost_counts_only_the_policys_agents_with_cost_partners_players(device):
+    """Cars 0 and 1 are the policy's, car 2 replays its log 3 m beside car 0 and car 1 drives 5 m ahead
+    of it. The cost's distance (read through the hinge cost, beta 8) is to car 2 with `all`, to car 1
+    with `players`; `nearest` stays the distance to anyone."""
+    pos = np.zeros((3, T, 2))
+    for a, (x, y) in enumerate([(0.0, 0.0), (5.0, 0.0), (0.0, 3.0)]):
+        pos[a, :, 0] = x + np.arange(T) * 1.0
+        pos[a, :, 1] = y
+    pos[:, -1, 0] += 200  # far goals
+    vel = np.zeros((3, T, 2))
+    vel[:, :, 0] = 10.0
+    roads = [(RoadType.LANE, np.array([[-50.0, 0.0], [300.0, 0.0]]))]
+    sc = make_scene(pos, np.zeros((3, T)), log_vel=vel, roads=roads)
+    got = {}
+    for who in ("all", "players"):
+        c = cfg(action_space="continuous", beta=8.0, cost_shape="hinge", cost_partners=who)
+        sim = Simulator([sc], c, device, controlled=[np.array([True, True, False])])
+        sim.reset()
+        sim.step(torch.zeros((1, 32, 2), device=device))
+        assert sim.policy_agents[0, :3].tolist() == [True, True, False]
+        got[who] = sim.cost[0, :2].cpu().numpy()
+        np.testing.assert_allclose(sim.nearest[0, :2].cpu().numpy(), [3.0, 5.0], atol=1e-3)
+    np.testing.assert_allclose(got["all"], [(8.0 - 3.0) / 8.0, (8.0 - 5.0) / 8.0], atol=1e-4)
+    np.testing.assert_allclose(got["players"], [(8.0 - 5.0) / 8.0, (8.0 - 5.0) / 8.0], atol=1e-4)
+
+
 def test_goal_reached_term(device):
     pos = np.zeros((1, T, 2))
     pos[0, :, 0] = np.arange(T) * 1.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tg_gpudrive.evaluation.stats import average_ranks, spearman, spearman_ci
+from tg_gpudrive.evaluation.stats import average_ranks, effect_ci, spearman, spearman_ci
 
 
 def test_average_ranks_share_ties():
@@ -62,6 +62,31 @@ def test_a_statistic_of_summed_rows_is_resampled_like_a_mean():
         spearman_ci([2, 3], [np.ones((4, 2)), np.ones(4)], statistic=share, labels=["beta=2", "beta=3"])
 
 
+def test_training_seeds_widen_the_interval_by_their_spread():
+    """Runs whose episodes are all alike carry no evaluation noise: the interval of one run per cell
+    is a point, while three runs per cell spread it by the seeds alone. Cells 0-2-4 / 10-12-14 by
+    run: their means 2 and 12 differ by 10, and a resample of the runs can give any difference
+    from 10 - 4 (low runs all 4, high all 10) to 10 + 4."""
+    low = [np.full(50, v) for v in (0.0, 2.0, 4.0)]
+    high = [np.full(50, v) for v in (10.0, 12.0, 14.0)]
+    one = effect_ci(low[1], high[1], n_boot=500, seed=0)
+    assert (one.diff, one.diff_lo, one.diff_hi) == (10.0, 10.0, 10.0) and one.ratio == pytest.approx(6.0)
+    e = effect_ci(low, high, n_boot=2000, seed=0)
+    assert e.low == 2.0 and e.high == 12.0 and e.diff == 10.0
+    assert 6.0 <= e.diff_lo < 9.0 and 11.0 < e.diff_hi <= 14.0 and e.verdict(+1) == "holds"
+    assert e.ratio == pytest.approx(6.0) and e.ratio_lo < 6.0 < e.ratio_hi
+    assert effect_ci(low, high, n_boot=2000, seed=0) == e  # seeded
+    # seeds that disagree on the sign: the difference is not shown
+    mixed = effect_ci([np.full(20, 0.0)] * 3, [np.full(20, v) for v in (-1.0, 0.5, 2.0)], n_boot=2000, seed=1)
+    assert mixed.diff_lo < 0 < mixed.diff_hi and mixed.verdict(+1) == "not shown"
+    # the rank correlation's interval takes the runs in the same way: three seeds per cell whose spread
+    # overlaps the next cell's leave the order unsure, one run per cell (their means) does not
+    knob = [1.0, 2.0, 3.0]
+    runs = [[np.full(30, m + d) for d in (-3.0, 0.0, 3.0)] for m in (0.0, 1.0, 2.0)]
+    assert spearman_ci(knob, runs, n_boot=1000, seed=0).lo < 0.5
+    assert spearman_ci(knob, [r[1] for r in runs], n_boot=1000, seed=0).lo == pytest.approx(1.0)
+
+
 def test_a_cell_without_episodes_is_an_error_naming_it():
     with pytest.raises(ValueError, match="beta=3"):
         spearman_ci([2, 3], [np.ones(5), np.array([np.nan])], labels=["beta=2", "beta=3"])
@@ -105,3 +130,35 @@ def test_flexibility_table_marks_each_claim():
     assert rows[("collision rate", "beta")][5] == "not shown"
     assert rows[("hard brakes / agent", "alpha")][2] == "none" and rows[("hard brakes / agent", "alpha")][5] == "-"
     assert all(r[6] == 300 for r in rows.values())
+
+
+def test_cells_group_their_training_seeds_and_effects_compare_the_extreme_cells():
+    """Two seeds per cell (beta 2, 4, 6 x alpha 0.1, 0.9): min gap grows by 0.5 m per metre of beta with
+    seeds 0.1 m apart; the TTC rate halves from beta 2 to beta 6; collisions are noise."""
+    from tg_gpudrive.evaluation.report_stats import flexibility_directions, group_cells, knob_effects
+
+    rng = np.random.default_rng(7)
+    runs = []
+    for beta in (2.0, 4.0, 6.0):
+        for alpha in (0.1, 0.9):
+            for seed, shift in ((0, -0.05), (1, 0.05)):
+                n = 400
+                runs.append({"label": f"b{beta}a{alpha}s{seed}", "beta": beta, "alpha": alpha, "seed": seed, "figures": {
+                    "min_gap": rng.normal(0.5 * beta + shift, 0.2, n), "speed": rng.normal(7.0, 0.5, n),
+                    "ttc_critical": (rng.random(n) < 0.4 / (beta / 2) ** 0.631).astype(float),
+                    "collision": (rng.random(n) < 0.03).astype(float)}})
+    cells = group_cells(runs)
+    assert [(c["beta"], c["alpha"], c["runs"]) for c in cells][:2] == [(2.0, 0.1, 2), (2.0, 0.9, 2)]
+    assert len(cells) == 6 and len(cells[0]["figures"]["min_gap"]) == 2
+    rows = {(r[0], r[1]): r for r in flexibility_directions(cells, n_boot=300)}
+    assert rows[("min gap [m]", "beta")][5] == "holds" and rows[("min gap [m]", "beta")][6] == 800
+    eff = {(r[0], r[1], r[2]): r for r in knob_effects(cells, n_boot=300)}
+    gap = eff[("min gap [m]", "beta", "alpha 0.1")]
+    assert gap[3] == "2 -> 6" and gap[4] == pytest.approx(1.0, abs=0.05) and gap[5] == pytest.approx(3.0, abs=0.05)
+    lo, hi = (float(x) for x in gap[6].split("[")[1].strip("]").split(","))
+    assert 1.8 < lo < 2.0 < hi < 2.2 and gap[8] == "+" and gap[9] == "holds"
+    ttc = eff[("TTC < 1.5 s rate", "beta", "alpha 0.9")]
+    assert float(ttc[7].split()[0]) == pytest.approx(0.5, abs=0.12) and ttc[9] == "holds"
+    assert eff[("collision rate", "beta", "alpha 0.1")][9] == "not shown"
+    assert eff[("min gap [m]", "alpha", "beta 4")][3] == "0.1 -> 0.9"  # alpha's extremes, beta held
+    assert not any(k[0] == "hard brakes / agent" for k in eff)  # the paper claims no direction there

@@ -111,6 +111,9 @@ class EngineConfig:
     # step: the cost is 1 whenever the nearest other agent is nearer than beta (TrafficGamer's); hinge:
     # (beta - d) / beta, so a deeper intrusion costs more and a contact nearly 1, a pass at beta nothing
     cost_shape: str = "step"
+    # whom the cost's distance counts: all, every other present agent; players, only the agents the policy
+    # drives (TrafficGamer's cost, over the agents of its game: replayed and parked ones are not counted)
+    cost_partners: str = "all"
     partner_k: int = 16
     partner_radius: float = 50.0
     road_k: int = 128
@@ -138,6 +141,8 @@ class EngineConfig:
         _set_mode(self, "control", ControlMode, ENGINE_CONTROL)
         if self.cost_shape not in COST_SHAPES:
             raise ConfigError(f"cost_shape: expected one of {', '.join(COST_SHAPES)}, got {self.cost_shape!r}")
+        if self.cost_partners not in ("all", "players"):
+            raise ConfigError(f"cost_partners: expected all or players, got {self.cost_partners!r}")
         if self.dynamics == Dynamics.DELTA_LOCAL and self.action_space == ActionSpace.DISCRETE:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")
         # sizes and search radii are bounded above too: beyond these the engine would allocate or

@@ -49,7 +49,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_behaviour      GoalBehaviour value
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
-    goal_radius, beta, cost_hinge, speed_limit, lane_cap                reward and cost parameters
+    goal_radius, beta, cost_hinge, cost_players, speed_limit, lane_cap  reward and cost parameters
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     view_cos            cos of half the view cone (EngineConfig.view_angle): partners and road
                         points outside it are not observed; -1 sees all around
@@ -352,6 +352,7 @@ class Model:
         self.delta_max = wp.vec3(*cfg.delta_max)
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
         self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
+        self.cost_players = int(cfg.cost_partners == "players")
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
         self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
@@ -451,6 +452,7 @@ class StepState(Generic[ArrayT]):
     edge_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest road edge, <= road_query_radius")
     lane_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest lane, <= road_query_radius")
     nearest: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest present agent, <= Model.nearest_cap")
+    cost_dist: ArrayT = array_field(SLOT, wp.float32, "m, the same to the nearest agent the cost counts (cost_partners)")
     # reward and cost
     reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
     reward_terms: ArrayT = array_field(Dims.TERMS, wp.float32, "the named terms (kernels/reward.py), unweighted")

@@ -456,9 +456,9 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     if res["gap_curve"]:
         got.gap_curves[label] = res["gap_curve"]
     res["kind"] = run_kind(cfg)
-    res["beta"], res["alpha"] = cfg.env.beta, cfg.alpha
+    res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
-    if res["kind"] == "CCE-MAPPO":
+    if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cells:  # a cell's first training seed
         g = opts.grid_scene
         got.cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
                                                            out / "frames" / f"{label}.png", gif=opts.grid_gifs)

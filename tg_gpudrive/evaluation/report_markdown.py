@@ -20,7 +20,7 @@ import numpy as np
 
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.report_stats import flexibility_directions, fmt
+from tg_gpudrive.evaluation.report_stats import flexibility_directions, fmt, group_cells, knob_effects
 
 PER_AGENT_CSV, PER_SCENE_CSV = "per_agent.csv", "per_scene.csv"
 PER_AGENT_COLUMNS = ("policy", "agent", "scenario_type", "gap", "gain", "gain_ci95", "j_pi", "j_br",
@@ -107,29 +107,46 @@ def _collides_section(results: list[dict]) -> list[str]:
 
 
 def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[str]:
-    """The report's beta x alpha section: the cells' training and evaluation means, and (three cells or
-    more) the direction of every figure with each knob; nothing without CCE-MAPPO cells."""
-    cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"), key=lambda r: (r["beta"], r["alpha"]))
+    """The report's beta x alpha section: the runs' training and evaluation means, and (three cells or
+    more) the direction of every figure with each knob, and its change between each knob's extreme
+    cells; a cell's training seeds are resampled with its episodes. Nothing without CCE-MAPPO cells."""
+    cce = sorted((r for r in results if r.get("kind") == "CCE-MAPPO"),
+                 key=lambda r: (r["beta"], r["alpha"], r.get("seed", 0)))
     if not cce:
         return []
     out = ["\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
            "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
            "alpha (less risk-averse) -> faster, smaller gaps.\n\n"]
-    rows = [[r["beta"], r["alpha"], r["train_tail"]["lambda"], r["train_tail"]["mean_min_distance"],
-             r["train_tail"]["mean_speed"], r["train_tail"]["cost"], r["risk"].get("mean_min_gap_m"),
-             r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
+    rows = [[r["beta"], r["alpha"], r.get("seed", "-"), r["train_tail"]["lambda"],
+             r["train_tail"]["mean_min_distance"], r["train_tail"]["mean_speed"], r["train_tail"]["cost"],
+             r["risk"].get("mean_min_gap_m"), r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
              r["risk"].get("collision_rate")] for r in cce]
-    out.append(_table(["beta [m]", "alpha", "lambda (train)", "min distance (train) [m]", "speed (train) [m/s]",
-                       "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"], rows))
-    if len(cce) >= 3 and all("figures" in r for r in cce):
-        out.append("\nDirection of each figure with each knob over the cells: Spearman's rho of the knob with "
-                   "the cells' means, 95 % bootstrap interval from resampling every cell's agent-episodes "
-                   "(evaluation noise only, not training seeds). **holds**: the interval lies on the paper's "
+    out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "min distance (train) [m]",
+                       "speed (train) [m/s]", "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]",
+                       "collision rate (eval)"], rows))
+    if not all("figures" in r for r in cce):
+        return out
+    cells = group_cells(cce)
+    seeds = min(c["runs"] for c in cells)
+    noise = ("training seeds and evaluation noise: each resample draws a cell's runs with replacement, then "
+             "each drawn run's agent-episodes" if seeds > 1 else
+             "evaluation noise only (one training seed per cell): each resample draws every cell's agent-episodes")
+    if len(cells) >= 3:
+        out.append(f"\nDirection of each figure with each knob over the {len(cells)} cells ({seeds}+ training "
+                   f"seeds each): Spearman's rho of the knob with the cells' means, 95 % bootstrap interval over "
+                   f"{noise}. **holds**: the interval lies on the paper's "
                    "side of 0; **reversed**: on the other side; **not shown**: it contains 0. Samples: agent-episodes; "
                    "for the CCE-gap the deviation game's agents; the Hellinger distance is of each cell's pooled "
                    "histograms, its resamples reweight the agent-episodes' histograms.\n\n")
         out.append(_table(["figure", "knob", "paper's sign", "rho", "95 % interval", "verdict",
-                           "samples per cell (min)"], flexibility_directions(cce, logged=logged_hist)))
+                           "samples per cell (min)"], flexibility_directions(cells, logged=logged_hist)))
+    effects = knob_effects(cells)
+    if effects:
+        out.append(f"\nEffect sizes: each claimed figure at a knob's lowest and highest cell, the other knob held; "
+                   f"the difference (high - low) and the ratio (high / low) with 95 % bootstrap intervals over "
+                   f"{noise}. **holds**: the difference's interval lies on the paper's side of 0.\n\n")
+        out.append(_table(["figure", "knob", "held", "knob low -> high", "at low", "at high", "difference [95 %]",
+                           "ratio [95 %]", "paper's sign", "verdict"], effects))
     return out
 
 

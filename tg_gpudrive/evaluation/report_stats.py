@@ -2,7 +2,9 @@
 
     measure(label, gen, logged, top)   fidelity, diversity and risk of one policy's episodes
     episode_figures(gen, risk)         one value per agent-episode of each figure the flexibility claims name
+    group_cells(results)               the CCE-MAPPO runs grouped by (beta, alpha), their training seeds together
     flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
+    knob_effects(cells)                each figure's change between a knob's extreme cells, with intervals
     worst_scenes(gen)                  the scenes where the policy's agents fail most
     tail_means(rows, keys)             training figures averaged over the last updates
     gap_curve(start, kept, last, u)    the CCE-gap over a run's training
@@ -22,7 +24,7 @@ import numpy as np
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.stats import spearman_ci
+from tg_gpudrive.evaluation.stats import effect_ci, spearman_ci
 
 WORST_SCENES = 4  # scenes drawn in worst_scenes.png
 
@@ -96,6 +98,50 @@ FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
 }
 
 
+def group_cells(results: list[dict]) -> list[dict]:
+    """The CCE-MAPPO runs grouped by cell (beta, alpha): one dict per cell with its `runs` (training
+    seeds) and, per figure, a list of the runs' per-episode arrays (stats resamples seeds, then
+    episodes)."""
+    cells: dict[tuple[float, float], dict] = {}
+    for r in sorted(results, key=lambda r: (r["beta"], r["alpha"])):
+        c = cells.setdefault((r["beta"], r["alpha"]), {"label": f"beta {r['beta']:g} / alpha {r['alpha']:g}",
+                                                        "beta": r["beta"], "alpha": r["alpha"], "runs": 0,
+                                                        "figures": {}})
+        c["runs"] += 1
+        for k, v in r["figures"].items():
+            c["figures"].setdefault(k, []).append(v)
+    return list(cells.values())
+
+
+def _episodes(x) -> int:
+    """Episodes (or agents) behind a cell's figure: one array, or the runs' arrays."""
+    return sum(len(v) for v in x) if isinstance(x, list) else len(x)
+
+
+def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
+    """Rows (figure, knob, the other knob's value, knob low -> high, figure at low, at high, difference
+    high - low with its 95 % interval, ratio high / low with its interval, paper's sign, verdict): each
+    claimed figure between the extreme cells of each knob, the other knob held. Cells are
+    `group_cells` dicts (or single runs with `figures` arrays)."""
+    rows = []
+    for key, (name, *signs) in FLEX_CLAIMS.items():
+        if not any(signs) or any(key not in c["figures"] for c in cells):
+            continue
+        for knob, other, sign in (("beta", "alpha", signs[0]), ("alpha", "beta", signs[1])):
+            for at in sorted({c[other] for c in cells}):
+                row = sorted((c for c in cells if c[other] == at), key=lambda c: c[knob])
+                if len(row) < 2 or row[0][knob] == row[-1][knob]:
+                    continue
+                lo_c, hi_c = row[0], row[-1]
+                e = effect_ci(lo_c["figures"][key], hi_c["figures"][key], n_boot=n_boot,
+                              labels=(lo_c["label"], hi_c["label"]))
+                rows.append([name, knob, f"{other} {at:g}", f"{lo_c[knob]:g} -> {hi_c[knob]:g}", e.low, e.high,
+                             f"{fmt(e.diff)} [{fmt(e.diff_lo)}, {fmt(e.diff_hi)}]",
+                             f"{fmt(e.ratio)} [{fmt(e.ratio_lo)}, {fmt(e.ratio_hi)}]",
+                             {1: "+", -1: "-"}[sign], e.verdict(sign)])
+    return rows
+
+
 def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict | None = None) -> list[list]:
     """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, samples per cell) of the Spearman
     correlation of each figure with beta and with alpha over the CCE-MAPPO cells; the Hellinger row
@@ -114,7 +160,7 @@ def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict |
             r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells], statistic=stat)
             verdict = r.verdict(sign) if sign else "-"
             rows.append([name, knob, {1: "+", -1: "-", 0: "none"}[sign], r.rho, f"[{fmt(r.lo)}, {fmt(r.hi)}]",
-                         verdict, min(len(x) for x in samples)])
+                         verdict, min(_episodes(x) for x in samples)])
     return rows
 
 

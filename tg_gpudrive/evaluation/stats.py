@@ -5,8 +5,11 @@ which a figure moves across the cells of a grid. Each cell's figure is a mean ov
 episodes, so it carries evaluation noise; a correlation over a handful of cells says nothing unless
 its interval excludes zero. `spearman_ci` resamples every cell's episodes with replacement
 (`n_boot` times, seeded), recomputes each cell's mean and the Spearman correlation with the knob,
-and returns the percentile interval of those correlations. It measures only evaluation noise:
-training noise (another seed per cell) is not in it.
+and returns the percentile interval of those correlations. A cell given as several runs (one
+array of episodes per training seed) is resampled in two stages: its runs with replacement, then
+each drawn run's episodes, and its figure is the mean of the drawn runs' means, so the interval
+holds training noise too; a cell of one run holds evaluation noise only. `effect_ci` gives the
+difference (and ratio) between two cells' figures with the same resampling.
 
 Must not: decide a claim holds (the caller compares the interval with the expected sign), or drop
 cells with no episodes silently (that is a ValueError naming the cell).
@@ -54,42 +57,103 @@ class RankCorrelation:
     def verdict(self, expected_sign: int) -> str:
         """'holds' when the interval lies on the expected side of 0, 'reversed' on the other side,
         'not shown' when it contains 0."""
-        if np.isnan(self.lo) or np.isnan(self.hi):
-            return "not shown"
-        if expected_sign > 0 and self.lo > 0 or expected_sign < 0 and self.hi < 0:
-            return "holds"
-        if expected_sign > 0 and self.hi < 0 or expected_sign < 0 and self.lo > 0:
-            return "reversed"
-        return "not shown"
+        return _verdict(self.lo, self.hi, expected_sign)
 
 
 def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot: int = 2000, level: float = 0.95,
                 seed: int = 0, labels: Sequence[str] | None = None, statistic=None) -> RankCorrelation:
-    """Spearman's rho between `knob[c]` and the mean of `samples[c]` (one 1-D array of per-episode
-    values per cell c), with a `level` percentile interval from `n_boot` resamples of every cell's
-    episodes.
+    """Spearman's rho between `knob[c]` and the figure of `samples[c]` (one 1-D array of per-episode
+    values per cell c, or a list of them, one per run of the cell), with a `level` percentile
+    interval from `n_boot` resamples of every cell (`cell_means`).
 
     With `statistic`, a cell's figure is not a mean: `samples[c]` is (n, d), one row per episode
-    (e.g. its histogram counts), and the figure is `statistic(sum of the rows)` ((..., d) -> (...));
-    a resample weights the rows by multinomial counts, so the sums of all resamples are one matrix
-    product."""
+    (e.g. its histogram counts; the rows of a cell's runs are pooled), and the figure is
+    `statistic(sum of the rows)` ((..., d) -> (...)); a resample weights the rows by multinomial
+    counts, so the sums of all resamples are one matrix product."""
     knob = np.asarray(knob, np.float64)
     if len(knob) != len(samples):
         raise ValueError(f"{len(knob)} knob values for {len(samples)} cells")
+    names = [labels[c] if labels is not None else f"#{c}" for c in range(len(samples))]
     if statistic is not None:
-        return _spearman_ci_of(knob, samples, statistic, n_boot, level, seed, labels)
-    cells = [np.asarray(s, np.float64).ravel() for s in samples]
-    cells = [s[np.isfinite(s)] for s in cells]
-    for c, s in enumerate(cells):
-        if s.size == 0:
-            name = labels[c] if labels is not None else f"#{c}"
-            raise ValueError(f"cell {name} has no finite episode value to correlate")
-    rho = float(spearman(knob, np.array([s.mean() for s in cells])))
+        pooled = [np.concatenate(s) if isinstance(s, (list, tuple)) else s for s in samples]
+        return _spearman_ci_of(knob, pooled, statistic, n_boot, level, seed, labels)
+    cells = [_runs_of(s, n) for s, n in zip(samples, names)]
     rng = np.random.default_rng(seed)
     means = np.empty((n_boot, len(cells)))
-    for c, s in enumerate(cells):
-        means[:, c] = s[rng.integers(0, s.size, (n_boot, s.size))].mean(axis=1)
-    return _interval(rho, spearman(knob, means), len(cells), n_boot, level)
+    points = np.empty(len(cells))
+    for c, runs in enumerate(cells):
+        points[c], means[:, c] = cell_means(runs, n_boot, rng)
+    return _interval(float(spearman(knob, points)), spearman(knob, means), len(cells), n_boot, level)
+
+
+def _runs_of(cell, name: str) -> list[np.ndarray]:
+    """A cell's finite episode values, one array per run (a bare array is one run)."""
+    runs = cell if isinstance(cell, (list, tuple)) else [cell]
+    runs = [np.asarray(r, np.float64).ravel() for r in runs]
+    runs = [r[np.isfinite(r)] for r in runs]
+    if not runs or any(r.size == 0 for r in runs):
+        raise ValueError(f"cell {name} has a run with no finite episode value")
+    return runs
+
+
+def cell_means(runs: Sequence[np.ndarray], n_boot: int, rng: np.random.Generator) -> tuple[float, np.ndarray]:
+    """A cell's figure (the mean of its runs' episode means) and `n_boot` two-stage resamples of it:
+    runs drawn with replacement, then each drawn run's episodes."""
+    point = float(np.mean([r.mean() for r in runs]))
+    R = len(runs)
+    pick = rng.integers(0, R, (n_boot, R)) if R > 1 else np.zeros((n_boot, 1), np.int64)
+    means = np.empty((n_boot, R))
+    for k in range(R):
+        for j, r in enumerate(runs):
+            rows = np.nonzero(pick[:, k] == j)[0]
+            if rows.size:
+                means[rows, k] = r[rng.integers(0, r.size, (rows.size, r.size))].mean(axis=1)
+    return point, means.mean(axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Effect:
+    """How a figure changes from cell `low` to cell `high`: both figures, their difference (high - low)
+    and ratio (high / low) with percentile intervals."""
+    low: float
+    high: float
+    diff: float
+    diff_lo: float
+    diff_hi: float
+    ratio: float
+    ratio_lo: float
+    ratio_hi: float
+
+    def verdict(self, expected_sign: int) -> str:
+        """As RankCorrelation.verdict, for the difference."""
+        return _verdict(self.diff_lo, self.diff_hi, expected_sign)
+
+
+def effect_ci(low, high, *, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
+              labels: tuple[str, str] = ("low", "high")) -> Effect:
+    """The difference and ratio of two cells' figures (each an array of episode values or a list of
+    them, one per run), with `level` percentile intervals from `cell_means` resamples."""
+    rng = np.random.default_rng(seed)
+    a, boot_a = cell_means(_runs_of(low, labels[0]), n_boot, rng)
+    b, boot_b = cell_means(_runs_of(high, labels[1]), n_boot, rng)
+    tail = 100 * (1 - level) / 2
+    d_lo, d_hi = np.percentile(boot_b - boot_a, [tail, 100 - tail])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratios = boot_b / boot_a
+        ratio = b / a if a != 0 else np.nan
+    ratios = ratios[np.isfinite(ratios)]
+    r_lo, r_hi = np.percentile(ratios, [tail, 100 - tail]) if ratios.size else (np.nan, np.nan)
+    return Effect(a, b, b - a, float(d_lo), float(d_hi), float(ratio), float(r_lo), float(r_hi))
+
+
+def _verdict(lo: float, hi: float, expected_sign: int) -> str:
+    if np.isnan(lo) or np.isnan(hi):
+        return "not shown"
+    if expected_sign > 0 and lo > 0 or expected_sign < 0 and hi < 0:
+        return "holds"
+    if expected_sign > 0 and hi < 0 or expected_sign < 0 and lo > 0:
+        return "reversed"
+    return "not shown"
 
 
 def _interval(rho: float, boot: np.ndarray, n_cells: int, n_boot: int, level: float) -> RankCorrelation:
