@@ -41,7 +41,7 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an
 def _yaml(v) -> str:
     """A value as `--set` parses it back (YAML: 1e-08 would be a string, 1.0e-08 is a float)."""
     if isinstance(v, str):
-        return v
+        return v or "''"  # an empty string, not YAML's null
     return yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()
 
 

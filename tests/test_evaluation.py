@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import scipy.stats
 import torch
+import yaml
 
 from conftest import WOMD_FILES
 from test_report_markdown import csv_rows, per_agent_lines
@@ -623,6 +624,13 @@ def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
     assert [x.split("--out ")[1].split()[0].rsplit("/", 1)[1] for x in lines] == [
         "beta2.0_alpha0.5_s0", "beta2.0_alpha0.5_s3", "mappo_s0", "mappo_s3"]
     assert [x.rsplit("--set seed=", 1)[1].split()[0] for x in lines] == ["0", "3", "0", "3"]
+    # a baseline trained from scratch: the empty starting policy stays an empty string
+    exp.write_text("base: small_cpu.yaml\noverrides: {init_policy: shipped_v1}\nbeta: [2.0]\nalpha: [0.5]\n"
+                   "baselines:\n  mappo: {init_policy: ''}\n")
+    plan = dict(mod.plan(yaml.safe_load(exp.read_text()), []))
+    cfg = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml", overrides=plan["mappo"])
+    assert cfg.init_policy == "" and load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml",
+                                                 overrides=plan["beta2.0_alpha0.5"]).init_policy == "shipped_v1"
 
 
 def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
