@@ -1,6 +1,7 @@
 """The continuous actor's starting exploration: a fifth of each action dimension's range, so early
 curvature draws are not mostly clipped to a full turn (one std of 0.61 for both dimensions spanned
-twice the default curvature box of 0.3 1/m)."""
+twice the default curvature box of 0.3 1/m); the critic's heads evaluated on the live slots alone give
+what the full grid gives there, value and gradient."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import torch
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
-from tg_gpudrive.agents.networks import INIT_STD_FRACTION, Actor
+from tg_gpudrive.agents.networks import INIT_STD_FRACTION, Actor, CentralCritic
 
 
 def test_initial_std_is_a_fifth_of_each_dimensions_range():
@@ -22,3 +23,25 @@ def test_initial_std_is_a_fifth_of_each_dimensions_range():
     draws = torch.distributions.Normal(mean, log_std.exp()).sample((2000,))
     inside = (draws.abs() <= torch.tensor(high)).float().mean()
     assert inside > 0.999
+
+
+def test_critic_heads_on_the_live_slots_equal_the_full_grid_there():
+    torch.manual_seed(0)
+    critic = CentralCritic(2, 3, quantiles=8, hidden=16)
+    obs = torch.randn(6, 4, EGO_DIM + 2 * PARTNER_DIM + 3 * ROAD_DIM)
+    mask = torch.rand(6, 4) < 0.5
+    mask[5] = False  # a group with no live slot
+    g, c = mask.nonzero(as_tuple=True)
+    flat = g * 4 + c
+    v_full, q_full = critic(obs, mask, flat)
+    (v_full[g, c].sum() + q_full[g, c].pow(2).sum()).backward()
+    grads = [p.grad.clone() for p in critic.parameters()]
+    critic.zero_grad()
+    v, q = critic(obs, mask, flat, head_rows=flat)
+    assert v.shape == (len(flat),) and q.shape == (len(flat), 8)
+    torch.testing.assert_close(v, v_full[g, c].detach())
+    torch.testing.assert_close(q, q_full[g, c].detach())
+    assert (q[:, 1:] >= q[:, :-1]).all()  # still a sorted quantile function
+    (v.sum() + q.pow(2).sum()).backward()
+    for a, b in zip(grads, (p.grad for p in critic.parameters())):
+        torch.testing.assert_close(a, b)

@@ -131,10 +131,12 @@ class CentralCritic(nn.Module):
         self.value_head = mlp([2 * hidden, hidden, 1], last_act=False)
         self.cost_head = mlp([2 * hidden, hidden, quantiles], last_act=False)
 
-    def forward(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None,
+                head_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`rows`: the flat indices of mask's True entries, when the caller has them already
-        (finding them costs a host-device synchronisation)."""
+        (finding them costs a host-device synchronisation). `head_rows`: flat slot indices at which
+        to evaluate the heads alone (value (R,), quantiles (R, N)), as a learner that reads only
+        the live slots needs: the padded slots' heads are then never computed."""
         lead = obs.shape[:-2]
         C = obs.shape[-2]
         m = mask.reshape(-1, C)
@@ -148,8 +150,10 @@ class CentralCritic(nn.Module):
         key_pad = ~m & m.any(dim=1, keepdim=True)
         pooled, _ = self.attn(h, h, h, key_padding_mask=key_pad, need_weights=False)
         z = torch.cat([h, pooled], dim=-1)
+        if head_rows is not None:
+            z = z.reshape(-1, z.shape[-1])[head_rows]
+            # sorted quantiles: a monotone quantile function, so CVaR reads the right tail
+            return self.value_head(z).squeeze(-1), torch.sort(self.cost_head(z), dim=-1).values
         value = self.value_head(z).reshape(*lead, C)
-        quant = self.cost_head(z)
-        # sorted quantiles: a monotone quantile function, so CVaR reads the right tail
-        quant = torch.sort(quant, dim=-1).values.reshape(*lead, C, -1)
+        quant = torch.sort(self.cost_head(z), dim=-1).values.reshape(*lead, C, -1)
         return value, quant

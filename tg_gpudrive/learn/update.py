@@ -139,7 +139,8 @@ def flatten(batch: Rollout, tg: Targets, discrete: bool) -> Groups:
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
                    prior: BehaviourPrior) -> tuple[Tensor, dict]:
-    """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups."""
+    """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups
+    (attention over each group's slots) with their heads on the live rows only."""
     mi = b.mask[idx]
     # the actor is per agent: run it on the live rows only (often under half of W x C)
     g, c = mi.nonzero(as_tuple=True)
@@ -154,7 +155,8 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         lam_rows = lam[c] if cfg.per_agent_lambda else lam
     with nets.autocast():
         out = nets.actor_fwd(b.obs[rows, c], c, None if b.hist is None else b.hist[rows, c])
-        v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else g * mi.shape[1] + c)
+        flat = g * mi.shape[1] + c
+        v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
     out, v, q = nets.float_out(out), v.float(), q.float()
     head = nets.head
     d = head.dist(out)
@@ -171,12 +173,12 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam_rows,
         d.entropy(), kl_prior, head.kl(out, old_out), clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef,
         eta1=cfg.eta1, eta2=cfg.eta2, normalize_advantages=cfg.normalize_advantages)
-    loss_v = (v[g, c] - b.ret_r[rows, c]).pow(2).mean()
+    loss_v = (v - b.ret_r[rows, c]).pow(2).mean()
     # quantile loss on live rows, against at most MAX_TARGET_SAMPLES evenly spaced target samples
     tq = b.q_target[rows, c]
     if tq.shape[-1] > MAX_TARGET_SAMPLES:
         tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, MAX_TARGET_SAMPLES, device=tq.device).round().long()]
-    loss_q = L.quantile_huber_loss(q[g, c], tq, kappa=1.0)
+    loss_q = L.quantile_huber_loss(q, tq, kappa=1.0)
     loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
     parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
              "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
