@@ -202,7 +202,7 @@ def policy_engine_config(cfg: TrainConfig, scenes) -> EngineConfig:
 # what a trained network fixes: the shapes of its networks, its observation sizes and its action space
 # (the meaning of its outputs). Every other key may change: when a policy is evaluated (collision mode,
 # control, max_agents, radii, view), resumed or fine-tuned from (init_policy).
-NETWORK_KEYS = ("hidden", "heads", "actor_history", "quantiles", "env.dynamics", "env.action_space",
+NETWORK_KEYS = ("hidden", "heads", "actor_history", "actor_history_partners", "quantiles", "env.dynamics", "env.action_space",
                 "env.accel_bins", "env.curvature_bins", "env.max_accel", "env.max_curvature", "env.delta_max",
                 "env.partner_k", "env.road_k")
 FIXED_ENGINE_KEYS = tuple(k.removeprefix("env.") for k in NETWORK_KEYS if k.startswith("env."))

@@ -228,6 +228,9 @@ class TrainConfig:
     hidden: int = 128
     heads: int = 1  # >1: per-slot actor heads
     actor_history: int = 0  # steps of its own motion the actor sees besides its observation (pi(a | o, h)); 0: none
+    # and of its nearest partners' motion over the same steps (the paper's h holds every agent's history): how
+    # many of the observation's partner rows, nearest first (<= env.partner_k; needs actor_history > 0)
+    actor_history_partners: int = 0
     amp: bool = True  # bf16 autocast of the networks on GPU
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
@@ -296,6 +299,11 @@ class TrainConfig:
             raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
         if self.lambda_per_vehicle and not self.per_agent_lambda:
             raise ConfigError("lambda_per_vehicle: needs per_agent_lambda (a multiplier per slot of each scene)")
+        if self.actor_history_partners and not self.actor_history:
+            raise ConfigError("actor_history_partners: needs actor_history > 0 (the steps of the partners' window)")
+        if self.actor_history_partners > self.env.partner_k:
+            raise ConfigError(f"actor_history_partners: at most env.partner_k ({self.env.partner_k}) partners have "
+                              f"a window, got {self.actor_history_partners}")
         if self.lambda_on not in ("cvar", "mean"):
             raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
         if self.prior not in ("expert", "world_model"):
@@ -305,7 +313,7 @@ class TrainConfig:
             "cost_nstep": "[1, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)", "epochs": "[1, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
-            "heads": "[1, 1024]", "actor_history": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",
+            "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",
             "magnet_fraction": "(0, 1]",
             "quantiles": "[2, 4096]", "prior_sigma_accel": "(0, inf)", "prior_sigma_curvature": "(0, inf)",
             "prior_floor": "[0, 1]", "time_limit_s": "[0, inf)", "target_goal_rate": "[0, 1]",

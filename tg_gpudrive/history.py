@@ -12,6 +12,15 @@ History features (per agent and step, `HIST_FEATURES`), in the agent's current f
     kappa    1/m
     valid    0/1      the agent was present at that step
 
+With `partners` K > 0 (`actor_history_partners`), each step also holds the window of the agent's K
+nearest partners (the observation's partner rows, nearest first), in the agent's current frame, as
+the paper's actor sees a history of all agents (`PARTNER_HIST_FEATURES`, zero where a row is empty):
+
+    dx, dy   m        the partner's past position
+    dyaw     rad      its past heading minus the agent's current heading (wrapped)
+    speed    m/s      its past speed
+    valid    0/1      it was present then (and is a partner now)
+
 It reads the Simulator's torch views and the Model's logs; it never writes engine state.
 """
 
@@ -20,10 +29,25 @@ from __future__ import annotations
 import math
 
 import torch
+import warp as wp
+
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM
 
 HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "accel", "kappa", "valid")
 HIST_DIM = len(HIST_FEATURES)
 HIST_SCALE = [20.0, 5.0, 1.0, 20.0, 6.0, 0.3, 1.0]  # per feature, so a network sees values of order 1
+PARTNER_HIST_FEATURES = ("dx", "dy", "dyaw", "speed", "valid")
+PARTNER_HIST_DIM = len(PARTNER_HIST_FEATURES)
+PARTNER_HIST_SCALE = [20.0, 20.0, 1.0, 20.0, 1.0]
+
+
+def hist_dim(partners: int = 0) -> int:
+    """Features per step of a window with `partners` partner blocks."""
+    return HIST_DIM + partners * PARTNER_HIST_DIM
+
+
+def hist_scale(partners: int = 0) -> list[float]:
+    return HIST_SCALE + PARTNER_HIST_SCALE * partners
 # raw ring entries: world-frame x, y, yaw, speed, accel, kappa, valid
 _RAW_DIM = 7
 
@@ -96,9 +120,37 @@ class HistoryBuffer:
             self.raw.copy_(state["raw"])
             self._last.copy_(state["last"])
 
-    def features(self, sim, rows: slice | None = None) -> torch.Tensor:
-        """(W, A', H, HIST_DIM) window in each agent's current frame (`rows`: slot slice, default all)."""
+    def features(self, sim, rows: slice | None = None, partners: int = 0) -> torch.Tensor:
+        """(W, A', H, hist_dim(partners)) window in each agent's current frame (`rows`: slot slice,
+        default all): its own motion, then that of its `partners` nearest partners."""
         rows = rows or slice(None)
+        own = self._own_features(sim, rows)
+        if not partners:
+            return own
+        return torch.cat([own, self._partner_features(sim, rows, partners)], dim=-1)
+
+    def _partner_features(self, sim, rows: slice, partners: int) -> torch.Tensor:
+        """(W, A', H, partners * PARTNER_HIST_DIM): the windows of each agent's nearest partners (the
+        observation's partner rows, whose slots the observation kernel leaves in `part_j`)."""
+        W, A, H = self.raw.shape[:3]
+        K = sim.model.partner_k
+        if partners > K:
+            raise ValueError(f"a window of {partners} partners needs partner_k >= {partners}, got {K}")
+        j = wp.to_torch(sim.state.part_j).view(W, A, K)[:, rows, :partners].long()
+        obs = sim.obs[:, rows]
+        present = torch.stack([obs[..., EGO_DIM + k * PARTNER_DIM] > 0.5 for k in range(partners)], -1)
+        local = torch.where(present, j - (torch.arange(W, device=j.device) * A)[:, None, None], 0).clamp(0, A - 1)
+        raw = self.raw[torch.arange(W, device=j.device)[:, None, None], local]  # (W, A', K, H, raw)
+        p, yaw = sim.pos[:, rows][:, :, None, None], sim.yaw[:, rows][:, :, None, None]
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        d = raw[..., :2] - p
+        dx = c * d[..., 0] + s * d[..., 1]
+        dy = -s * d[..., 0] + c * d[..., 1]
+        valid = raw[..., 6] * present[..., None].float()
+        out = torch.stack([dx, dy, wrap_angle(raw[..., 2] - yaw), raw[..., 3], valid], dim=-1) * valid[..., None]
+        return out.permute(0, 1, 3, 2, 4).reshape(W, out.shape[1], H, partners * PARTNER_HIST_DIM)
+
+    def _own_features(self, sim, rows: slice) -> torch.Tensor:
         raw = self.raw[:, rows]
         p, yaw = sim.pos[:, rows], sim.yaw[:, rows]
         c, s = torch.cos(yaw)[..., None], torch.sin(yaw)[..., None]

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from tg_gpudrive.history import HIST_DIM, HIST_SCALE
+from tg_gpudrive.history import hist_dim, hist_scale
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 
 # per-feature scales of the observation blocks (see kernels/observation.py)
@@ -77,18 +77,20 @@ class Actor(nn.Module):
     discrete: `forward` returns logits (..., num_actions);
     continuous: returns (mean, log_std), each (..., act_dim), actions in the engine's units.
     `heads > 1` gives per-slot heads (slot index modulo heads), for few-agent studies.
-    `history > 0`: `forward` also takes `hist` (..., history, HIST_DIM), the agent's motion window
+    `history > 0`: `forward` also takes `hist` (..., history, hist_dim(history_partners)), the motion
+    window of the agent and of its `history_partners` nearest partners
     (tg_gpudrive.history.HistoryBuffer.features), embedded and added to the observation's encoding."""
 
     def __init__(self, partner_k: int, road_k: int, *, discrete: bool, num_actions: int = 91,
                  act_dim: int = 2, act_scale: list[float] | None = None, hidden: int = 128, heads: int = 1,
-                 history: int = 0):
+                 history: int = 0, history_partners: int = 0):
         super().__init__()
         self.discrete, self.heads, self.history = discrete, heads, history
+        self.history_partners = history_partners
         self.encoder = ObsEncoder(partner_k, road_k, hidden, embed=max(hidden // 2, 16))
         if history:
-            self.register_buffer("hist_scale", torch.tensor(HIST_SCALE))
-            self.hist_encoder = mlp([history * HIST_DIM, hidden, hidden])
+            self.register_buffer("hist_scale", torch.tensor(hist_scale(history_partners)))
+            self.hist_encoder = mlp([history * hist_dim(history_partners), hidden, hidden])
         out = num_actions if discrete else act_dim
         self.head_w = nn.Parameter(torch.randn(heads, hidden, out) * (0.01 / hidden**0.5))
         self.head_b = nn.Parameter(torch.zeros(heads, out))
@@ -103,9 +105,10 @@ class Actor(nn.Module):
     def forward(self, obs: torch.Tensor, slot: torch.Tensor | None = None, hist: torch.Tensor | None = None):
         h = self.encoder(obs)
         if self.history:
-            if hist is None or hist.shape[-2:] != (self.history, HIST_DIM):
+            dim = hist_dim(self.history_partners)
+            if hist is None or hist.shape[-2:] != (self.history, dim):
                 raise ValueError(f"this actor sees a motion history: pass hist of shape (..., {self.history}, "
-                                 f"{HIST_DIM}) (tg_gpudrive.history.HistoryBuffer), got "
+                                 f"{dim}) (tg_gpudrive.history.HistoryBuffer), got "
                                  f"{None if hist is None else tuple(hist.shape)}")
             h = h + self.hist_encoder((hist / self.hist_scale).flatten(-2).to(h.dtype))
         if self.heads == 1:

@@ -108,17 +108,26 @@ def action_grid(env, device=None) -> torch.Tensor:
     return torch.stack(torch.meshgrid(a, k, indexing="ij"), -1).reshape(-1, 2)
 
 
-def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1, history: int = 0) -> Actor:
+def build_actor(env, num_actions: int, *, hidden: int = 128, heads: int = 1, history: int = 0,
+                history_partners: int = 0) -> Actor:
     """An actor for the engine config `env`'s action space (its grid of `num_actions`, or the
-    bicycle / delta-local action box), seeing `history` steps of its own motion, on the CPU."""
+    bicycle / delta-local action box), seeing `history` steps of its own motion and of its
+    `history_partners` nearest partners', on the CPU."""
     return Actor(env.partner_k, env.road_k, discrete=env.discrete, num_actions=num_actions,
-                 act_dim=env.act_dim, act_scale=list(env.act_high), hidden=hidden, heads=heads, history=history)
+                 act_dim=env.act_dim, act_scale=list(env.act_high), hidden=hidden, heads=heads, history=history,
+                 history_partners=history_partners)
+
+
+def actor_of(cfg: TrainConfig, num_actions: int) -> Actor:
+    """The actor a run with config `cfg` trains, on the CPU."""
+    return build_actor(cfg.env, num_actions, hidden=cfg.hidden, heads=cfg.heads, history=cfg.actor_history,
+                       history_partners=cfg.actor_history_partners)
 
 
 def build_models(cfg: TrainConfig, sim: Simulator, device: str):
     """(actor, critic) of a CCE-MAPPO run with config `cfg`, laid out for `sim`, on `device`."""
     e = cfg.env
-    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads, history=cfg.actor_history).to(device)
+    actor = actor_of(cfg, sim.num_actions).to(device)
     critic = CentralCritic(e.partner_k, e.road_k, quantiles=cfg.quantiles, hidden=cfg.hidden).to(device)
     return actor, critic
 
@@ -133,7 +142,7 @@ def load_actor(path: str | Path, sim: Simulator) -> tuple[Actor, TrainConfig]:
     if (e.action_space, e.dynamics, e.partner_k, e.road_k) != (s.action_space, s.dynamics, s.partner_k, s.road_k):
         raise ValueError(f"{path}: checkpoint expects action_space={e.action_space}, dynamics={e.dynamics}, "
                          f"partner_k={e.partner_k}, road_k={e.road_k}; the simulator differs")
-    actor = build_actor(e, sim.num_actions, hidden=cfg.hidden, heads=cfg.heads, history=cfg.actor_history)
+    actor = actor_of(cfg, sim.num_actions)
     actor.load_state_dict(ck["actor"])
     return actor.to(sim.device), cfg
 
@@ -162,7 +171,7 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: 
         hist = None
         if window is not None:
             window.sync(sim_)
-            hist = window.features(sim_)
+            hist = window.features(sim_, partners=getattr(actor, "history_partners", 0))
         out = policy.last_out = actor(sim_.obs, slots, hist)
         if head.discrete:
             a = out.argmax(-1) if deterministic else head.dist(out).sample()

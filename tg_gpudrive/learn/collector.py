@@ -21,7 +21,7 @@ from torch.profiler import record_function as phase  # named ranges for scripts/
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.history import HIST_DIM, HistoryBuffer
+from tg_gpudrive.history import HistoryBuffer, hist_dim
 
 Tensor = torch.Tensor
 STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "min_dist", "speed")
@@ -74,7 +74,7 @@ class Rollout(ByName):
     quant: Tensor  # (T + 1, W, C, quantiles) the cost critic's quantiles of the discounted cost-to-go
     prior: Tensor  # (T, W, C, P) the magnet: its logits (discrete), its context (continuous), P 0 (eta1 0)
     old: Tensor | tuple[Tensor, Tensor]  # the rollout policy's output: logits, or (mean, log_std)
-    hist: Tensor | None = None  # (T, W, C, actor_history, HIST_DIM) the actor's motion window, if it has one
+    hist: Tensor | None = None  # (T, W, C, actor_history, hist_dim) the motion window the actor sees, if it has one
     # (T, W, C) the weight of each row's KL to the magnet: 1 / magnet_fraction on the rows whose prior
     # logits were computed, 0 elsewhere; None: every live row has them (magnet_fraction 1)
     prior_weight: Tensor | None = None
@@ -158,7 +158,7 @@ class RolloutCollector:
         hist = None
         if self.actor_hist is not None:  # the actor's motion window, synced once per step
             self.actor_hist.sync(sim)
-            buf.hist[t] = self.actor_hist.features(sim, slice(0, C))
+            buf.hist[t] = self.actor_hist.features(sim, slice(0, C), self.cfg.actor_history_partners)
             hist = buf.hist[t][w_idx, c_idx]
         with phase("rollout/actor"), nets.autocast():
             out = nets.float_out(nets.actor(obs[w_idx, c_idx], c_idx, hist))
@@ -259,7 +259,7 @@ class RolloutCollector:
             value=torch.zeros((T + 1, W, C), device=dev), quant=torch.zeros((T + 1, W, C, cfg.quantiles), device=dev),
             prior=steps(self._prior_dim()),
             old=steps(sim.num_actions) if discrete else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)),
-            hist=steps(cfg.actor_history, HIST_DIM) if self.actor_hist is not None else None,
+            hist=steps(cfg.actor_history, hist_dim(cfg.actor_history_partners)) if self.actor_hist is not None else None,
             prior_weight=steps() if self.prior_logits and cfg.magnet_fraction < 1 else None)
         self._buf_key = key
         return self._buf
