@@ -191,6 +191,13 @@ def test_risk_of_a_rear_end_scene():
     assert r["min_ttc"][0, slot] <= (29.0 - 4.0) / 10.0 + 1e-4
     assert r["collided"][0, slot]
     assert r["min_gap"][0, slot] < 4.0
+    # close_time: the share of its steps with the lead's centre within 5 m, from the positions by hand
+    lead_slot = 1 - slot
+    ok = tr.valid[0, slot]
+    d = np.linalg.norm(tr.pos[0, slot] - tr.pos[0, lead_slot], axis=-1)
+    want = ((d < rk.CLOSE_DISTANCE) & ok & tr.valid[0, lead_slot]).sum() / ok.sum()
+    assert 0.0 < want < 1.0 and r["close_time"][0, slot] == pytest.approx(want)
+    assert rk.summarize(tr, r)["close_time_share"] == pytest.approx(want)
     # braking at the last grid value (-6 m/s^2) from 10 m/s is one event
     sim2 = Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])])
     tr2 = record_episodes(sim2, lambda s: s.actions_index.fill_(0 * cfg.curvature_bins + cfg.curvature_bins // 2))

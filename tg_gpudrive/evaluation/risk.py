@@ -6,6 +6,9 @@ at the same step, policy-driven or replayed):
     collision      the engine flagged a box overlap at some step of the episode
     min_gap        m, smallest centre-to-centre distance to another agent (the engine's and the
                    cost's `beta` convention)
+    close_time     share of the agent's steps with another agent's centre within CLOSE_DISTANCE (5 m,
+                   the reference TrafficGamer code's default distance limit): how much of the time it
+                   drives close to someone, where min_gap is its single closest moment
     min_ttc        s, smallest constant-velocity time-to-collision over the episode: every agent
                    is covered by TTC_DISCS discs of radius width/2 along its length, both move on
                    with their current velocity, TTC is the first time any disc pair touches
@@ -34,6 +37,7 @@ HARD_BRAKE = -4.0  # m/s^2
 TTC_HORIZON = 10.0  # s
 TTC_DISCS = 3
 TTC_CRITICAL = 1.5  # s, "near miss" threshold reported as a rate
+CLOSE_DISTANCE = 5.0  # m, centre to centre: close_time's threshold
 CONTACT_ANGLE = np.pi / 4  # rad: headings closer than this count as "the same way" (collision_partners)
 CONTACTS = ("from behind", "ahead", "crossing")
 CONTACT_KEYS = tuple(f"collision_{c.replace(' ', '_')}_rate" for c in CONTACTS)  # their rates in `summarize`
@@ -88,6 +92,12 @@ def min_gap(tr: Trajectories) -> np.ndarray:
     return near
 
 
+def close_time(tr: Trajectories, distance: float = CLOSE_DISTANCE) -> np.ndarray:
+    """(E, A) share of each agent's valid steps with another agent nearer than `distance` (0 without steps)."""
+    close = (tr.valid & (tr.nearest < distance)).sum(-1)
+    return close / np.maximum(tr.valid.sum(-1), 1)
+
+
 def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
     """(E, A) number of hard-braking events (runs of consecutive steps with accel < threshold)."""
     hb = tr.kin_valid & (tr.accel < threshold)  # path-derived, as for the logs
@@ -132,7 +142,7 @@ def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
         contact[row["episode"], row["agent"]] = CONTACTS.index(row["contact"])
         partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
-            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "hard_brakes": hard_brakes(tr),
+            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "close_time": close_time(tr), "hard_brakes": hard_brakes(tr),
             "contact": contact, "partner_policy": partner_policy}
 
 
@@ -151,6 +161,7 @@ def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
         "mean_min_ttc_s": float(r["min_ttc"][m].mean()),
         "near_miss_rate": float((r["min_ttc"][m] < TTC_CRITICAL).mean()),
         "mean_min_gap_m": float(gap[np.isfinite(gap)].mean()) if np.isfinite(gap).any() else float("nan"),
+        "close_time_share": float(r["close_time"][m].mean()),
         "hard_brakes_per_agent": float(r["hard_brakes"][m].mean()),
         "hard_brake_rate": float((r["hard_brakes"][m] > 0).mean()),
         # collisions split by partner and by contact (they add up to the collision rate, less those
