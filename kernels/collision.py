@@ -184,8 +184,9 @@ def collide_kernel(
                 q = pos[j]
                 d = wp.length(q - p)
                 nearest = wp.min(nearest, d)
-                if cost_players == 0 or (integrated[j] != 0 and background[j] == 0):
-                    cost_dist = wp.min(cost_dist, d)
+                if cost_players == 1:  # else the cost reads `nearest` (set below): no extra loads per pair
+                    if integrated[j] != 0 and background[j] == 0:
+                        cost_dist = wp.min(cost_dist, d)
                 if hit == 0:
                     reach = 0.5 * (wp.sqrt(length[i] * length[i] + width[i] * width[i])
                                    + wp.sqrt(length[j] * length[j] + width[j] * width[j]))
@@ -194,6 +195,8 @@ def collide_kernel(
                             hit = 1
     collided_out[i] = hit
     nearest_out[i] = nearest
+    if cost_players == 0:
+        cost_dist = nearest
     cost_dist_out[i] = cost_dist
 
 

@@ -18,6 +18,7 @@ import argparse
 import json
 
 import torch
+import yaml
 
 from tg_gpudrive.agents import open_policy
 from tg_gpudrive.config import EngineConfig
@@ -44,7 +45,7 @@ def main(argv=None) -> int:
     rows = []
     for beta in args.betas:
         # a checkpoint runs in its own engine with beta set; a built-in policy in the default one
-        sets = dict(kv.split("=", 1) for kv in args.set)
+        sets = {k: yaml.safe_load(v) for k, v in (kv.split("=", 1) for kv in args.set)}  # values as --set reads them
         opened = open_policy(args.checkpoint, scenes, args.device, overrides=[f"beta={beta}", *args.set],
                              engine=EngineConfig(beta=beta, **sets), seed=args.seed, auto_reset=False)
         gamma = opened.trained.gamma if opened.trained else 0.99

@@ -156,3 +156,10 @@ def test_budget_by_knob_prints_the_logs_and_the_policys_risk_per_knob():
         assert x["budget"] == pytest.approx(0.5 * x["logs_cvar"]) and x["logs_states"] > 0
     assert rows[0]["logs_cvar"] == 0 and rows[0]["policy_cvar"] == 0
     assert rows[3]["logs_cvar"] >= rows[2]["logs_cvar"] > 0 and rows[3]["policy_cvar"] >= rows[2]["policy_cvar"]
+    # an engine setting for every beta: the hinge cost is below the step cost wherever that fires, and not 0
+    r = subprocess.run([sys.executable, str(SCRIPTS / "budget_by_knob.py"), "--checkpoint", "constant",
+                        "--num-scenes", "2", "--betas", "6", "--alphas", "0", "--set", "cost_shape=hinge", "--json"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    hinge = json.loads(r.stdout.strip().splitlines()[0])
+    assert 0 < hinge["logs_cvar"] < rows[2]["logs_cvar"]
