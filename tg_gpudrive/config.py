@@ -34,6 +34,7 @@ from tg_gpudrive.enums import (
 )
 
 COST_SHAPES = ("step", "hinge")  # EngineConfig.cost_shape, in the order of the reward kernel's codes
+COST_PARTNERS = ("all", "players")  # EngineConfig.cost_partners, in the order of the collision kernel's codes
 REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
@@ -141,7 +142,7 @@ class EngineConfig:
         _set_mode(self, "control", ControlMode, ENGINE_CONTROL)
         if self.cost_shape not in COST_SHAPES:
             raise ConfigError(f"cost_shape: expected one of {', '.join(COST_SHAPES)}, got {self.cost_shape!r}")
-        if self.cost_partners not in ("all", "players"):
+        if self.cost_partners not in COST_PARTNERS:
             raise ConfigError(f"cost_partners: expected all or players, got {self.cost_partners!r}")
         if self.dynamics == Dynamics.DELTA_LOCAL and self.action_space == ActionSpace.DISCRETE:
             raise ConfigError("action_space: discrete is defined for the bicycle only; use continuous")

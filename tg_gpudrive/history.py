@@ -137,10 +137,11 @@ class HistoryBuffer:
         if partners > K:
             raise ValueError(f"a window of {partners} partners needs partner_k >= {partners}, got {K}")
         j = wp.to_torch(sim.state.part_j).view(W, A, K)[:, rows, :partners].long()
-        obs = sim.obs[:, rows]
-        present = torch.stack([obs[..., EGO_DIM + k * PARTNER_DIM] > 0.5 for k in range(partners)], -1)
-        local = torch.where(present, j - (torch.arange(W, device=j.device) * A)[:, None, None], 0).clamp(0, A - 1)
-        raw = self.raw[torch.arange(W, device=j.device)[:, None, None], local]  # (W, A', K, H, raw)
+        part = sim.obs[:, rows, EGO_DIM:EGO_DIM + partners * PARTNER_DIM]
+        present = part.reshape(*part.shape[:-1], partners, PARTNER_DIM)[..., 0] > 0.5  # the rows' present flag
+        world = torch.arange(W, device=j.device)[:, None, None]
+        local = torch.where(present, j - world * A, 0).clamp(0, A - 1)
+        raw = self.raw[world, local]  # (W, A', K, H, raw)
         p, yaw = sim.pos[:, rows][:, :, None, None], sim.yaw[:, rows][:, :, None, None]
         c, s = torch.cos(yaw), torch.sin(yaw)
         d = raw[..., :2] - p

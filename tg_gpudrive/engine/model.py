@@ -74,7 +74,7 @@ from typing import Generic, TypeVar
 import numpy as np
 import warp as wp
 
-from tg_gpudrive.config import COST_SHAPES, EngineConfig
+from tg_gpudrive.config import COST_PARTNERS, COST_SHAPES, EngineConfig
 from tg_gpudrive.data.log_audit import candidates
 from tg_gpudrive.engine.control import exclusions, init_index, select_slots, slot_masks
 from tg_gpudrive.engine.roads import build_road_tables
@@ -352,7 +352,7 @@ class Model:
         self.delta_max = wp.vec3(*cfg.delta_max)
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
         self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
-        self.cost_players = int(cfg.cost_partners == "players")
+        self.cost_players = COST_PARTNERS.index(cfg.cost_partners)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
         self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
