@@ -1,15 +1,17 @@
 """The continuous actor's starting exploration: a fifth of each action dimension's range, so early
 curvature draws are not mostly clipped to a full turn (one std of 0.61 for both dimensions spanned
 twice the default curvature box of 0.3 1/m); the critic's heads evaluated on the live slots alone give
-what the full grid gives there, value and gradient."""
+what the full grid gives there, value and gradient; the encoder's masked max-pool against NumPy and
+against the -inf-filled amax it replaces, value and gradient."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
-from tg_gpudrive.agents.networks import INIT_STD_FRACTION, Actor, CentralCritic
+from tg_gpudrive.agents.networks import INIT_STD_FRACTION, Actor, CentralCritic, ObsEncoder
 
 
 def test_initial_std_is_a_fifth_of_each_dimensions_range():
@@ -45,3 +47,22 @@ def test_critic_heads_on_the_live_slots_equal_the_full_grid_there():
     (v.sum() + q.pow(2).sum()).backward()
     for a, b in zip(grads, (p.grad for p in critic.parameters())):
         torch.testing.assert_close(a, b)
+
+
+def test_masked_max_pool_matches_numpy_and_the_amax_it_replaces():
+    torch.manual_seed(1)
+    x = torch.randn(5, 6, 4, requires_grad=True)
+    feat = torch.relu(x)  # >= 0 with ties at 0, as the encoders' last ReLU gives
+    mask = torch.rand(5, 6) < 0.5
+    mask[2] = False  # no entries: pools to zeros
+    mask[3] = True
+    pooled = ObsEncoder._pool(feat, mask)
+    f, m = feat.detach().numpy(), mask.numpy()
+    ref = np.stack([f[i][m[i]].max(0) if m[i].any() else np.zeros(4, np.float32) for i in range(5)])
+    np.testing.assert_allclose(pooled.detach().numpy(), ref, rtol=0, atol=0)
+    w = torch.randn(5, 4)
+    (grad,) = torch.autograd.grad((pooled * w).sum(), x, retain_graph=True)
+    old = torch.nan_to_num(feat.masked_fill(~mask[..., None], float("-inf")).amax(dim=-2), neginf=0.0)
+    (grad_old,) = torch.autograd.grad((old * w).sum(), x)
+    torch.testing.assert_close(grad, grad_old)
+    assert (grad[~mask] == 0).all() and (grad[2] == 0).all()

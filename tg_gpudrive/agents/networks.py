@@ -56,9 +56,11 @@ class ObsEncoder(nn.Module):
 
     @staticmethod
     def _pool(feat: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        # masked max-pool; rows with no entries give zeros
-        feat = feat.masked_fill(~mask[..., None], float("-inf")).amax(dim=-2)
-        return torch.nan_to_num(feat, neginf=0.0)
+        """Masked max-pool over the entries (dim -2) of features that are >= 0 (the encoders end in a
+        ReLU): absent entries become 0, so they never beat a present one and a row with no entries
+        pools to zeros. `max` rather than `amax`: its backward scatters to one index instead of
+        comparing the whole tensor against the result, the update's costliest backward op."""
+        return (feat * mask[..., None]).max(dim=-2).values
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         lead = obs.shape[:-1]
