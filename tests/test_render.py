@@ -183,3 +183,29 @@ def test_fit_controlled_zooms_on_the_controlled_cars():
     assert spans["controlled"][0] < 0 < 20 < spans["controlled"][1] < 100
     with pytest.raises(ValueError, match="fit"):
         FrameRenderer(sim, size=(200, 200), fit="nope")
+
+
+def test_trail_ticks_mark_every_nth_recorded_position(womd_sim):
+    """A dot every `trail_ticks` recorded steps from a trail's start, in the trail's colour; none when 0."""
+    from tg_gpudrive.render.draw import FrameRenderer
+
+    a = int(np.nonzero(womd_sim.integrated[0].numpy())[0][0])
+    p = womd_sim.pos[0, a].numpy().astype(float)
+    trail = {a: p + np.arange(25, dtype=float)[:, None] * [1.0, 0.5]}  # 25 steps along a line
+    r = FrameRenderer(womd_sim, 0, size=(320, 320), trail_ticks=10)
+    try:
+        ticked = r.draw(trail)
+        np.testing.assert_allclose(r.ticks.get_offsets(), trail[a][[10, 20]])  # steps 10 and 20, not 0
+        np.testing.assert_allclose(r.ticks.get_facecolors()[:, :3], np.tile(np.asarray(r.face[a])[:3], (2, 1)))
+    finally:
+        r.close()
+    plain = render_frame(womd_sim, size=(320, 320), trails=trail)
+    assert not np.array_equal(ticked, plain)
+    r = FrameRenderer(womd_sim, 0, size=(320, 320))
+    try:
+        r.draw(trail)
+        assert len(r.ticks.get_offsets()) == 0
+    finally:
+        r.close()
+    with pytest.raises(ValueError, match="trail_ticks"):
+        FrameRenderer(womd_sim, 0, trail_ticks=-1)

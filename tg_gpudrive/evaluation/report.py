@@ -217,8 +217,10 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     path.parent.mkdir(parents=True, exist_ok=True)
     # the view fits the controlled cars' paths: the interaction the knobs change, not the whole map; the
-    # same seed makes the GIF the picture's episode
-    kw = dict(world=0, size=(size, size), legend=False, fit="controlled", seed=0)
+    # same seed makes the GIF the picture's episode; a dot on each trail every second shows the cells'
+    # timing and spacing, which whole trajectories of the same routes alone do not
+    kw = dict(world=0, size=(size, size), legend=False, fit="controlled", seed=0,
+              trail_ticks=max(1, round(1.0 / scene.dt)))
     render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)

@@ -125,7 +125,7 @@ class FrameRenderer:
     def __init__(self, sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640),
                  center_agent: int | None = None, view_radius: float | None = None, show_goals: bool = True,
                  title: str | None = None, legend: bool | None = None, highlight: str = "controlled",
-                 fit: str = "scene"):
+                 fit: str = "scene", trail_ticks: int = 0):
         if highlight not in HIGHLIGHT:
             raise ValueError(f"highlight: expected one of {', '.join(HIGHLIGHT)}, got {highlight!r}")
         if not 0 <= int(world) < sim.num_worlds:
@@ -142,6 +142,9 @@ class FrameRenderer:
         if fit not in FITS:
             raise ValueError(f"fit: expected one of {', '.join(FITS)}, got {fit!r}")
         self.fit = fit
+        if int(trail_ticks) < 0:
+            raise ValueError(f"trail_ticks: expected a number of steps >= 0, got {trail_ticks}")
+        self.trail_ticks = int(trail_ticks)
         self.sim, self.world, self.size = sim, int(world), (w_px, h_px)
         self.center_agent = None if center_agent is None else int(center_agent)
         self.view_radius = view_radius
@@ -280,6 +283,7 @@ class FrameRenderer:
         self.goal_pts = Line2D([], [], linestyle="none", marker="*", markersize=9 * k, markerfacecolor=GOAL,
                                markeredgecolor="white", markeredgewidth=0.6 * k, zorder=4)
         self.signals = ax.scatter([], [], s=(6 * k) ** 2, edgecolors="white", linewidths=0.6 * k, zorder=2.5)
+        self.ticks = ax.scatter([], [], s=(2.2 * k) ** 2, edgecolors="none", zorder=3.2)
         self.boxes = PolyCollection([], zorder=5)
         self.heads = PolyCollection([], facecolors=(1, 1, 1, 0.85), edgecolors="none", zorder=6)
         self.text = ax.text(0.012, 0.988, "", transform=ax.transAxes, ha="left", va="top",
@@ -289,7 +293,7 @@ class FrameRenderer:
         for a in (self.trail_lc, self.goal_lc, self.boxes, self.heads):
             ax.add_collection(a)
         ax.add_line(self.goal_pts)
-        self.dynamic = [self.signals, self.trail_lc, self.goal_lc, self.goal_pts, self.boxes, self.heads, self.text]
+        self.dynamic = [self.signals, self.ticks, self.trail_lc, self.goal_lc, self.goal_pts, self.boxes, self.heads, self.text]
         self._add_scale_bar()
 
     def _add_scale_bar(self) -> None:
@@ -353,14 +357,20 @@ class FrameRenderer:
             self.goal_pts.set_data([], [])
             self.goal_lc.set_segments([])
 
-        segs, cols = [], []
+        segs, cols, ticks, tick_cols = [], [], [], []
         for a, tr in (trails or {}).items():
             tr = np.asarray(tr, np.float64).reshape(-1, 2)
             if len(tr) >= 2 and 0 <= int(a) < len(self.face):
                 segs.append(tr)
                 cols.append(self.face[int(a)])
+                if self.trail_ticks:
+                    t = tr[self.trail_ticks::self.trail_ticks]
+                    ticks.append(t)
+                    tick_cols += [self.face[int(a)]] * len(t)
         self.trail_lc.set_segments(segs)
         self.trail_lc.set_color(cols if cols else "none")
+        self.ticks.set_offsets(np.concatenate(ticks) if ticks else np.zeros((0, 2)))
+        self.ticks.set_facecolors(tick_cols if tick_cols else "none")
 
         sc = self.scene
         if len(sc.tl_lane) and sc.tl_state is not None and 0 <= step < len(sc.tl_state):
@@ -438,7 +448,7 @@ def legend_handles() -> list[tuple[object, str]]:
 def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640), center_agent: int | None = None,
                  view_radius: float | None = None, trails: dict | None = None, show_goals: bool = True,
                  title: str | None = None, legend: bool | None = None,
-                 highlight: str = "controlled", fit: str = "scene") -> np.ndarray:
+                 highlight: str = "controlled", fit: str = "scene", trail_ticks: int = 0) -> np.ndarray:
     """Top-down picture of world `world`'s current state: (H, W, 3) uint8, `size` = (width, height) pixels.
 
     `center_agent` (a slot index of that world) centres the view on that agent
@@ -450,10 +460,13 @@ def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640
     events are outlined: "controlled" (default; logged parked cars are often
     "off-road" in WOMD), "all" or "none". `fit` "controlled" fits the view to
     the controlled agents' paths and goals only (a zoom on the interaction in
-    a long scene). Builds a figure per call; `EpisodeRecorder` reuses one.
+    a long scene). `trail_ticks` > 0 dots every trail each that many recorded steps from its start, so
+    equal spacing in time shows speed and who was where when. Builds a figure per call;
+    `EpisodeRecorder` reuses one.
     """
     r = FrameRenderer(sim, world, size=size, center_agent=center_agent, view_radius=view_radius,
-                      show_goals=show_goals, title=title, legend=legend, highlight=highlight, fit=fit)
+                      show_goals=show_goals, title=title, legend=legend, highlight=highlight, fit=fit,
+                      trail_ticks=trail_ticks)
     try:
         return r.draw(trails)
     finally:
