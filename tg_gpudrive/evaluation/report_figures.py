@@ -63,7 +63,7 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     width = max(4.0, ncols * cell + 0.3 * len(blocks) + 0.8)
     where = f" on scene {scene}" if scene else ""
     title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); whole "
-                     "trajectories, controlled vehicles blue", width - 0.2, 9)
+                     "trajectories (a dot each second), controlled vehicles blue", width - 0.2, 9)
     head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title
     height = nrows * cell + 0.4 + head + GRID_LEGEND_IN
     fig = _fig()

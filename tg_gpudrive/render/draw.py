@@ -283,7 +283,7 @@ class FrameRenderer:
         self.goal_pts = Line2D([], [], linestyle="none", marker="*", markersize=9 * k, markerfacecolor=GOAL,
                                markeredgecolor="white", markeredgewidth=0.6 * k, zorder=4)
         self.signals = ax.scatter([], [], s=(6 * k) ** 2, edgecolors="white", linewidths=0.6 * k, zorder=2.5)
-        self.ticks = ax.scatter([], [], s=(2.2 * k) ** 2, edgecolors="none", zorder=3.2)
+        self.ticks = ax.scatter([], [], s=(4.0 * max(k, 0.8)) ** 2, edgecolors="white", linewidths=0.5, zorder=3.2)
         self.boxes = PolyCollection([], zorder=5)
         self.heads = PolyCollection([], facecolors=(1, 1, 1, 0.85), edgecolors="none", zorder=6)
         self.text = ax.text(0.012, 0.988, "", transform=ax.transAxes, ha="left", va="top",
