@@ -293,7 +293,8 @@ class FrameRenderer:
         for a in (self.trail_lc, self.goal_lc, self.boxes, self.heads):
             ax.add_collection(a)
         ax.add_line(self.goal_pts)
-        self.dynamic = [self.signals, self.ticks, self.trail_lc, self.goal_lc, self.goal_pts, self.boxes, self.heads, self.text]
+        self.dynamic = [self.signals, self.ticks, self.trail_lc, self.goal_lc, self.goal_pts, self.boxes, self.heads,
+                        self.text]
         self._add_scale_bar()
 
     def _add_scale_bar(self) -> None:
@@ -460,9 +461,10 @@ def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640
     events are outlined: "controlled" (default; logged parked cars are often
     "off-road" in WOMD), "all" or "none". `fit` "controlled" fits the view to
     the controlled agents' paths and goals only (a zoom on the interaction in
-    a long scene). `trail_ticks` > 0 dots every trail each that many recorded steps from its start, so
-    equal spacing in time shows speed and who was where when. Builds a figure per call;
-    `EpisodeRecorder` reuses one.
+    a long scene). `trail_ticks` > 0 dots every trail each that many points from its first one, so
+    equal spacing in time shows speed and who was where when (with `EpisodeRecorder`'s whole trails, the
+    default, that is every that many steps of the agent's episode; a `trail_length` cut moves the dots).
+    Builds a figure per call; `EpisodeRecorder` reuses one.
     """
     r = FrameRenderer(sim, world, size=size, center_agent=center_agent, view_radius=view_radius,
                       show_goals=show_goals, title=title, legend=legend, highlight=highlight, fit=fit,
