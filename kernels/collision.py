@@ -16,6 +16,13 @@ cost counts only the agents of its game. Agents farther than one cell may sit
 outside the 3 x 3 cells visited, so both distances are capped at the world's
 `nearest_cap` (the cell size): a capped metric, exact below the cap. The cost
 compares it with beta, which is right because the builder keeps the cap >= beta.
+
+Time to collision (`ttc_kernel`, for the reward's `ttc` term): each acting agent against every
+present agent of its world that lies ahead of its motion (positive dot product of its velocity with
+the offset), both moving on at their current velocity. Boxes are covered by three discs of radius
+width/2 along the long axis, the model of evaluation/risk.py's `min_ttc`; the TTC is the first time
+any disc pair touches (0 when they already overlap), capped at the horizon. Only agents ahead count,
+so a car is charged for closing on a slower one, not for being closed on from behind.
 """
 
 from __future__ import annotations
@@ -200,6 +207,72 @@ def collide_kernel(
     cost_dist_out[i] = cost_dist
 
 
+@wp.func
+def disc_ttc(p: wp.vec2, v: wp.vec2, r: float, horizon: float):
+    """Constant-velocity TTC of two discs at relative position p, relative velocity v, radius sum r."""
+    c = wp.dot(p, p) - r * r
+    if c <= 0.0:
+        return 0.0
+    a = wp.dot(v, v)
+    b = 2.0 * wp.dot(p, v)
+    disc = b * b - 4.0 * a * c
+    if a <= 1e-12 or disc < 0.0:
+        return horizon
+    t = (-b - wp.sqrt(disc)) / (2.0 * a)
+    if t < 0.0:
+        return horizon  # both roots behind: moving apart
+    return wp.min(t, horizon)
+
+
+@wp.kernel
+def ttc_kernel(
+    agents_per_world: int,
+    horizon: float,  # s, reported when no conflict comes sooner
+    pos: wp.array(dtype=wp.vec2),
+    yaw: wp.array(dtype=float),
+    vel: wp.array(dtype=wp.vec2),
+    length: wp.array(dtype=float),
+    width: wp.array(dtype=float),
+    present: wp.array(dtype=wp.int32),
+    alive: wp.array(dtype=wp.int32),
+    # out
+    ttc_out: wp.array(dtype=float),  # (world * agent,) s, <= horizon
+):
+    i = wp.tid()
+    ttc_out[i] = horizon
+    vi = vel[i]
+    if alive[i] == 0 or wp.dot(vi, vi) < 1e-6:
+        return
+    w = i / agents_per_world
+    base = w * agents_per_world
+    p = pos[i]
+    hi = wp.vec2(wp.cos(yaw[i]), wp.sin(yaw[i]))
+    oi = 0.5 * wp.max(length[i] - width[i], 0.0)
+    big_i = 0.5 * wp.sqrt(length[i] * length[i] + width[i] * width[i])
+    best = horizon
+    for a in range(agents_per_world):
+        j = base + a
+        if j == i or present[j] == 0:
+            continue
+        d = pos[j] - p
+        if wp.dot(vi, d) <= 0.0:
+            continue
+        v = vel[j] - vi
+        # the bounding circles meet no later than any disc pair inside them: prune on them first
+        big = big_i + 0.5 * wp.sqrt(length[j] * length[j] + width[j] * width[j])
+        if disc_ttc(d, v, big, horizon) >= best:
+            continue
+        hj = wp.vec2(wp.cos(yaw[j]), wp.sin(yaw[j]))
+        oj = 0.5 * wp.max(length[j] - width[j], 0.0)
+        r = 0.5 * (width[i] + width[j])
+        for da in range(3):
+            ci = hi * (oi * float(da - 1))
+            for db in range(3):
+                cj = hj * (oj * float(db - 1))
+                best = wp.min(best, disc_ttc(d + cj - ci, v, r, horizon))
+    ttc_out[i] = best
+
+
 def launch_collision(model, state, control) -> None:
     """Broad phase (hashed grid, counting sort) then narrow phase for every slot."""
     n, dev, g = model.num_slots, model.device, model.collision_cells
@@ -215,3 +288,13 @@ def launch_collision(model, state, control) -> None:
                       model.length, model.width, state.present, model.integrated, model.background,
                       model.cost_players, state.agent_cell, state.grid_start, state.grid_fill, state.grid_items],
               outputs=[state.collided, state.nearest, state.cost_dist])
+
+
+def launch_ttc(model, state, control) -> None:
+    """Time to collision of every acting agent; only when the reward weights it (O(A^2) per world)."""
+    if not model.ttc_on:
+        return
+    wp.launch(ttc_kernel, dim=model.num_slots, device=model.device,
+              inputs=[model.max_agents, model.ttc_horizon, state.pos, state.yaw, state.vel, model.length, model.width,
+                      state.present, state.alive],
+              outputs=[state.ttc])

@@ -13,6 +13,9 @@ this step (`alive`) earn anything; every other row is zero.
     offroad         0/1    its box crosses a road edge
     lane_deviation  m      distance to the nearest lane centerline, capped
     overspeed       m/s    speed above the limit
+    ttc             0..1   1 - TTC / ttc_horizon, the time to collision with an agent ahead of its
+                           motion (kernels/collision.py `ttc_kernel`): 0 with no conflict within the
+                           horizon, 1 in contact; computed only when weighted (else 0)
 
 cost, the constraint signal of CCE-MAPPO, from the centre distance d to the nearest
 other present agent the cost counts (`cost_dist` of kernels/collision.py: any agent, or
@@ -29,7 +32,7 @@ from __future__ import annotations
 
 import warp as wp
 
-REWARD_TERMS = ("goal_progress", "goal_reached", "collision", "offroad", "lane_deviation", "overspeed")
+REWARD_TERMS = ("goal_progress", "goal_reached", "collision", "offroad", "lane_deviation", "overspeed", "ttc")
 NUM_TERMS = len(REWARD_TERMS)
 
 
@@ -40,6 +43,8 @@ def reward_kernel(
     cost_hinge: int,  # 0: step, 1: hinge (config.COST_SHAPES)
     speed_limit: float,
     lane_cap: float,
+    ttc_on: int,
+    ttc_horizon: float,
     weights: wp.array(dtype=float),  # (NUM_TERMS,)
     goal: wp.array(dtype=wp.vec2),
     # state
@@ -50,6 +55,7 @@ def reward_kernel(
     offroad: wp.array(dtype=wp.int32),
     lane_dist: wp.array(dtype=float),
     cost_dist: wp.array(dtype=float),
+    ttc: wp.array(dtype=float),
     ep_goal: wp.array(dtype=wp.int32),
     ep_offroad: wp.array(dtype=wp.int32),
     goal_dist: wp.array(dtype=float),  # in: distance before the step; out: after
@@ -79,14 +85,18 @@ def reward_kernel(
     t3 = float(offroad[i])
     t4 = wp.min(lane_dist[i], lane_cap)
     t5 = wp.max(speed[i] - speed_limit, 0.0)
+    t6 = float(0.0)
+    if ttc_on == 1:
+        t6 = 1.0 - ttc[i] / ttc_horizon
     terms_out[i, 0] = t0
     terms_out[i, 1] = t1
     terms_out[i, 2] = t2
     terms_out[i, 3] = t3
     terms_out[i, 4] = t4
     terms_out[i, 5] = t5
+    terms_out[i, 6] = t6
     reward_out[i] = (weights[0] * t0 + weights[1] * t1 + weights[2] * t2
-                     + weights[3] * t3 + weights[4] * t4 + weights[5] * t5)
+                     + weights[3] * t3 + weights[4] * t4 + weights[5] * t5 + weights[6] * t6)
     c = float(0.0)
     if cost_dist[i] < beta:
         c = 1.0
@@ -97,7 +107,8 @@ def reward_kernel(
 
 def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.speed_limit, model.lane_cap, model.reward_weights, model.goal,
+              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.speed_limit, model.lane_cap,
+                      model.ttc_on, model.ttc_horizon, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
-                      state.cost_dist, state.ep_goal, state.ep_offroad, state.goal_dist],
+                      state.cost_dist, state.ttc, state.ep_goal, state.ep_offroad, state.goal_dist],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

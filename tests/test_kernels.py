@@ -268,7 +268,8 @@ def test_reward_terms_and_cost_match_hand_computation(device):
     np.testing.assert_allclose(terms[:, 2:4], 0)
     np.testing.assert_allclose(terms[:, 4], [0.0, 3.0], atol=1e-5)  # lane deviation (m)
     np.testing.assert_allclose(terms[:, 5], [0.0, 5.0], atol=1e-4)  # over-speed (m/s)
-    w = np.array([0.5, 2.0, -3.0, -4.0, -0.25, -0.125])
+    np.testing.assert_allclose(terms[:, 6], 0)  # ttc: unweighted, not computed
+    w = np.array([0.5, 2.0, -3.0, -4.0, -0.25, -0.125, 0.0])
     np.testing.assert_allclose(sim.reward[0, :2].cpu().numpy(), terms @ w, atol=1e-5)
     gap = np.hypot(x1[1] - x1[0], 3.0)
     assert gap < 6.0
@@ -286,6 +287,74 @@ def test_reward_terms_and_cost_match_hand_computation(device):
     sim3.step(torch.zeros((1, 32, 2), device=device))
     np.testing.assert_allclose(sim3.cost[0, :2].cpu().numpy(), [(6.0 - gap) / 6.0] * 2, atol=1e-4)
     assert 0.0 < (6.0 - gap) / 6.0 < 1.0
+
+
+def ttc_reference(pos, yaw, vel, length, width, present, horizon):
+    """NumPy TTC of each agent against the present agents ahead of its motion, from evaluation/risk.py's
+    disc model and constant-velocity solve; a standing agent closes on nobody."""
+    from tg_gpudrive.evaluation.risk import disc_centres, pair_ttc
+    A = len(pos)
+    centres = disc_centres(pos[None, :, None], yaw[None, :, None], length[None], width[None])[0, :, 0]  # (A, D, 2)
+    out = np.full(A, horizon)
+    for i in range(A):
+        if np.dot(vel[i], vel[i]) < 1e-6:
+            continue
+        for j in range(A):
+            if j == i or not present[j] or np.dot(vel[i], pos[j] - pos[i]) <= 0:
+                continue
+            p = centres[j][None, :, :] - centres[i][:, None, :]
+            t = pair_ttc(p, np.broadcast_to(vel[j] - vel[i], p.shape), 0.5 * (width[i] + width[j]), horizon)
+            out[i] = min(out[i], t.min())
+    return out
+
+
+def test_ttc_term_matches_numpy_reference(device):
+    """Twelve cars with random headings and speeds on a 40 m square; the ttc term of each is
+    1 - TTC / horizon, TTC from the NumPy disc model against the agents ahead of its motion. Hand
+    cases ride along, far from the others: a follower at 10 m/s 12 m behind a car at 4 m/s in its lane,
+    the leader itself (closed on from behind, it pays nothing) and a standing car."""
+    rng = np.random.default_rng(3)
+    n = 12
+    p0 = rng.uniform(-20, 20, (n, 2))
+    p0[0], p0[1] = (100.0, 0.0), (112.0, 0.0)  # follower, leader
+    yaw0 = rng.uniform(-np.pi, np.pi, n)
+    yaw0[:2] = 0.0
+    spd = rng.uniform(0, 12, n)
+    spd[:2] = (10.0, 4.0)
+    spd[2] = 0.0  # standing
+    v0 = np.stack([np.cos(yaw0), np.sin(yaw0)], -1) * spd[:, None]
+    pos = p0[:, None, :] + v0[:, None, :] * (np.arange(T) - INIT)[None, :, None] * 0.1
+    yaw = np.repeat(yaw0[:, None], T, 1)
+    vel = np.repeat(v0[:, None, :], T, 1)
+    length, width = rng.uniform(3.5, 5.5, n), rng.uniform(1.6, 2.2, n)
+    length[:2], width[:2] = 4.5, 2.0
+    sc = make_scene(pos, yaw, log_vel=vel, length=length, width=width)
+    horizon = 3.0
+    rw = RewardConfig(ttc=-0.5, ttc_horizon=horizon)
+    sim = Simulator([sc], cfg(action_space="continuous", control="all_agents", reward=rw), device)
+    sim.reset()
+    sim.step(torch.zeros((1, 32, 2), device=device))  # zero accel, straight: constant velocity
+    got_pos, got_yaw = sim.pos[0, :n].cpu().numpy(), sim.yaw[0, :n].cpu().numpy()
+    got_vel = sim.vel[0, :n].cpu().numpy()
+    got_len, got_wid = sim.length[0, :n].cpu().numpy(), sim.width[0, :n].cpu().numpy()  # slots, not scene order
+    want = ttc_reference(*(x.astype(np.float64) for x in (got_pos, got_yaw, got_vel, got_len, got_wid)),
+                         np.ones(n, bool), horizon)
+    np.testing.assert_allclose(sim.ttc[0, :n].cpu().numpy(), want, atol=1e-3)
+    np.testing.assert_allclose(sim.reward_terms[0, :n, 6].cpu().numpy(), 1 - want / horizon, atol=1e-3)
+    # after the 0.1 s step the centres are 12 - 0.6 m apart; the follower's front disc (1.25 m ahead of
+    # its centre) meets the leader's rear disc (1.25 m behind) when they are 2 m apart: 11.4 - 2.5 - 2 m
+    # to close at 6 m/s
+    slot = {name: int(np.argmin(np.hypot(*(got_pos - at).T))) for name, at in
+            (("follower", p0[0] + v0[0] * 0.1), ("leader", p0[1] + v0[1] * 0.1), ("standing", p0[2]))}
+    assert sim.ttc[0, slot["follower"]].item() == pytest.approx(6.9 / 6.0, abs=1e-3)
+    assert sim.ttc[0, slot["leader"]].item() == horizon
+    assert sim.ttc[0, slot["standing"]].item() == horizon
+    assert 0 < (want < horizon).sum() and (want == 0).sum() < n  # the random cars make conflicts, not all contacts
+    # unweighted, the term is neither computed nor reported
+    sim0 = Simulator([sc], cfg(action_space="continuous", control="all_agents"), device)
+    sim0.reset()
+    sim0.step(torch.zeros((1, 32, 2), device=device))
+    assert torch.all(sim0.reward_terms[0, :, 6] == 0)
 
 
 def test_cost_counts_only_the_policys_agents_with_cost_partners_players(device):

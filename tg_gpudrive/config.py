@@ -81,13 +81,16 @@ class RewardConfig:
     offroad: float = -1.0
     lane_deviation: float = -0.02  # per metre from the nearest lane centerline
     overspeed: float = -0.1  # per m/s above speed_limit
+    ttc: float = 0.0  # per step, times 1 - TTC / ttc_horizon to the nearest conflict ahead (0: not computed)
     speed_limit: float = 20.0  # m/s
     lane_cap: float = 5.0  # m, lane deviation is capped here
+    ttc_horizon: float = 3.0  # s, conflicts further ahead in time cost nothing
 
     def __post_init__(self):
         check_ranges(self, {"goal_progress": "(-inf, inf)", "goal_reached": "(-inf, inf)", "collision": "(-inf, inf)",
                             "offroad": "(-inf, inf)", "lane_deviation": "(-inf, inf)", "overspeed": "(-inf, inf)",
-                            "speed_limit": "(0, 1000]", "lane_cap": "[0, 1000]"})
+                            "ttc": "(-inf, inf)", "speed_limit": "(0, 1000]", "lane_cap": "[0, 1000]",
+                            "ttc_horizon": "(0, 60]"})
 
 
 @dataclasses.dataclass(frozen=True)

@@ -50,6 +50,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
     goal_radius, beta, cost_hinge, cost_players, speed_limit, lane_cap  reward and cost parameters
+    ttc_on, ttc_horizon 1: the reward weights the ttc term, so ttc_kernel runs; its horizon (s)
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     view_cos            cos of half the view cone (EngineConfig.view_angle): partners and road
                         points outside it are not observed; -1 sees all around
@@ -354,6 +355,7 @@ class Model:
         self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
         self.cost_players = COST_PARTNERS.index(cfg.cost_partners)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
+        self.ttc_on, self.ttc_horizon = int(cfg.reward.ttc != 0.0), float(cfg.reward.ttc_horizon)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
         self.road_k, self.road_radius = int(cfg.road_k), float(cfg.road_radius)
         self.view_cos = float(np.cos(np.radians(cfg.view_angle) / 2))  # cos of half the view cone
@@ -453,6 +455,7 @@ class StepState(Generic[ArrayT]):
     lane_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest lane, <= road_query_radius")
     nearest: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest present agent, <= Model.nearest_cap")
     cost_dist: ArrayT = array_field(SLOT, wp.float32, "m, the same to the nearest agent the cost counts (cost_partners)")
+    ttc: ArrayT = array_field(SLOT, wp.float32, "s, time to collision with an agent ahead, <= ttc_horizon (when weighted)")
     # reward and cost
     reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
     reward_terms: ArrayT = array_field(Dims.TERMS, wp.float32, "the named terms (kernels/reward.py), unweighted")

@@ -35,7 +35,7 @@ import warp as wp
 
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.engine.model import Control, Model, State, StepState, view_shape
-from tg_gpudrive.kernels.collision import launch_collision
+from tg_gpudrive.kernels.collision import launch_collision, launch_ttc
 from tg_gpudrive.kernels.dynamics import launch_corrective_expert, launch_expert_to_control, launch_step_agents
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM, launch_observations
 from tg_gpudrive.kernels.reset import launch_force_reset, launch_respond_and_finish
@@ -239,6 +239,7 @@ class Simulator(StepState[torch.Tensor]):
         launch_step_agents(m, s, c)
         launch_collision(m, s, c)
         launch_road_query(m, s, c)
+        launch_ttc(m, s, c)
         launch_reward(m, s, c)
         launch_respond_and_finish(m, s, c)
         launch_road_query(m, s, c, only_reset_worlds=True)
