@@ -23,6 +23,12 @@ the offset), both moving on at their current velocity. Boxes are covered by thre
 width/2 along the long axis, the model of evaluation/risk.py's `min_ttc`; the TTC is the first time
 any disc pair touches (0 when they already overlap), capped at the horizon. Only agents ahead count,
 so a car is charged for closing on a slower one, not for being closed on from behind.
+
+Anticipated cost distance (`anticipate_kernel`, with `cost_horizon` > 0): the cost's distance becomes
+the least centre distance to an agent it counts over the next `cost_horizon` seconds, both moving on
+at their current velocity (closest approach of two points, now included), so beta is kept ahead of
+time: a car closing fast on another pays before the gap is gone. It visits every agent of the world,
+so it is exact beyond the broad phase's cells.
 """
 
 from __future__ import annotations
@@ -273,6 +279,43 @@ def ttc_kernel(
     ttc_out[i] = best
 
 
+@wp.kernel
+def anticipate_kernel(
+    agents_per_world: int,
+    horizon: float,  # s
+    cost_players: int,  # 1: only the policy's agents count (as collide_kernel's cost distance)
+    pos: wp.array(dtype=wp.vec2),
+    vel: wp.array(dtype=wp.vec2),
+    present: wp.array(dtype=wp.int32),
+    alive: wp.array(dtype=wp.int32),
+    integrated: wp.array(dtype=wp.int32),
+    background: wp.array(dtype=wp.int32),
+    # in: the distance now (collide_kernel); out: the least over the horizon
+    cost_dist: wp.array(dtype=float),
+):
+    i = wp.tid()
+    if alive[i] == 0:
+        return
+    w = i / agents_per_world
+    base = w * agents_per_world
+    p = pos[i]
+    best = cost_dist[i]
+    for a in range(agents_per_world):
+        j = base + a
+        if j == i or present[j] == 0:
+            continue
+        if cost_players == 1 and (integrated[j] == 0 or background[j] != 0):
+            continue
+        d = pos[j] - p
+        v = vel[j] - vel[i]
+        vv = wp.dot(v, v)
+        t = float(0.0)
+        if vv > 1e-12:
+            t = wp.clamp(-wp.dot(d, v) / vv, 0.0, horizon)
+        best = wp.min(best, wp.length(d + v * t))
+    cost_dist[i] = best
+
+
 def launch_collision(model, state, control) -> None:
     """Broad phase (hashed grid, counting sort) then narrow phase for every slot."""
     n, dev, g = model.num_slots, model.device, model.collision_cells
@@ -288,6 +331,11 @@ def launch_collision(model, state, control) -> None:
                       model.length, model.width, state.present, model.integrated, model.background,
                       model.cost_players, state.agent_cell, state.grid_start, state.grid_fill, state.grid_items],
               outputs=[state.collided, state.nearest, state.cost_dist])
+    if model.cost_horizon > 0.0:
+        wp.launch(anticipate_kernel, dim=n, device=dev,
+                  inputs=[model.max_agents, model.cost_horizon, model.cost_players, state.pos, state.vel, state.present,
+                          state.alive, model.integrated, model.background],
+                  outputs=[state.cost_dist])
 
 
 def launch_ttc(model, state, control) -> None:

@@ -19,7 +19,8 @@ this step (`alive`) earn anything; every other row is zero.
 
 cost, the constraint signal of CCE-MAPPO, from the centre distance d to the nearest
 other present agent the cost counts (`cost_dist` of kernels/collision.py: any agent, or
-the policy's own with `cost_partners: players`), shaped by `cost_shape`:
+the policy's own with `cost_partners: players`; with `cost_horizon` > 0 the least such distance over
+that look-ahead at constant velocity), shaped by `cost_shape`:
     step   1 when d < beta (TrafficGamer's distance cost)
     hinge  max(beta - d, 0) / beta: how deep the neighbour is inside beta, so a contact
            costs nearly 1 and a pass just inside beta nearly 0

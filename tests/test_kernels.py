@@ -383,6 +383,35 @@ def test_cost_counts_only_the_policys_agents_with_cost_partners_players(device):
     np.testing.assert_allclose(got["players"], [(8.0 - 5.0) / 8.0, (8.0 - 5.0) / 8.0], atol=1e-4)
 
 
+def test_cost_horizon_keeps_beta_ahead_of_time(device):
+    """Car 0 drives at 10 m/s towards car 1, standing 15 m ahead and 3 m to the side; car 2 drives away
+    behind. After one step the gap is hypot(14, 3) m, outside beta 8. Looking ahead 1 s, the closest
+    approach is at t = 1 s: hypot(4, 3) = 5 m; 2 s reach the true closest approach, 3 m at t = 1.4 s.
+    Car 1 sees the same approach; car 2 none."""
+    pos = np.zeros((3, T, 2))
+    pos[0, :, 0] = (np.arange(T) - INIT) * 1.0
+    pos[1, :, :] = (15.0, 3.0)
+    pos[2, :, 0] = -10.0 - (np.arange(T) - INIT) * 1.0
+    yaw = np.zeros((3, T))
+    yaw[2] = np.pi
+    vel = np.zeros((3, T, 2))
+    vel[0, :, 0] = 10.0
+    vel[2, :, 0] = -10.0
+    sc = make_scene(pos, yaw, log_vel=vel, goal=np.array([[300.0, 0.0], [300.0, 3.0], [-300.0, 0.0]]))
+    got = {}
+    for horizon in (0.0, 1.0, 2.0):
+        c = cfg(action_space="continuous", control="all_agents", beta=8.0, cost_shape="hinge", cost_horizon=horizon)
+        sim = Simulator([sc], c, device)
+        sim.reset()
+        sim.step(torch.zeros((1, 32, 2), device=device))
+        slot = {int(np.argmin(np.hypot(*(sim.pos[0, :3].cpu().numpy() - at).T))): k
+                for k, at in enumerate([(1.0, 0.0), (15.0, 3.0), (-11.0, 0.0)])}
+        got[horizon] = [sim.cost[0, s].item() for s in sorted(slot, key=slot.get)]
+    np.testing.assert_allclose(got[0.0], [0.0, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(got[1.0], [(8 - 5.0) / 8, (8 - 5.0) / 8, 0.0], atol=1e-4)
+    np.testing.assert_allclose(got[2.0], [(8 - 3.0) / 8, (8 - 3.0) / 8, 0.0], atol=1e-4)
+
+
 def test_goal_reached_term(device):
     pos = np.zeros((1, T, 2))
     pos[0, :, 0] = np.arange(T) * 1.0

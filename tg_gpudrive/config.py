@@ -118,6 +118,9 @@ class EngineConfig:
     # whom the cost's distance counts: all, every other present agent; players, only the agents the policy
     # drives (TrafficGamer's cost, over the agents of its game: replayed and parked ones are not counted)
     cost_partners: str = "all"
+    # s: the cost's distance is the least one over the next cost_horizon seconds at constant velocity
+    # (0: the distance now, TrafficGamer's), so a car closing fast pays before beta is crossed
+    cost_horizon: float = 0.0
     partner_k: int = 16
     partner_radius: float = 50.0
     road_k: int = 128
@@ -154,7 +157,7 @@ class EngineConfig:
         check_ranges(self, {
             "max_agents": "[1, 1024]", "view_angle": "(0, 360]", "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
             "max_curvature": "(0, 10]", "delta_max": "(0, 100]", "init_steps": "[0, 10000]", "goal_radius": "(0, 1000]",
-            "beta": "[0, 1000]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
+            "beta": "[0, 1000]", "cost_horizon": "[0, 60]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
             "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "road_simplify": "[0, 10]", "max_segment_length": "[0.5, 1000]",
             "road_cell_size": "[1, 1000]", "collision_cells": "[1, 1048576]"}, odd=("accel_bins", "curvature_bins"))
 

@@ -50,6 +50,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
     goal_radius, beta, cost_hinge, cost_players, speed_limit, lane_cap  reward and cost parameters
+    cost_horizon        s, the cost's distance is the least over this look-ahead (0: now)
     ttc_on, ttc_horizon 1: the reward weights the ttc term, so ttc_kernel runs; its horizon (s)
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
     view_cos            cos of half the view cone (EngineConfig.view_angle): partners and road
@@ -354,6 +355,7 @@ class Model:
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
         self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
         self.cost_players = COST_PARTNERS.index(cfg.cost_partners)
+        self.cost_horizon = float(cfg.cost_horizon)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.ttc_on, self.ttc_horizon = int(cfg.reward.ttc != 0.0), float(cfg.reward.ttc_horizon)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
@@ -454,7 +456,8 @@ class StepState(Generic[ArrayT]):
     edge_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest road edge, <= road_query_radius")
     lane_dist: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest lane, <= road_query_radius")
     nearest: ArrayT = array_field(SLOT, wp.float32, "m, centre to the nearest present agent, <= Model.nearest_cap")
-    cost_dist: ArrayT = array_field(SLOT, wp.float32, "m, the same to the nearest agent the cost counts (cost_partners)")
+    cost_dist: ArrayT = array_field(SLOT, wp.float32, "m, the same to the nearest agent the cost counts (cost_partners), "
+                                                     "least over cost_horizon")
     ttc: ArrayT = array_field(SLOT, wp.float32, "s, time to collision with an agent ahead, <= ttc_horizon (when weighted)")
     # reward and cost
     reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
