@@ -511,6 +511,54 @@ def test_sidewalk_pedestrians_keep_off_the_lanes_and_touch_nobody():
     assert total >= 12  # about five a scene, a few left out where they would not fit
 
 
+def test_crossing_pedestrians_walk_across_the_lanes_clear_of_the_logs():
+    """Crossing pedestrians walk over the lanes on a crosswalk, at the speed their positions move, and
+    every logged box keeps CROSS_CLEAR from theirs at every step: the logs need not yield to them."""
+    from tg_gpudrive.data.log_audit import audit, boxes_overlap
+    from tg_gpudrive.data.procedural.generator import CROSS_CLEAR, CROSS_SPEED
+
+    p = ProceduralParams(crossings=4.0, pedestrians=2.0, parking=0.8)
+    total = 0
+    for k, kind in enumerate(("dual_lane_intersection", "t_junction", "dense_intersection", "y_junction") * 2):
+        sc = generate_scene(kind, 60 + k, p)
+        cross = np.asarray(sc.metadata["crossing_pedestrians"], int)
+        total += len(cross)
+        assert np.all(sc.agent_type[cross] == AgentType.PEDESTRIAN)
+        if not len(cross):
+            continue
+        lanes = np.concatenate([pts for kind_, pts in sc.polylines() if kind_ == RoadType.LANE])
+        crosswalks = [pts for kind_, pts in sc.polylines() if kind_ == RoadType.CROSSWALK]
+        for i in cross:
+            xy = sc.log_pos[i]
+            assert np.linalg.norm(xy[:, None] - lanes[None], axis=-1).min() < 1.0  # over a lane centre
+            # on a crosswalk: its midpoint across the road lies inside one (the polygon's bounding box)
+            mid = xy[np.argmin(np.linalg.norm(xy[:, None] - lanes[None], axis=-1).min(-1))]
+            assert any(np.all(mid >= cw.min(0) - 1.01) and np.all(mid <= cw.max(0) + 1.01) for cw in crosswalks)
+            step = np.linalg.norm(np.diff(xy, axis=0), axis=-1) / 0.1
+            speed = np.linalg.norm(sc.log_vel[i], axis=-1)
+            assert speed.max() <= CROSS_SPEED[1] + 1e-5 and step.max() <= CROSS_SPEED[1] + 1e-3
+            moving = step > 1e-3
+            np.testing.assert_allclose(step[moving][1:-1], speed[:-1][moving][1:-1], atol=1e-3)
+            others = np.arange(sc.num_agents) != i
+            for t in range(sc.num_steps):
+                hit = boxes_overlap(sc.log_pos[i, t], sc.log_yaw[i, t], sc.length[i] + 2 * CROSS_CLEAR,
+                                    sc.width[i] + 2 * CROSS_CLEAR, sc.log_pos[others, t], sc.log_yaw[others, t],
+                                    sc.length[others], sc.width[others])
+                assert not hit.any(), (kind, i, t)
+        assert audit(sc, 10, 2.0) == {}
+    assert total >= 4
+
+
+def test_no_crossings_leaves_scenes_bit_for_bit():
+    base = ProceduralParams(pedestrians=2.0, parking=0.8)
+    a = generate_scene("t_junction", 5, base)
+    b = generate_scene("t_junction", 5, ProceduralParams(pedestrians=2.0, parking=0.8, crossings=0.0))
+    np.testing.assert_array_equal(a.log_pos, b.log_pos)
+    assert a.metadata["crossing_pedestrians"] == []
+    with pytest.raises(ValueError, match="crossings"):
+        ProceduralParams(crossings=-1.0)
+
+
 def test_no_pedestrians_leaves_scenes_bit_for_bit():
     a = generate_scene("dual_lane_intersection", 7)
     b = generate_scene("dual_lane_intersection", 7, ProceduralParams(pedestrians=0.0))

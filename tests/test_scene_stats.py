@@ -33,6 +33,7 @@ def test_features_of_a_hand_made_street():
     np.testing.assert_allclose(f["goal_distance"], [30.0], atol=1e-3)  # from x = 10 at step 10 to x = 40
     np.testing.assert_allclose(f["route_length"], [30.0], atol=1e-3)
     assert f["agents"][0] == 3 and f["pedestrians"][0] == 1 and f["cyclists"][0] == 0
+    assert f["pedestrians_on_lanes"][0] == 0  # it walks from 4 to 2 m beside the lane centre
     assert f["controlled"][0] == 1  # the parked car starts at its goal
     assert f["parked_share"][0] == pytest.approx(0.5)
     np.testing.assert_allclose(f["lane_width"], 3.5, atol=1e-6)
@@ -42,6 +43,18 @@ def test_features_of_a_hand_made_street():
     # within 50 m of the car's init position (10, 0): both edges from x = -20 (their start) to 60, 2 x 80 m,
     # over a disc of pi 50^2 m^2 (sampled on a 5 m grid: a few per cent)
     assert f["edge_density"][0] == pytest.approx(160 / (np.pi * 2500 / 1e4), rel=0.05)
+
+
+def test_a_pedestrian_crossing_the_lane_counts_on_the_lanes():
+    """The street's pedestrian walks on across the lane: at 0.5 m/s from y = -4 it comes within 1.75 m of
+    the centre line after 4.5 s; a log of 4 s keeps it out, one of 6 s lets it in."""
+    for steps, want in ((41, 0), (61, 1)):
+        t = np.arange(steps) * 0.1
+        pos = np.zeros((1, steps, 2))
+        pos[0, :, 0], pos[0, :, 1] = 5.0, -4 + 0.5 * t
+        sc = make_scene(pos, np.zeros((1, steps)), roads=[(RoadType.LANE, [[-20, 0], [80, 0]])],
+                        agent_type=np.array([2]))
+        assert scene_features(sc)["pedestrians_on_lanes"][0] == want
 
 
 def test_closing_speed_of_a_fast_car_behind_a_slow_one():

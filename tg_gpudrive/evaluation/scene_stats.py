@@ -29,6 +29,9 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
     agents             -        scenes                      agents valid at some step
     controlled         -        scenes                      the rule's eligible vehicles (engine.control)
     pedestrians        -        scenes                      pedestrians valid at some step
+    pedestrians_on_lanes -      scenes                      pedestrians that come within LANE_HALF_M of a lane
+                                                            centre point at some valid step (crossing or
+                                                            walking in the road, where a vehicle must yield)
     cyclists           -        scenes                      cyclists valid at some step
     parked_share       -        scenes                      vehicles whose log moves less than 1 m in all,
                                                             over vehicles
@@ -57,7 +60,7 @@ from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
 FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
-            "pedestrians", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
+            "pedestrians", "pedestrians_on_lanes", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
 UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m", "route_length": "m",
          "lateral_shift": "m",
          "edge_density": "m/ha", "lane_width": "m"}
@@ -68,6 +71,7 @@ STRAIGHT_DEG = 10.0  # a log whose heading turns less than this from init to its
 STRAIGHT_MIN_M = 15.0  # m: the goal of a straight log counted for lateral_shift is at least this far
 AHEAD_M = 30.0  # m: how far ahead of a candidate closing_speed looks for a leader ...
 CORRIDOR_M = 2.0  # m: ... and how far to its side
+LANE_HALF_M = 1.75  # m: a pedestrian this near a lane centre point stands in the lane
 
 
 def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:
@@ -167,6 +171,22 @@ def _edge_density(scene: Scene, centres: np.ndarray) -> float:
     return metres / area_ha if area_ha > 0 else float("nan")
 
 
+def _pedestrians_on_lanes(scene: Scene) -> int:
+    """Pedestrians within LANE_HALF_M of a lane centre line at some valid step."""
+    segs = [(p[:-1], p[1:]) for t, p in ((t, np.asarray(p, np.float64)) for t, p in scene.polylines())
+            if t == RoadType.LANE and len(p) > 1]
+    if not segs:
+        return 0
+    a, b = (np.concatenate(x) for x in zip(*segs))
+    n = 0
+    for i in np.flatnonzero(scene.agent_type == AgentType.PEDESTRIAN):
+        xy = scene.log_pos[i, scene.log_valid[i].astype(bool)].astype(np.float64)
+        near = (np.abs(xy[:, None] - 0.5 * (a + b)[None]).max(-1) < LANE_HALF_M + 0.5 * np.abs(b - a).max(-1))
+        if near.any() and segment_distance(xy[:, None], a[None], b[None])[near].min() < LANE_HALF_M:
+            n += 1
+    return n
+
+
 def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0) -> dict[str, np.ndarray]:
     """Every feature of the module docstring for one scene: arrays of samples (one per scene for the
     per-scene features)."""
@@ -194,6 +214,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
         "agents": present.sum(),
         "controlled": control.eligible(scene, cfg).sum(),
         "pedestrians": (present & (scene.agent_type == AgentType.PEDESTRIAN)).sum(),
+        "pedestrians_on_lanes": _pedestrians_on_lanes(scene),
         "cyclists": (present & (scene.agent_type == AgentType.CYCLIST)).sum(),
         "parked_share": (vehicles & (moved < PARKED_M)).sum() / max(vehicles.sum(), 1),
         "edge_density": _edge_density(scene, scene.log_pos[cand, init].astype(np.float64)),
