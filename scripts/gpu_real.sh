@@ -6,7 +6,7 @@
 #   (cd /tmp && [PHASE=train|eval|all] [PLAN=file] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
 # TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
-# evaluation in ignore mode. The plan (PLAN names a file of such lines; the default
+# evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=4") adds generator knobs to the urban procedural part. The plan (PLAN names a file of such lines; the default
 # below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
 # is a store name under STORES (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the
 # worlds to procedural scenes at real speeds, taken from the urban half) or - for procedural scenes alone,
@@ -25,7 +25,7 @@ runs=${RUNS:-/tmp/runs}
 phase=${PHASE:-all}
 tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
-proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5]"
+proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5${URBAN_EXTRA:-}]"
 ngpu=$(nvidia-smi -L | wc -l)
 plan="real0 - -
 real5 womd_dev_train_5 -
