@@ -32,11 +32,13 @@ STANDING_M = 1.0  # m: a partner whose whole log moves less than this stands sti
 
 
 def describe(tr, types: np.ndarray, row: dict) -> dict:
-    """One collision_partners row with the partner's type and whether it stands still."""
+    """One collision_partners row with the vehicle as its scene's agent index (slots differ between
+    policies' worlds), the partner's type and whether it stands still."""
     e, b = row["episode"], row["partner"]
     path = tr.pos[e, b][tr.valid[e, b]]
     standing = len(path) == 0 or float(np.ptp(path, axis=0).max()) < STANDING_M
-    return {**row, "partner_type": AgentType(int(types[e, b])).name.lower(), "partner_standing": standing}
+    return {**row, "agent": int(tr.slot_agent[e, row["agent"]]), "partner_type": AgentType(int(types[e, b])).name.lower(),
+            "partner_standing": standing}
 
 
 def group(events: list[dict]) -> list[dict]:
@@ -80,9 +82,11 @@ def main(argv=None) -> int:
         events += [{**describe(tr, types, r), "run": (spec, seed)} for r in collision_partners(tr)]
     rows = group(events)
     print(f"\n{len(events)} first collisions over {len(runs)} runs ({', '.join(f'{Path(s).name}: {n} policy vehicles' for s, n in vehicles.items())} a run)\n")
-    print("| world | scene | vehicle slot | runs with it | partner | contact | speed [m/s] | partner speed [m/s] | step |")
+    print("| world | scene | agent | runs with it | partner | contact | speed [m/s] | partner speed [m/s] | step |")
     print("|---:|---|---:|---:|---|---|---|---|---|")
-    rng = lambda x, f="{:.1f}": f.format(x[0]) if x[0] == x[1] else f"{f.format(x[0])}-{f.format(x[1])}"  # noqa: E731
+    def rng(x, f="{:.1f}"):
+        lo, hi = f.format(x[0]), f.format(x[1])
+        return lo if lo == hi else f"{lo}-{hi}"
     for r in rows:
         print(f"| {r['world']} | {scenes[r['world']].scene_id} | {r['agent']} | {r['runs']} of {len(runs)} | {r['partner']} | "
               f"{r['contact']} | {rng(r['speed'])} | {rng(r['partner_speed'])} | {rng(r['steps'], '{}')} |")
