@@ -46,3 +46,17 @@ def test_generate_refuses_bad_knobs_before_training(tmp_path, capsys, args, mess
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "g" / "policy").exists()
+
+
+def test_generate_set_overrides_the_fine_tunes_config_and_names_a_bad_key():
+    from tg_gpudrive.config import ConfigError
+    from tg_gpudrive.evaluation.generate import GenerateOptions, training_config
+
+    opts = GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125,
+                           overrides=("env.cost_horizon=1", "env.cost_shape=hinge", "lr=0.0001"))
+    cfg = training_config(opts)
+    assert cfg.env.cost_horizon == 1.0 and cfg.env.cost_shape == "hinge" and cfg.lr == 0.0001
+    assert cfg.env.beta == 2.0 and cfg.alpha == 0.125  # the knobs stay
+    with pytest.raises(ConfigError, match="cost_horizn"):
+        training_config(GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125,
+                                        overrides=("env.cost_horizn=1",)))

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from tg_gpudrive.checkpoint import load_checkpoint
-from tg_gpudrive.config import AugmentConfig, EngineConfig, TrainConfig, from_dict, to_dict
+from tg_gpudrive.config import AugmentConfig, EngineConfig, TrainConfig, apply_overrides, from_dict, to_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.enums import ControlMode
 from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts
@@ -55,6 +55,7 @@ class GenerateOptions:
     device: str = "cpu"
     seed: int = 0
     gif: bool = True
+    overrides: tuple[str, ...] = ()  # train-config KEY=VALUE, applied last (e.g. env.cost_horizon=1)
 
     def __post_init__(self):
         # the knobs and sizes are checked with the training config (training_config); these two are not in it
@@ -66,7 +67,8 @@ class GenerateOptions:
 
 def training_config(opts: GenerateOptions) -> TrainConfig:
     """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: no
-    augmentation, no resampling, the time budget, one checkpoint at the end. Every value is checked
+    augmentation, no resampling, the time budget, one checkpoint at the end, then `opts.overrides`
+    (e.g. env.cost_horizon=1 keeps beta ahead of time, env.cost_shape=hinge). Every value is checked
     as a config file's are (ConfigError naming the key)."""
     base = to_dict(from_dict(TrainConfig, load_checkpoint("shipped", "shipped")["config"], "the shipped policy"))
     base["augment"] = to_dict(AugmentConfig())
@@ -78,7 +80,7 @@ def training_config(opts: GenerateOptions) -> TrainConfig:
                 "target_heldout": "", "out_dir": str(Path(opts.out) / "policy")}
     base.update(settings)
     base["env"] = {**base["env"], "beta": opts.beta}
-    return from_dict(TrainConfig, base, "tg-gpudrive generate")
+    return from_dict(TrainConfig, apply_overrides(base, list(opts.overrides)), "tg-gpudrive generate")
 
 
 def _involved(partners: list[dict], episode: int) -> str:
