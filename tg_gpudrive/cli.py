@@ -328,7 +328,7 @@ def _generate_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "
-                        "--set env.cost_horizon=1 --set env.cost_shape=hinge (repeatable)")
+                        "--set env.cost_horizon=1 --set env.cost_shape=hinge (repeatable; default: none)")
 
 
 def _convert_parser(sub) -> None:
