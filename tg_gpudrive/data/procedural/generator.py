@@ -346,17 +346,47 @@ class Walkers:
         return Walkers(np.zeros((0, steps, 2)), np.zeros((0, steps)), np.zeros((0, steps)), np.zeros(0, bool))
 
 
-def _touches_nobody(xy: np.ndarray, yaw: np.ndarray, others_xy: list, others_yaw: list, others_l: list,
-                    others_w: list, margin: float | None = None) -> bool:
-    """Whether a pedestrian's (T, 2) path keeps its box off every other box at every step (inflated by
-    `margin`, default the traffic check's)."""
-    all_xy = np.concatenate([*others_xy, xy[None]])
-    all_yaw = np.concatenate([*others_yaw, yaw[None]])
-    size_l = np.concatenate([*others_l, [WALKER_SIZE]])
-    size_w = np.concatenate([*others_w, [WALKER_SIZE]])
-    last = len(all_xy) - 1
-    kw = {} if margin is None else {"margin": margin}
-    return not any(last in (i, j) for _, i, j in overlapping_pairs(all_xy, all_yaw, size_l, size_w, **kw))
+class _Crowd:
+    """The boxes a new pedestrian must keep off (logged vehicles, parked cars, earlier pedestrians) and
+    the pedestrians accepted so far."""
+
+    def __init__(self, ro, veh, parked: Parked, walkers: "Walkers | None" = None):
+        T = ro.yaw.shape[1]
+        self.xy = [ro.xy, np.repeat(parked.xy[:, None], T, 1)]
+        self.yaw = [ro.yaw, np.repeat(parked.yaw[:, None], T, 1)]
+        self.length, self.width = [veh.length, parked.length], [veh.width, parked.width]
+        self.steps, self.new = T, []
+        if walkers is not None and len(walkers):
+            for k in range(len(walkers)):
+                self._append(walkers.xy[k], walkers.yaw[k])
+
+    def _append(self, xy: np.ndarray, yaw: np.ndarray) -> None:
+        self.xy.append(xy[None])
+        self.yaw.append(yaw[None])
+        self.length.append([WALKER_SIZE])
+        self.width.append([WALKER_SIZE])
+
+    def fits(self, xy: np.ndarray, yaw: np.ndarray, margin: float | None = None) -> bool:
+        """Whether a pedestrian's (T, 2) path keeps its box off every other box at every step (inflated
+        by `margin`, default the traffic check's)."""
+        all_xy = np.concatenate([*self.xy, xy[None]])
+        all_yaw = np.concatenate([*self.yaw, yaw[None]])
+        size_l = np.concatenate([*self.length, [WALKER_SIZE]])
+        size_w = np.concatenate([*self.width, [WALKER_SIZE]])
+        last = len(all_xy) - 1
+        kw = {} if margin is None else {"margin": margin}
+        return not any(last in (i, j) for _, i, j in overlapping_pairs(all_xy, all_yaw, size_l, size_w, **kw))
+
+    def add(self, xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray) -> None:
+        self._append(xy, yaw)
+        self.new.append((xy, yaw, speed))
+
+    def walkers(self, crossing: bool) -> "Walkers":
+        """The pedestrians added, as Walkers."""
+        if not self.new:
+            return Walkers.none(self.steps)
+        xy, yaw, speed = (np.stack(x) for x in zip(*self.new))
+        return Walkers(xy, yaw, speed, np.full(len(self.new), crossing))
 
 
 def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, parked: Parked,
@@ -366,22 +396,18 @@ def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, ve
     WALKER_LANE_CLEAR of a lane centre line, or touch a vehicle, a parked car or an earlier pedestrian
     at any step are left out (up to four tries for each)."""
     n, T = ro.yaw.shape
-    none = Walkers.none(T)
     want = int(rng.poisson(mean)) if mean > 0 else 0
     if want == 0 or not m.curbs:
-        return none
+        return Walkers.none(T)
     kerbs = [c.sample()[0] for c in m.curbs]
     kerbs = [k for k in kerbs if len(k) >= 3]
     lanes = np.concatenate([lane.path.sample()[0] for lane in m.lanes])
     segs = m.curb_segments()
     half = WALKER_SIZE / 2
-    others_xy = [ro.xy, np.repeat(parked.xy[:, None], T, 1)]
-    others_yaw = [ro.yaw, np.repeat(parked.yaw[:, None], T, 1)]
-    others_l, others_w = [veh.length, parked.length], [veh.width, parked.width]
-    out_xy, out_yaw, out_v = [], [], []
+    crowd = _Crowd(ro, veh, parked)
     t = np.arange(T) * dt
     for _ in range(4 * want):
-        if len(out_v) == want or not kerbs:
+        if len(crowd.new) == want or not kerbs:
             break
         pts = kerbs[int(rng.integers(len(kerbs)))]
         k = int(rng.integers(1, len(pts) - 1))
@@ -399,18 +425,9 @@ def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, ve
             continue
         if m.curb_hits(xy, yaw, half, half, segs).any():
             continue
-        if not _touches_nobody(xy, yaw, others_xy, others_yaw, others_l, others_w):
-            continue
-        out_xy.append(xy)
-        out_yaw.append(yaw)
-        out_v.append(np.full(T, v))
-        others_xy.append(xy[None])
-        others_yaw.append(yaw[None])
-        others_l.append([WALKER_SIZE])
-        others_w.append([WALKER_SIZE])
-    if not out_v:
-        return none
-    return Walkers(np.stack(out_xy), np.stack(out_yaw), np.stack(out_v), np.zeros(len(out_v), bool))
+        if crowd.fits(xy, yaw):
+            crowd.add(xy, yaw, np.full(T, v))
+    return crowd.walkers(crossing=False)
 
 
 def cross_roads(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, parked: Parked,
@@ -421,18 +438,13 @@ def cross_roads(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, 
     would come within CROSS_CLEAR m of a vehicle's, a parked car's or another pedestrian's at any step
     is left out (up to six tries for each)."""
     n, T = ro.yaw.shape
-    none = Walkers.none(T)
     want = int(rng.poisson(mean)) if mean > 0 else 0
     if want == 0 or not m.crosswalks:
-        return none
-    others_xy = [ro.xy, np.repeat(parked.xy[:, None], T, 1), walkers.xy]
-    others_yaw = [ro.yaw, np.repeat(parked.yaw[:, None], T, 1), walkers.yaw]
-    others_l = [veh.length, parked.length, np.full(len(walkers), WALKER_SIZE)]
-    others_w = [veh.width, parked.width, np.full(len(walkers), WALKER_SIZE)]
-    out_xy, out_yaw, out_v = [], [], []
+        return Walkers.none(T)
+    crowd = _Crowd(ro, veh, parked, walkers)
     t = np.arange(T) * dt
     for _ in range(6 * want):
-        if len(out_v) == want:
+        if len(crowd.new) == want:
             break
         cw = m.crosswalks[int(rng.integers(len(m.crosswalks)))]  # corners lo/t0, hi/t0, hi/t1, lo/t1
         a, b = 0.5 * (cw[0] + cw[3]), 0.5 * (cw[1] + cw[2])  # the two ends, across the road
@@ -450,18 +462,9 @@ def cross_roads(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, 
         xy = start + np.outer(s, u)
         yaw = np.full(T, math.atan2(u[1], u[0]))
         speed = np.where((v * (t - t0) > 0) & (v * (t - t0) < length), v, 0.0)
-        if not _touches_nobody(xy, yaw, others_xy, others_yaw, others_l, others_w, CROSS_CLEAR):
-            continue
-        out_xy.append(xy)
-        out_yaw.append(yaw)
-        out_v.append(speed)
-        others_xy.append(xy[None])
-        others_yaw.append(yaw[None])
-        others_l.append([WALKER_SIZE])
-        others_w.append([WALKER_SIZE])
-    if not out_v:
-        return none
-    return Walkers(np.stack(out_xy), np.stack(out_yaw), np.stack(out_v), np.ones(len(out_v), bool))
+        if crowd.fits(xy, yaw, CROSS_CLEAR):
+            crowd.add(xy, yaw, speed)
+    return crowd.walkers(crossing=True)
 
 
 def _parked_at_kerb(veh, ro) -> np.ndarray:
