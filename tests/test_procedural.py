@@ -549,6 +549,47 @@ def test_crossing_pedestrians_walk_across_the_lanes_clear_of_the_logs():
     assert total >= 4
 
 
+def test_logged_vehicles_wait_for_crossing_pedestrians():
+    """While a crossing pedestrian walks, logged vehicles stand just short of its path (within CROSS_STOP
+    plus their half length and a metre of the line it walks, at under 0.3 m/s), then drive over that
+    line once it has crossed. (With the yielding switched off, none of these scenes has such a wait.)"""
+    from tg_gpudrive.data.log_audit import segment_distance
+    from tg_gpudrive.data.procedural.traffic import CROSS_STOP
+
+    p = ProceduralParams(crossings=4.0, parking=0.8)
+    waits = 0
+    for k, kind in enumerate(("dual_lane_intersection", "t_junction", "dense_intersection", "y_junction") * 2):
+        sc = generate_scene(kind, 60 + k, p)
+        cars = np.flatnonzero((sc.agent_type == AgentType.VEHICLE) & (np.ptp(sc.log_pos, axis=1).max(-1) > 1.0))
+        for i in sc.metadata["crossing_pedestrians"]:
+            a, b = sc.log_pos[i, 0].astype(float), sc.log_pos[i, -1].astype(float)
+            walking = np.linalg.norm(sc.log_vel[i], axis=-1) > 0
+            if not walking.any():
+                continue
+            done = np.flatnonzero(walking)[-1]
+            for j in cars:
+                d = segment_distance(sc.log_pos[j].astype(float), a, b)
+                stand = np.linalg.norm(sc.log_vel[j], axis=-1) < 0.3
+                waited = np.any(walking & stand & (d < sc.length[j] / 2 + CROSS_STOP + 1.0))
+                waits += bool(waited and np.any(d[done:] < 0.5))
+    assert waits >= 2
+
+
+def test_crossing_path_and_where_a_route_crosses_it():
+    from tg_gpudrive.data.procedural.traffic import DS, Crossing, _crossing_s
+
+    c = Crossing(np.array([10.0, -6.0]), np.array([10.0, 6.0]), 1.2, 0.5)  # 12 m at 1.2 m/s from t = 0.5 s
+    xy, yaw, speed = c.path(121, 0.1)
+    assert c.t_off == pytest.approx(10.5)
+    np.testing.assert_allclose(xy[:6], [[10.0, -6.0]] * 6)  # waits at the kerb until 0.5 s
+    np.testing.assert_allclose(xy[25], [10.0, -6.0 + 1.2 * 2.0], atol=1e-9)
+    np.testing.assert_allclose(xy[110:], [[10.0, 6.0]] * 11, atol=1e-9)  # arrived at 10.5 s
+    assert yaw[0] == pytest.approx(np.pi / 2) and speed[5] == 0 and speed[6] == 1.2 and speed[-1] == 0
+    route = np.stack([np.arange(0, 40, DS), np.full(80, 1.5)], 1)  # a straight lane along y = 1.5
+    assert _crossing_s(route, c.a, c.b) == pytest.approx(10.0)
+    assert _crossing_s(route + [0.0, 10.0], c.a, c.b) == np.inf  # passes beyond the far kerb
+
+
 def test_no_crossings_leaves_scenes_bit_for_bit():
     base = ProceduralParams(pedestrians=2.0, parking=0.8)
     a = generate_scene("t_junction", 5, base)

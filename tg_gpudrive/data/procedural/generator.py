@@ -31,12 +31,13 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
-from tg_gpudrive.data.procedural.traffic import (TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_changes,
+from tg_gpudrive.data.procedural.traffic import (Crossing, TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_changes,
                                                  plan_lane_offsets, plan_park_clearance, settle, spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
@@ -57,6 +58,8 @@ _CROSSING_STREAM = 0xC055  # third seed word of the crossing pedestrians' stream
 CROSS_SPEED = (1.0, 1.6)  # m/s of a pedestrian crossing the road
 CROSS_KERB = 1.5  # m beyond each end of its crosswalk where a crossing starts and ends
 CROSS_CLEAR = 1.0  # m every logged box keeps from a crossing pedestrian's at every step
+CROSS_WAIT = 1.5  # s a pedestrian waits at the kerb for a vehicle that could not stop for it ...
+CROSS_WAITS = 4  # ... at most this many times, then it does not cross
 
 SCENARIO_TYPES = ("merge", "dual_lane_intersection", "t_junction", "dense_intersection", "roundabout", "y_junction")
 
@@ -106,9 +109,10 @@ class ProceduralParams:
                     scene; intersections only, where crosswalks are drawn): each waits on the sidewalk
                     CROSS_KERB m short of its crosswalk, walks across at CROSS_SPEED from a random
                     moment (some are mid-crossing at the first step) and stands on the far side. The
-                    logged traffic does not yield to them: a crossing is kept only where every logged box
-                    stays CROSS_CLEAR m clear of the pedestrian's at every step, so the logs stay
-                    collision-free and a driven vehicle that comes at another time must yield. In real
+                    logged traffic yields (traffic.py `Crossing`): a vehicle whose route crosses the
+                    path and that can still stop waits short of it while the pedestrian crosses; a
+                    crossing is kept only where every logged box stays CROSS_CLEAR m clear of the
+                    pedestrian's at every step, so a driven vehicle must yield as the logged one did. In real
                     WOMD dev scenes 28 % of pedestrians come within 1.75 m of a lane centre, in 38 % of
                     the scenes; sidewalk pedestrians never do.
     lane_changes    probability that a vehicle whose route ends on a straight lane beside a parallel
@@ -227,7 +231,9 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
         plan_lane_offsets(veh, street, p.lane_offset, p.lane_width)
         if p.park_reach > 0:
             plan_park_clearance(tm, veh, street, p.lane_width)
-        veh, ro, dropped = settle(tm, veh, p.num_steps, p.dt, p.min_vehicles, hold)
+        plans = plan_crossings(m, np.random.default_rng([SCENARIO_TYPES.index(scenario_type), int(seed) % (1 << 64),
+                                                         _CROSSING_STREAM]), p.crossings, (p.num_steps - 1) * p.dt)
+        veh, ro, dropped, plans = _settle_yielding(tm, veh, p, hold, plans)
         if veh is not None:
             # kerb stops and lane changes are drawn where the free drive shows a vehicle gets far
             # enough, then the traffic is rolled out again with them (if that cannot settle, the scene
@@ -239,17 +245,14 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
                                                 _CHANGE_STREAM])
                 planned += plan_lane_changes(tm, kerb, ro.s[:, -1], change, p.lane_changes, p.lane_width)
             if planned:
-                kerb, ro_k, dropped_k = settle(tm, kerb, p.num_steps, p.dt, p.min_vehicles, hold)
+                kerb, ro_k, dropped_k, plans_k = _settle_yielding(tm, kerb, p, hold, plans)
                 if kerb is not None:
-                    veh, ro, dropped = kerb, ro_k, dropped + dropped_k
-            parked = park_cars(m, street, ro, veh, p.max_parked, p.park_reach)
+                    veh, ro, dropped, plans = kerb, ro_k, dropped + dropped_k, plans_k
+            parked = park_cars(m, street, *_with_crossers(ro, veh, plans, p), p.max_parked, p.park_reach)
+            crossers = crossing_walkers(plans, ro, veh, parked, p.num_steps, p.dt)
             walkers = walk_sidewalks(m, np.random.default_rng([SCENARIO_TYPES.index(scenario_type),
                                                                int(seed) % (1 << 64), _WALKER_STREAM]),
-                                     p.pedestrians, ro, veh, parked, p.dt)
-            if p.crossings > 0:
-                walkers = walkers + cross_roads(m, np.random.default_rng([SCENARIO_TYPES.index(scenario_type),
-                                                                          int(seed) % (1 << 64), _CROSSING_STREAM]),
-                                                p.crossings, ro, veh, parked, walkers, p.dt)
+                                     p.pedestrians, ro, veh, parked, p.dt, crossers) + crossers
             return _export(scenario_type, int(seed), p, m, veh, ro, len(dropped), parked, hold, walkers)
         boost *= 1.2
     raise RuntimeError(f"procedural {scenario_type} seed {seed}: no valid scene after 12 attempts")
@@ -275,6 +278,9 @@ class Parked:
 
     def __len__(self) -> int:
         return len(self.yaw)
+
+
+_NO_PARKED = Parked(np.zeros((0, 2)), np.zeros(0), np.zeros(0), np.zeros(0))
 
 
 def park_cars(m: geo.RoadMap, rng: np.random.Generator, ro, veh, max_parked: int, reach: float = 0.0) -> Parked:
@@ -366,15 +372,15 @@ class _Crowd:
         self.length.append([WALKER_SIZE])
         self.width.append([WALKER_SIZE])
 
-    def fits(self, xy: np.ndarray, yaw: np.ndarray, margin: float | None = None) -> bool:
-        """Whether a pedestrian's (T, 2) path keeps its box off every other box at every step (inflated
-        by `margin`, default the traffic check's)."""
+    def fits(self, xy: np.ndarray, yaw: np.ndarray, clearance: float | None = None) -> bool:
+        """Whether a pedestrian's (T, 2) path keeps its box `clearance` m from every other box at every
+        step (default: the traffic check's margin on each box)."""
         all_xy = np.concatenate([*self.xy, xy[None]])
         all_yaw = np.concatenate([*self.yaw, yaw[None]])
         size_l = np.concatenate([*self.length, [WALKER_SIZE]])
         size_w = np.concatenate([*self.width, [WALKER_SIZE]])
         last = len(all_xy) - 1
-        kw = {} if margin is None else {"margin": margin}
+        kw = {} if clearance is None else {"margin": clearance / 2}  # the margin grows both boxes
         return not any(last in (i, j) for _, i, j in overlapping_pairs(all_xy, all_yaw, size_l, size_w, **kw))
 
     def add(self, xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray) -> None:
@@ -390,7 +396,7 @@ class _Crowd:
 
 
 def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, parked: Parked,
-                   dt: float) -> Walkers:
+                   dt: float, others: Walkers | None = None) -> Walkers:
     """Poisson(`mean`) pedestrians, each standing or walking in a straight line along a kerb, 1-3 m
     beyond it on the side away from the lanes; those whose box would touch a kerb, come within
     WALKER_LANE_CLEAR of a lane centre line, or touch a vehicle, a parked car or an earlier pedestrian
@@ -404,7 +410,7 @@ def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, ve
     lanes = np.concatenate([lane.path.sample()[0] for lane in m.lanes])
     segs = m.curb_segments()
     half = WALKER_SIZE / 2
-    crowd = _Crowd(ro, veh, parked)
+    crowd = _Crowd(ro, veh, parked, others)
     t = np.arange(T) * dt
     for _ in range(4 * want):
         if len(crowd.new) == want or not kerbs:
@@ -430,38 +436,76 @@ def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, ve
     return crowd.walkers(crossing=False)
 
 
-def cross_roads(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, veh, parked: Parked,
-                walkers: Walkers, dt: float) -> Walkers:
-    """Poisson(`mean`) pedestrians crossing the road on the map's crosswalks (see ProceduralParams.crossings):
-    from CROSS_KERB m short of one end of a crosswalk to as far past the other, at a speed drawn from
-    CROSS_SPEED, starting at a moment drawn so that the crossing overlaps the episode; one whose box
-    would come within CROSS_CLEAR m of a vehicle's, a parked car's or another pedestrian's at any step
-    is left out (up to six tries for each)."""
-    n, T = ro.yaw.shape
+def plan_crossings(m: geo.RoadMap, rng: np.random.Generator, mean: float, duration: float) -> list[Crossing]:
+    """Poisson(`mean`) pedestrians to cross the road on the map's crosswalks (ProceduralParams.crossings):
+    from CROSS_KERB m short of one end of a crosswalk to as far past the other, within 1 m of its centre
+    line, at a speed drawn from CROSS_SPEED, leaving at a moment drawn so that the middle of the crossing
+    falls within the episode (`duration` s)."""
     want = int(rng.poisson(mean)) if mean > 0 else 0
-    if want == 0 or not m.crosswalks:
-        return Walkers.none(T)
-    crowd = _Crowd(ro, veh, parked, walkers)
-    t = np.arange(T) * dt
-    for _ in range(6 * want):
-        if len(crowd.new) == want:
-            break
+    out = []
+    for _ in range(want if m.crosswalks else 0):
         cw = m.crosswalks[int(rng.integers(len(m.crosswalks)))]  # corners lo/t0, hi/t0, hi/t1, lo/t1
         a, b = 0.5 * (cw[0] + cw[3]), 0.5 * (cw[1] + cw[2])  # the two ends, across the road
         if rng.random() < 0.5:
             a, b = b, a
-        along = b - a
-        span = float(np.linalg.norm(along))
-        u = along / max(span, 1e-9)
+        u = (b - a) / max(float(np.linalg.norm(b - a)), 1e-9)
         side = (cw[3] - cw[0]) / max(float(np.linalg.norm(cw[3] - cw[0])), 1e-9)  # along the road
-        start = a - u * CROSS_KERB + side * float(rng.uniform(-1.0, 1.0))
-        length = span + 2 * CROSS_KERB
+        shift = side * float(rng.uniform(-1.0, 1.0))
+        start, end = a - u * CROSS_KERB + shift, b + u * CROSS_KERB + shift
         v = float(rng.uniform(*CROSS_SPEED))
-        t0 = float(rng.uniform(-0.5 * length / v, t[-1] - 0.5 * length / v))  # mid-crossing within the episode
-        s = np.clip(v * (t - t0), 0.0, length)
-        xy = start + np.outer(s, u)
-        yaw = np.full(T, math.atan2(u[1], u[0]))
-        speed = np.where((v * (t - t0) > 0) & (v * (t - t0) < length), v, 0.0)
+        half_way = 0.5 * float(np.linalg.norm(end - start)) / v
+        out.append(Crossing(start, end, v, float(rng.uniform(-half_way, duration - half_way))))
+    return out
+
+
+def _settle_yielding(tm: TrafficModel, veh, p: ProceduralParams, hold: bool, plans: list[Crossing]):
+    """`settle` with the vehicles yielding to the crossings of `plans`. A pedestrian whose path the settled
+    traffic does not keep CROSS_CLEAR from (a vehicle too close to stop when it set off) waits at the
+    kerb CROSS_WAIT s longer, up to CROSS_WAITS times, then gives up (dropped); the traffic is rolled out
+    again after each change. Returns settle's (vehicles, log, dropped) and the crossings kept."""
+    nobody = SimpleNamespace(xy=np.zeros((0, p.num_steps, 2)), yaw=np.zeros((0, p.num_steps)))
+    apart, kept_plans = _Crowd(nobody, SimpleNamespace(length=np.zeros(0), width=np.zeros(0)), _NO_PARKED), []
+    for c in plans:  # pedestrians that would walk into each other: the later-drawn one does not cross
+        xy, yaw, speed = c.path(p.num_steps, p.dt)
+        if apart.fits(xy, yaw, CROSS_CLEAR):
+            apart.add(xy, yaw, speed)
+            kept_plans.append(c)
+    plans, waits = kept_plans, [0] * len(kept_plans)
+    while True:
+        kept, ro, dropped = settle(tm, veh, p.num_steps, p.dt, p.min_vehicles, hold, tuple(plans))
+        if kept is None or not plans:
+            return kept, ro, dropped, plans
+        crowd = _Crowd(ro, kept, _NO_PARKED)
+        clear = [crowd.fits(*c.path(p.num_steps, p.dt)[:2], CROSS_CLEAR) for c in plans]
+        if all(clear):
+            return kept, ro, dropped, plans
+        keep = []
+        for c, w, ok in zip(plans, waits, clear):
+            if ok:
+                keep.append((c, w))
+            elif w < CROSS_WAITS:
+                keep.append((dataclasses.replace(c, t0=c.t0 + CROSS_WAIT), w + 1))
+        plans, waits = [c for c, _ in keep], [w for _, w in keep]
+
+
+def _with_crossers(ro, veh, plans: list[Crossing], p: ProceduralParams):
+    """The moving boxes parked cars must keep off, as park_cars reads them (`ro.xy`, `ro.yaw`, `veh.length`,
+    `veh.width`): the logged vehicles and, grown by CROSS_CLEAR, the crossing pedestrians."""
+    if not plans:
+        return ro, veh
+    paths = [c.path(p.num_steps, p.dt) for c in plans]
+    size = np.full(len(plans), WALKER_SIZE + 2 * CROSS_CLEAR)
+    moving = SimpleNamespace(xy=np.concatenate([ro.xy, np.stack([q[0] for q in paths])]),
+                             yaw=np.concatenate([ro.yaw, np.stack([q[1] for q in paths])]))
+    return moving, SimpleNamespace(length=np.concatenate([veh.length, size]), width=np.concatenate([veh.width, size]))
+
+
+def crossing_walkers(plans: list[Crossing], ro, veh, parked: Parked, num_steps: int, dt: float) -> Walkers:
+    """The pedestrians of the kept crossings (parked cars were placed clear of them: `_with_crossers`; the
+    check stays as a guard)."""
+    crowd = _Crowd(ro, veh, parked)
+    for c in plans:
+        xy, yaw, speed = c.path(num_steps, dt)
         if crowd.fits(xy, yaw, CROSS_CLEAR):
             crowd.add(xy, yaw, speed)
     return crowd.walkers(crossing=True)

@@ -13,7 +13,10 @@ is IDM (desired speed, time headway, minimum gap) against:
     the minor road, then first come first served by a per-vehicle ticket, see
     `_decide`) and the second holds back behind the "frontier" that the first
     one's current position still leaves free (reservation of the zone),
-  * the curve speed limit (lateral acceleration LAT_ACC) and the route end.
+  * the curve speed limit (lateral acceleration LAT_ACC) and the route end,
+  * pedestrians crossing the road (`Crossing`): from CROSS_LEAD s before one steps off the kerb until
+    it reaches the far side, a vehicle whose route crosses its path and that can still stop (braking
+    at most B_HARD) holds its front CROSS_STOP m short of the path.
 Kerb stops, lane changes and lane offsets (`Vehicles.lateral`) move a vehicle sideways off its
 centreline, only where its route is straight, after the 1-D drive; a vehicle that pulls in at the
 kerb or changes lanes stops leading its followers once it has left their lane (on its new lane it
@@ -47,6 +50,58 @@ GAP_ACCEPT = 1.0  # s, time a minor-road vehicle wants between clearing and the 
 # off unless a scene asks for it (`drive(hold_at_stop_line=True)`, ProceduralParams.stop_lines):
 # then queues form at the stop lines, as at the stop-controlled junctions of WOMD.
 MIN_MOVE_AFTER_10 = 5.5  # m, a vehicle must travel this far after step 10 or be dropped
+CROSS_STOP = 2.5  # m short of a crossing pedestrian's path where a yielding vehicle holds its front
+CROSS_LEAD = 1.0  # s before a pedestrian steps off the kerb that vehicles start yielding to it
+
+
+@dataclass(frozen=True)
+class Crossing:
+    """A pedestrian walking straight from `a` to `b` (m, kerb to kerb across the road) at `speed` m/s,
+    leaving `a` at `t0` s (negative: already on its way at the first step)."""
+
+    a: np.ndarray
+    b: np.ndarray
+    speed: float
+    t0: float
+
+    @property
+    def t_off(self) -> float:
+        return self.t0 + float(np.linalg.norm(self.b - self.a)) / self.speed
+
+    def path(self, num_steps: int, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(T, 2) positions, (T,) headings and (T,) speeds: standing at a, walking, standing at b."""
+        span = self.b - self.a
+        length = float(np.linalg.norm(span))
+        u = span / max(length, 1e-9)
+        walked = self.speed * (np.arange(num_steps) * dt - self.t0)
+        xy = self.a + np.outer(np.clip(walked, 0.0, length), u)
+        speed = np.where((walked > 0) & (walked < length), self.speed, 0.0)
+        return xy, np.full(num_steps, math.atan2(u[1], u[0])), speed
+
+
+def _crossing_s(grid_xy: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Arc length (on the DS grid) where a route's centreline first crosses segment a-b, inf if never."""
+    p, r = grid_xy[:-1], np.diff(grid_xy, axis=0)
+    q = b - a
+    den = r[:, 0] * q[1] - r[:, 1] * q[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((a[0] - p[:, 0]) * q[1] - (a[1] - p[:, 1]) * q[0]) / den
+        w = ((a[0] - p[:, 0]) * r[:, 1] - (a[1] - p[:, 1]) * r[:, 0]) / den
+    hit = np.flatnonzero((np.abs(den) > 1e-12) & (t >= 0) & (t <= 1) & (w >= 0) & (w <= 1))
+    return float((hit[0] + t[hit[0]]) * DS) if len(hit) else math.inf
+
+
+def _yield_to_pedestrians(now: float, st: np.ndarray, vt: np.ndarray, half: np.ndarray, s_cross: np.ndarray,
+                          crossings: tuple[Crossing, ...], g_obs: np.ndarray) -> None:
+    """Shorten `g_obs` of each vehicle that must hold short of an active crossing (see the module docstring)."""
+    on = np.array([c.t0 - CROSS_LEAD <= now <= c.t_off for c in crossings])
+    if not on.any():
+        return
+    front = st + half
+    line = s_cross[:, on]  # (N, K) inf where the route does not cross
+    g = line - CROSS_STOP - front[:, None] + 1.0  # the IDM's obstacle gap: the front rests 1 m short of it
+    ok = np.isfinite(line) & (front[:, None] < line - 1.0) & (vt[:, None] ** 2 <= 2 * B_HARD * np.maximum(g - 1.0, 0.0))
+    np.minimum(g_obs, np.where(ok, g, np.inf).min(1), out=g_obs)
 
 
 @dataclass
@@ -780,9 +835,11 @@ def _poses(routes: list[Route], veh: Vehicles, s: np.ndarray, v: np.ndarray) -> 
     return xy, yaw
 
 
-def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False) -> TrafficLog:
+def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_stop_line: bool = False,
+          crossings: tuple[Crossing, ...] = ()) -> TrafficLog:
     """Integrate every vehicle along its route; see the module docstring for the rules.
-    `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone."""
+    `hold_at_stop_line`: a vehicle that must give way waits at its stop line, not at the zone;
+    `crossings`: pedestrians the vehicles yield to."""
     n = len(veh)
     rt = _route_tables(tm, veh)
     cf = _conflict_tables(tm, veh, rt)
@@ -800,6 +857,7 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
     a_prev = np.zeros(n)
     slow = np.zeros(n)  # s spent below 1 m/s
     ticket = np.full(n, np.inf)
+    s_cross = np.array([[_crossing_s(r.grid_xy, c.a, c.b) for c in crossings] for r in rt.routes]).reshape(n, -1)
     for t in range(num_steps - 1):
         st, vt = s[:, t], v[:, t]
         g_lead, dv = _leader_gap(rt, st, vt, halfsum, gone_s)
@@ -810,6 +868,8 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
             ticket[near] = t * dt + _travel_time(to_stop[near], vt[near], a_max[near], v_des[near])
         if cf is not None:
             _give_way(cf, t, st, vt, ticket, slow, half, g_obs, hold_at_stop_line)
+        if crossings:
+            _yield_to_pedestrians(t * dt, st, vt, half, s_cross, crossings, g_obs)
         a = _acceleration(veh, rt, st, vt, dv, g_lead, g_obs, a_prev, sqrt_ab)
         vn = np.maximum(vt + a * dt, 0.0)
         a_prev = (vn - vt) / dt
@@ -838,11 +898,11 @@ def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN) -> list[tuple
 
 
 def settle(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, min_keep: int = 2,
-           hold_at_stop_line: bool = False):
+           hold_at_stop_line: bool = False, crossings: tuple[Crossing, ...] = ()):
     """Roll out, drop offending vehicles, repeat until no box overlap and everyone moves."""
     dropped = []
     while True:
-        ro = drive(tm, veh, num_steps, dt, hold_at_stop_line)
+        ro = drive(tm, veh, num_steps, dt, hold_at_stop_line, crossings)
         bad = np.zeros(len(veh), bool)
         for _, i, j in overlapping_pairs(ro.xy, ro.yaw, veh.length, veh.width):
             if not bad[i] and not bad[j]:
