@@ -32,6 +32,7 @@ def test_features_of_a_hand_made_street():
     np.testing.assert_allclose(f["curvature"], 0.0, atol=1e-6)
     np.testing.assert_allclose(f["goal_distance"], [30.0], atol=1e-3)  # from x = 10 at step 10 to x = 40
     np.testing.assert_allclose(f["route_length"], [30.0], atol=1e-3)
+    np.testing.assert_allclose(f["vehicle_length"], [4.5])  # the driving car's (make_scene's default)
     assert f["agents"][0] == 3 and f["pedestrians"][0] == 1 and f["cyclists"][0] == 0
     assert f["pedestrians_on_lanes"][0] == 0  # it walks from 4 to 2 m beside the lane centre
     assert f["controlled"][0] == 1  # the parked car starts at its goal

@@ -19,6 +19,7 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
                                                             onto-slow encounters (merges, queues) a driver
                                                             must brake for
     goal_distance      m        candidates                  straight line from the init position to the goal
+    vehicle_length     m        candidates                  box length (vans, trucks and buses make the tail)
     route_length       m        candidates                  path length of the log from init_step to its last
                                                             valid step
     lateral_shift      m        straight candidates         how far the goal lies to the side of the init
@@ -59,9 +60,10 @@ from tg_gpudrive.engine import control
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
-FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "route_length", "lateral_shift", "agents", "controlled",
+FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "vehicle_length", "route_length", "lateral_shift", "agents", "controlled",
             "pedestrians", "pedestrians_on_lanes", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
-UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m", "route_length": "m",
+UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
+         "vehicle_length": "m", "route_length": "m",
          "lateral_shift": "m",
          "edge_density": "m/ha", "lane_width": "m"}
 PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
@@ -205,6 +207,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
         if goal_d[-1] >= STRAIGHT_MIN_M and abs(np.angle(np.exp(1j * turn))) < np.radians(STRAIGHT_DEG):
             shift.append(abs(np.cos(yaw0) * to_goal[1] - np.sin(yaw0) * to_goal[0]))
     out["goal_distance"], out["route_length"] = np.asarray(goal_d), np.asarray(route)
+    out["vehicle_length"] = scene.length[cand].astype(np.float64)
     out["lateral_shift"] = np.asarray(shift)
     present = scene.log_valid.any(1)
     vehicles = present & (scene.agent_type == AgentType.VEHICLE)
