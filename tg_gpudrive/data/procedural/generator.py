@@ -338,7 +338,7 @@ class Walkers:
     xy: np.ndarray  # (K, T, 2) m
     yaw: np.ndarray  # (K, T) rad
     speed: np.ndarray  # (K, T) m/s
-    crossing: np.ndarray  # (K,) bool: crosses the road (cross_roads), else keeps to a sidewalk
+    crossing: np.ndarray  # (K,) bool: crosses the road (plan_crossings), else keeps to a sidewalk
 
     def __len__(self) -> int:
         return len(self.speed)
