@@ -31,7 +31,7 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
     controlled         -        scenes                      the rule's eligible vehicles (engine.control)
     pedestrians        -        scenes                      pedestrians valid at some step
     pedestrians_on_lanes -      scenes                      pedestrians that come within LANE_HALF_M of a lane
-                                                            centre point at some valid step (crossing or
+                                                            centre line at some valid step (crossing or
                                                             walking in the road, where a vehicle must yield)
     cyclists           -        scenes                      cyclists valid at some step
     parked_share       -        scenes                      vehicles whose log moves less than 1 m in all,
@@ -73,7 +73,7 @@ STRAIGHT_DEG = 10.0  # a log whose heading turns less than this from init to its
 STRAIGHT_MIN_M = 15.0  # m: the goal of a straight log counted for lateral_shift is at least this far
 AHEAD_M = 30.0  # m: how far ahead of a candidate closing_speed looks for a leader ...
 CORRIDOR_M = 2.0  # m: ... and how far to its side
-LANE_HALF_M = 1.75  # m: a pedestrian this near a lane centre point stands in the lane
+LANE_HALF_M = 1.75  # m: a pedestrian this near a lane centre line stands in the lane
 
 
 def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:

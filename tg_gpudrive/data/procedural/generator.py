@@ -379,9 +379,8 @@ class _Crowd:
         all_yaw = np.concatenate([*self.yaw, yaw[None]])
         size_l = np.concatenate([*self.length, [WALKER_SIZE]])
         size_w = np.concatenate([*self.width, [WALKER_SIZE]])
-        last = len(all_xy) - 1
         kw = {} if clearance is None else {"margin": clearance / 2}  # the margin grows both boxes
-        return not any(last in (i, j) for _, i, j in overlapping_pairs(all_xy, all_yaw, size_l, size_w, **kw))
+        return not overlapping_pairs(all_xy, all_yaw, size_l, size_w, of=len(all_xy) - 1, **kw)
 
     def add(self, xy: np.ndarray, yaw: np.ndarray, speed: np.ndarray) -> None:
         self._append(xy, yaw)

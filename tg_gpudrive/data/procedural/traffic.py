@@ -92,9 +92,10 @@ def _crossing_s(grid_xy: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _yield_to_pedestrians(now: float, st: np.ndarray, vt: np.ndarray, half: np.ndarray, s_cross: np.ndarray,
-                          crossings: tuple[Crossing, ...], g_obs: np.ndarray) -> None:
-    """Shorten `g_obs` of each vehicle that must hold short of an active crossing (see the module docstring)."""
-    on = np.array([c.t0 - CROSS_LEAD <= now <= c.t_off for c in crossings])
+                          window: np.ndarray, g_obs: np.ndarray) -> None:
+    """Shorten `g_obs` of each vehicle that must hold short of a crossing active `now` (`window`: (K, 2) s,
+    from CROSS_LEAD before the pedestrian sets off to its arrival; see the module docstring)."""
+    on = (window[:, 0] <= now) & (now <= window[:, 1])
     if not on.any():
         return
     front = st + half
@@ -857,7 +858,9 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
     a_prev = np.zeros(n)
     slow = np.zeros(n)  # s spent below 1 m/s
     ticket = np.full(n, np.inf)
-    s_cross = np.array([[_crossing_s(r.grid_xy, c.a, c.b) for c in crossings] for r in rt.routes]).reshape(n, -1)
+    if crossings:  # where each route crosses each pedestrian's path, and when each crossing is active
+        s_cross = np.array([[_crossing_s(r.grid_xy, c.a, c.b) for c in crossings] for r in rt.routes])
+        window = np.array([(c.t0 - CROSS_LEAD, c.t_off) for c in crossings])
     for t in range(num_steps - 1):
         st, vt = s[:, t], v[:, t]
         g_lead, dv = _leader_gap(rt, st, vt, halfsum, gone_s)
@@ -869,7 +872,7 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
         if cf is not None:
             _give_way(cf, t, st, vt, ticket, slow, half, g_obs, hold_at_stop_line)
         if crossings:
-            _yield_to_pedestrians(t * dt, st, vt, half, s_cross, crossings, g_obs)
+            _yield_to_pedestrians(t * dt, st, vt, half, s_cross, window, g_obs)
         a = _acceleration(veh, rt, st, vt, dv, g_lead, g_obs, a_prev, sqrt_ab)
         vn = np.maximum(vt + a * dt, 0.0)
         a_prev = (vn - vt) / dt
@@ -880,12 +883,17 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
     return TrafficLog(s, v, xy, yaw)
 
 
-def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN) -> list[tuple[int, int, int]]:
-    """(step, i, j) with i < j for every pair of boxes that touch (inflated by margin)."""
+def overlapping_pairs(xy, yaw, length, width, margin=CHECK_MARGIN, of: int | None = None) -> list[tuple[int, int, int]]:
+    """(step, i, j) with i < j for every pair of boxes that touch (inflated by margin); with `of`, only the
+    pairs that include box `of` (one new box against the rest, without re-testing the rest)."""
     n, t = yaw.shape
     if n < 2:
         return []
-    i, j = np.triu_indices(n, 1)
+    if of is None:
+        i, j = np.triu_indices(n, 1)
+    else:
+        other = np.delete(np.arange(n), of)
+        i, j = np.minimum(other, of), np.maximum(other, of)
     rad = np.hypot(length / 2 + margin, width / 2 + margin)
     d = np.linalg.norm(xy[i] - xy[j], axis=-1)  # (P, T)
     pi, ti = np.nonzero(d < (rad[i] + rad[j])[:, None])
