@@ -64,6 +64,59 @@ def _collect(scenes, cfg: WorldModelConfig):
 
 
 @pytest.mark.slow
+def _reference_forward(model: WorldModel, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor:
+    """The world model's forward through PyTorch's own attention modules (the weights it holds)."""
+    from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+
+    def cross(ca, q, keys, mask):
+        keys = torch.cat([ca.null.expand(len(keys), 1, -1), keys], dim=1)
+        pad = torch.cat([mask.new_zeros(len(mask), 1), ~mask], dim=1)
+        out, _ = ca.attn(q[:, None], keys, keys, key_padding_mask=pad, need_weights=False)
+        return ca.norm(out[:, 0])
+
+    k, kr = model.partner_k, model.road_k
+    part = obs[:, EGO_DIM:EGO_DIM + k * PARTNER_DIM].reshape(-1, k, PARTNER_DIM)[:, :model.max_partners]
+    road = obs[:, EGO_DIM + k * PARTNER_DIM:].reshape(-1, kr, ROAD_DIM)[:, :model.max_roads]
+    q = model.ego(obs[:, :EGO_DIM] / model.ego_scale)
+    t = cross(model.ca_time, q, model._hist_tokens(hist), hist[..., -1] > 0.5)
+    m = cross(model.ca_map, q + t, model.road_in(road / model.road_scale), road[..., 0] > 0.5)
+    n = cross(model.ca_agent, q + t + m, model.partner_in(part / model.partner_scale), part[..., 0] > 0.5)
+    z = model.self_attn(torch.stack([q, t, m, n], dim=1))
+    return model.head(z.reshape(len(z), -1))
+
+
+@pytest.mark.parametrize("train", [False, True])
+def test_attention_matches_pytorchs_modules(train):
+    """The world model runs its attention written out (a few queries per row); on the same weights
+    it gives PyTorch's nn.MultiheadAttention / TransformerEncoderLayer outputs and gradients,
+    including rows whose partner, road or history sets are empty (only the null key is left)."""
+    torch.manual_seed(0)
+    from tg_gpudrive.history import HIST_DIM
+    from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
+    model = WorldModel(partner_k=4, road_k=6, max_partners=3, max_roads=5, history=5).double().train(train)
+    for p in model.parameters():  # the null keys and biases start at 0: make every weight count
+        p.data.add_(0.1 * torch.randn_like(p))
+    n = 40
+    obs = torch.randn(n, EGO_DIM + 4 * PARTNER_DIM + 6 * ROAD_DIM, dtype=torch.float64)
+    lay = obs[:, EGO_DIM:].clone()
+    lay[:, :4 * PARTNER_DIM].view(n, 4, PARTNER_DIM)[..., 0] = (torch.rand(n, 4) < 0.6).float()
+    lay[:, 4 * PARTNER_DIM:].view(n, 6, ROAD_DIM)[..., 0] = (torch.rand(n, 6) < 0.6).float()
+    lay[:3, :4 * PARTNER_DIM].view(3, 4, PARTNER_DIM)[..., 0] = 0.0  # no partner
+    lay[3:6, 4 * PARTNER_DIM:].view(3, 6, ROAD_DIM)[..., 0] = 0.0  # no road point
+    obs[:, EGO_DIM:] = lay
+    hist = torch.randn(n, 5, HIST_DIM, dtype=torch.float64)
+    hist[..., -1] = (torch.rand(n, 5) < 0.7).float()
+    hist[6:9, :, -1] = 0.0  # no history
+    obs.requires_grad_(True)
+    got = model(obs, hist)
+    g_got = torch.autograd.grad(got.square().sum(), [obs, *model.parameters()])
+    want = _reference_forward(model, obs, hist)
+    g_want = torch.autograd.grad(want.square().sum(), [obs, *model.parameters()])
+    torch.testing.assert_close(got, want, rtol=1e-10, atol=1e-10)
+    for a, b in zip(g_got, g_want):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-10)
+
+
 def test_memorises_a_tiny_dataset(wm_cfg):
     torch.manual_seed(0)
     data = _collect([generate_scene("merge", 3), generate_scene("t_junction", 4)], wm_cfg)

@@ -33,15 +33,12 @@ import math
 
 import torch
 from torch import nn
-from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from tg_gpudrive.history import HIST_DIM, HIST_SCALE
 from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.enums import ActionSpace, Dynamics
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 
-
-_SDPA_BACKENDS = [SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH]
 
 _EGO_SCALE = [20.0, 5.0, 2.0, 50.0, 50.0, 1.0, 1.0, 5.0, 5.0, 8.0]
 _PARTNER_SCALE = [1.0, 50.0, 50.0, 1.0, 1.0, 20.0, 20.0, 5.0, 2.0, 4.0]
@@ -75,21 +72,55 @@ def _mlp(i: int, d: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(i, d), nn.ReLU(), nn.Linear(d, d))
 
 
+def _attend(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, pad: torch.Tensor | None, heads: int) -> torch.Tensor:
+    """Scaled dot-product attention of a few queries over a few keys, written out: q (N, Q, d),
+    k and v (N, L, d), pad (N, L) True where a key is absent -> (N, Q, d). With one to four queries
+    per row, the fused attention kernels, which tile queries in blocks of 64 or more, spend most of
+    their work on padding; these are a handful of elementwise passes over the keys instead."""
+    n, nq, d = q.shape
+    hd = d // heads
+    q = q.reshape(n, nq, 1, heads, hd) * hd**-0.5
+    s = (q * k.reshape(n, 1, -1, heads, hd)).sum(-1)  # (N, Q, L, heads)
+    if pad is not None:
+        s = s.masked_fill(pad[:, None, :, None], float("-inf"))
+    p = torch.softmax(s.to(torch.promote_types(s.dtype, torch.float32)), dim=2).to(v.dtype)
+    return (p[..., None] * v.reshape(n, 1, -1, heads, hd)).sum(2).reshape(n, nq, d)
+
+
+def _mha(attn: nn.MultiheadAttention, q: torch.Tensor, kv: torch.Tensor, pad: torch.Tensor | None) -> torch.Tensor:
+    """nn.MultiheadAttention's forward (no dropout, no weights returned) through `_attend`, on its
+    own parameters: q (N, Q, d), kv (N, L, d), pad (N, L) or None."""
+    d = attn.embed_dim
+    w, b = attn.in_proj_weight, attn.in_proj_bias
+    if q is kv:
+        q, k, v = nn.functional.linear(q, w, b).split(d, dim=-1)
+    else:
+        q = nn.functional.linear(q, w[:d], b[:d])
+        k, v = nn.functional.linear(kv, w[d:], b[d:]).split(d, dim=-1)
+    return attn.out_proj(_attend(q, k, v, pad, attn.num_heads))
+
+
 class _CrossAttention(nn.Module):
     """Query token attends over a masked key set; a learned null key keeps empty sets defined."""
 
     def __init__(self, d: int, heads: int):
         super().__init__()
         self.null = nn.Parameter(torch.zeros(1, 1, d))
-        self.attn = nn.MultiheadAttention(d, heads, batch_first=True)
+        self.attn = nn.MultiheadAttention(d, heads, batch_first=True)  # holds the weights; see _mha
         self.norm = nn.LayerNorm(d)
 
     def forward(self, q: torch.Tensor, keys: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
         n = keys.shape[0]
-        keys = torch.cat([self.null.expand(n, 1, -1), keys], dim=1)
+        keys = torch.cat([self.null.expand(n, 1, -1).to(keys.dtype), keys], dim=1)
         pad = torch.cat([mask.new_zeros(n, 1), ~mask], dim=1)
-        out, _ = self.attn(q[:, None], keys, keys, key_padding_mask=pad, need_weights=False)
-        return self.norm(out[:, 0])
+        return self.norm(_mha(self.attn, q[:, None], keys, pad)[:, 0])
+
+
+def _encoder_layer(layer: nn.TransformerEncoderLayer, x: torch.Tensor) -> torch.Tensor:
+    """A post-norm nn.TransformerEncoderLayer (ReLU, no dropout, no mask) over a few tokens, its
+    attention through `_attend`."""
+    x = layer.norm1(x + _mha(layer.self_attn, x, x, None))
+    return layer.norm2(x + layer.linear2(torch.relu(layer.linear1(x))))
 
 
 class WorldModel(nn.Module):
@@ -131,6 +162,7 @@ class WorldModel(nn.Module):
         self.ca_time = _CrossAttention(d, heads)
         self.ca_map = _CrossAttention(d, heads)
         self.ca_agent = _CrossAttention(d, heads)
+        # holds the weights of the layer over the four tokens; run by _encoder_layer
         self.self_attn = nn.TransformerEncoderLayer(d, heads, dim_feedforward=2 * d, dropout=0.0, batch_first=True)
         out = num_actions if action_space == ActionSpace.DISCRETE else mixtures * 5  # logit, 2 locations, 2 log-scales
         self.head = nn.Sequential(nn.Linear(4 * d, 2 * d), nn.ReLU(), nn.Linear(2 * d, out))
@@ -154,12 +186,6 @@ class WorldModel(nn.Module):
         return self.temporal_in(feats) + self.time_emb[-hist.shape[-2]:]
 
     def forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor | LaplaceMixture:
-        # not cuDNN's attention: it builds a new plan for every batch size, and the number of live
-        # agents changes every step, so planning would take most of a rollout (BENCHMARKS.md, World model)
-        with sdpa_kernel(_SDPA_BACKENDS):
-            return self._forward(obs, hist)
-
-    def _forward(self, obs: torch.Tensor, hist: torch.Tensor) -> torch.Tensor | LaplaceMixture:
         lead = obs.shape[:-1]
         obs = obs.reshape(-1, obs.shape[-1])
         hist = hist.reshape(-1, *hist.shape[-2:])
@@ -172,7 +198,7 @@ class WorldModel(nn.Module):
         t = self.ca_time(q, self._hist_tokens(hist), hist[..., -1] > 0.5)
         m = self.ca_map(q + t, self.road_in(road / self.road_scale), road[..., 0] > 0.5)
         n = self.ca_agent(q + t + m, self.partner_in(part / self.partner_scale), part[..., 0] > 0.5)
-        z = self.self_attn(torch.stack([q, t, m, n], dim=1))
+        z = _encoder_layer(self.self_attn, torch.stack([q, t, m, n], dim=1))
         raw = self.head(z.reshape(z.shape[0], -1))
         if self.discrete:
             return raw.reshape(*lead, self.num_actions)
