@@ -11,6 +11,9 @@ Prints one JSON object (timings exclude warm-up calls; CUDA is synchronised arou
     inference  WorldModelDriver driving every vehicle of --worlds worlds for --steps steps:
                agent-steps/s of driver + engine step, of the engine alone under expert replay,
                and the driver's seconds per step
+    forward    the model's forward alone on --forward-rows random observation rows (partners and road
+               points 60-70 % present, a full history), float32 and under bf16 autocast (CUDA only),
+               as the magnet calls it: milliseconds per call
     prior      tg_gpudrive.learn.train.Trainer (configs/train/small_cpu.yaml + --set overrides),
                --updates timed updates (rollout + learn) after --warmup, with prior=expert and
                with prior=world_model, same config otherwise: seconds per update and the difference
@@ -33,6 +36,8 @@ import torch
 from tg_gpudrive.config import TrainConfig, load_config
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
+from tg_gpudrive.history import HIST_DIM
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM, ROAD_DIM
 from tg_gpudrive.learn.train import Trainer
 from tg_gpudrive.worldmodel import WorldModelDriver, load_world_model
 from tg_gpudrive.worldmodel.data import collect
@@ -116,6 +121,35 @@ def bench_inference(cfg, args, device: str) -> dict:
     return out
 
 
+@torch.no_grad()
+def bench_forward(cfg, args, device: str) -> dict:
+    model = _model(cfg, args.model, device)
+    model.set_layout(cfg.env.partner_k, cfg.env.road_k)
+    k, kr = cfg.env.partner_k, cfg.env.road_k
+    gen = torch.Generator(device=device).manual_seed(0)
+    out = {}
+    for n in args.forward_rows:
+        obs = torch.randn(n, EGO_DIM + k * PARTNER_DIM + kr * ROAD_DIM, device=device, generator=gen)
+        flags = torch.rand(n, k + kr, device=device, generator=gen) < 0.65
+        obs[:, EGO_DIM:EGO_DIM + k * PARTNER_DIM].view(n, k, PARTNER_DIM)[..., 0] = flags[:, :k].float()
+        obs[:, EGO_DIM + k * PARTNER_DIM:].view(n, kr, ROAD_DIM)[..., 0] = flags[:, k:].float()
+        hist = torch.randn(n, model.history, HIST_DIM, device=device, generator=gen)
+        hist[..., -1] = 1.0
+        for name, amp in (("float32", False), ("bf16", True)):
+            if amp and not device.startswith("cuda"):
+                continue
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
+                for _ in range(3):
+                    model(obs, hist)
+                _sync(device)
+                t0 = time.perf_counter()
+                for _ in range(args.steps):
+                    model(obs, hist)
+                _sync(device)
+            out[f"{n}_{name}_ms"] = (time.perf_counter() - t0) / args.steps * 1e3
+    return out
+
+
 def bench_prior(args, device: str) -> dict:
     overrides = [f"device={device}", *args.set]
     out = {}
@@ -163,12 +197,14 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--steps", type=int, default=50, help="timed steps of the inference benchmark")
     ap.add_argument("--scenes", default="procedural:all", help="scene spec of the inference benchmark")
     ap.add_argument("--pool", type=int, default=36, help="distinct scenes cycled over the worlds")
+    ap.add_argument("--forward-rows", type=int, nargs="+", default=[4096],
+                    help="rows of the forward benchmark (one timing per count)")
     ap.add_argument("--train-config", default=None, help="CCE-MAPPO config (default configs/train/small_cpu.yaml)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="CCE-MAPPO config override, e.g. --set num_worlds=1024 --set rollout_steps=32")
     ap.add_argument("--updates", type=int, default=3, help="timed CCE-MAPPO updates per prior")
     ap.add_argument("--warmup", type=int, default=1, help="untimed CCE-MAPPO updates first")
-    ap.add_argument("--skip", default="", help="comma list of parts to skip: train,inference,prior")
+    ap.add_argument("--skip", default="", help="comma list of parts to skip: train,inference,forward,prior")
     ap.add_argument("--threads", type=int, default=0,
                     help="torch CPU threads (0: torch's default; 1 avoids thread contention on a busy CPU)")
     args = ap.parse_args(argv)
@@ -186,6 +222,8 @@ def main(argv: list[str] | None = None) -> dict:
         res["train"] = bench_train(wm_cfg, args, device)
     if "inference" not in skip:
         res["inference"] = bench_inference(wm_cfg, args, device)
+    if "forward" not in skip:
+        res["forward"] = bench_forward(wm_cfg, args, device)
     if "prior" not in skip:
         res["prior"] = bench_prior(args, device)
     res["wall_s"] = time.perf_counter() - t0

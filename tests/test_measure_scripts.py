@@ -140,6 +140,18 @@ def test_profile_train_names_every_phase_of_an_iteration():
     assert res["rollout_s"] > 0 and res["update_s"] > 0 and res["agent_steps_per_s"] > 0
 
 
+def test_bench_world_model_times_the_forward_per_row_count():
+    """scripts/bench_world_model.py's forward part on the CPU: one float32 timing per row count (no bf16
+    without CUDA), as positive milliseconds."""
+    import json
+
+    r = run("bench_world_model", "--device", "cpu", "--threads", "1", "--skip", "train,inference,prior",
+            "--forward-rows", 8, 32, "--steps", 1)
+    assert r.returncode == 0, r.stderr[-2000:]
+    fwd = json.loads(r.stdout)["forward"]
+    assert set(fwd) == {"8_float32_ms", "32_float32_ms"} and min(fwd.values()) > 0
+
+
 def test_budget_by_knob_prints_the_logs_and_the_policys_risk_per_knob():
     """scripts/budget_by_knob.py on two procedural scenes: a row per (beta, alpha), the budget is cost_limit
     times the logs' CVaR, CVaR grows with alpha, and no cost fires for anyone at beta 0.5 m (closer than
