@@ -4,10 +4,11 @@
         [--warmup 2] [--trace trace.json] [--json]
 
 The trainer's rollout and update carry named ranges (torch.profiler.record_function): in the rollout
-`live_rows` (which agents act: the step's host sync), `actor`, `sample`, `critic`, `magnet`, `engine` and
-`buffers`; in the update `advantages`, `lagrange`, and per minibatch `forward` (actor, critic, quantiles,
-the KL terms), `backward` and `optimizer` (clipping and Adam). After `--warmup` plain iterations it
-times `--iters` more without the profiler (the wall clock of rollout and update, synchronised), then
+`live_rows` (which agents act: the step's host sync), `actor`, `sample`, `critic`, `magnet` (within it
+`magnet.context`, the history window, and `magnet.forward`, the world model), `engine` and `buffers`;
+in the update `advantages`, `lagrange`, and per minibatch `forward` (actor, critic, quantiles, the KL
+terms), `backward` and `optimizer` (clipping and Adam). After `--warmup` plain iterations it times
+`--iters` more without the profiler (the wall clock of rollout and update, synchronised), then
 profiles as many: per range the host time and the device time of the kernels launched inside it, per
 iteration, then the `--rows` operators that took the most device (or, on the CPU, host) time. `--trace`
 also writes the Chrome trace. Numbers only; it never fails on them.

@@ -132,7 +132,8 @@ def test_profile_train_names_every_phase_of_an_iteration():
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout.strip().splitlines()[-1])
     phases = res["phases"]
-    want = {f"rollout/{p}" for p in ("live_rows", "actor", "sample", "buffers", "critic", "magnet", "engine")}
+    want = {f"rollout/{p}" for p in ("live_rows", "actor", "sample", "buffers", "critic", "magnet", "magnet.context",
+                                     "magnet.forward", "engine")}
     want |= {f"update/{p}" for p in ("advantages", "lagrange", "forward", "backward", "optimizer")}
     assert want <= set(phases), sorted(phases)
     assert all(phases[p]["host_ms"] > 0 for p in want)

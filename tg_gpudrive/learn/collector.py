@@ -211,14 +211,15 @@ class RolloutCollector:
         """The magnet of step t: the discrete prior's logits once per live row (bf16 on GPU; computing them
         per minibatch and epoch instead doubled the update time with the world model), else its context."""
         if self.prior_logits:
-            ctx = self.prior.context(self.sim, C)
+            with phase("rollout/magnet.context"):  # the history window (and its host sync), apart from the model
+                ctx = self.prior.context(self.sim, C)
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
                 frac = self.cfg.magnet_fraction
                 pick = torch.randperm(len(w_idx), generator=self.gen, device=self.device)[:math.ceil(frac * len(w_idx))]
                 w_idx, c_idx = w_idx[pick], c_idx[pick]
                 buf.prior_weight[t].zero_()
                 buf.prior_weight[t][w_idx, c_idx] = 1.0 / frac
-            with self.nets.autocast():
+            with phase("rollout/magnet.forward"), self.nets.autocast():
                 buf.prior[t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
         elif self.cfg.eta1 > 0:
             buf.prior[t] = self.prior.context(self.sim, C)
