@@ -48,14 +48,18 @@ def test_features_of_a_hand_made_street():
 
 def test_a_pedestrian_crossing_the_lane_counts_on_the_lanes():
     """The street's pedestrian walks on across the lane: at 0.5 m/s from y = -4 it comes within 1.75 m of
-    the centre line after 4.5 s; a log of 4 s keeps it out, one of 6 s lets it in."""
+    the centre line after 4.5 s; a log of 4 s keeps it out, one of 6 s lets it in, and its speed there is
+    counted over the steps from y = -1.75 to the log's end at y = -1 (1.5 s, 14 whole steps inside)."""
     for steps, want in ((41, 0), (61, 1)):
         t = np.arange(steps) * 0.1
         pos = np.zeros((1, steps, 2))
         pos[0, :, 0], pos[0, :, 1] = 5.0, -4 + 0.5 * t
         sc = make_scene(pos, np.zeros((1, steps)), roads=[(RoadType.LANE, [[-20, 0], [80, 0]])],
                         agent_type=np.array([2]))
-        assert scene_features(sc)["pedestrians_on_lanes"][0] == want
+        f = scene_features(sc)
+        assert f["pedestrians_on_lanes"][0] == want
+        assert len(f["pedestrian_lane_speed"]) == 14 * want
+        np.testing.assert_allclose(f["pedestrian_lane_speed"], 0.5, atol=1e-4)
 
 
 def test_closing_speed_of_a_fast_car_behind_a_slow_one():

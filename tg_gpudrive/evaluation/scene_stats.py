@@ -33,6 +33,9 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
     pedestrians_on_lanes -      scenes                      pedestrians that come within LANE_HALF_M of a lane
                                                             centre line at some valid step (crossing or
                                                             walking in the road, where a vehicle must yield)
+    pedestrian_lane_speed m/s   pedestrian steps on a lane  path speed of those pedestrians over the steps they
+                                                            spend within LANE_HALF_M of a lane centre line (how
+                                                            fast a vehicle must expect them to step out)
     cyclists           -        scenes                      cyclists valid at some step
     parked_share       -        scenes                      vehicles whose log moves less than 1 m in all,
                                                             over vehicles
@@ -61,8 +64,8 @@ from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
 FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "vehicle_length", "route_length", "lateral_shift", "agents", "controlled",
-            "pedestrians", "pedestrians_on_lanes", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
-UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
+            "pedestrians", "pedestrians_on_lanes", "pedestrian_lane_speed", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
+UNITS = {"speed": "m/s", "pedestrian_lane_speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
          "vehicle_length": "m", "route_length": "m",
          "lateral_shift": "m",
          "edge_density": "m/ha", "lane_width": "m"}
@@ -173,20 +176,28 @@ def _edge_density(scene: Scene, centres: np.ndarray) -> float:
     return metres / area_ha if area_ha > 0 else float("nan")
 
 
-def _pedestrians_on_lanes(scene: Scene) -> int:
-    """Pedestrians within LANE_HALF_M of a lane centre line at some valid step."""
+def _lane_pedestrians(scene: Scene) -> tuple[int, np.ndarray]:
+    """How many pedestrians come within LANE_HALF_M of a lane centre line at some valid step, and their path
+    speeds over the steps they spend there (a step counts where both its ends are valid and within reach)."""
     segs = [(p[:-1], p[1:]) for t, p in ((t, np.asarray(p, np.float64)) for t, p in scene.polylines())
             if t == RoadType.LANE and len(p) > 1]
     if not segs:
-        return 0
+        return 0, np.zeros(0)
     a, b = (np.concatenate(x) for x in zip(*segs))
-    n = 0
+    n, speeds = 0, []
     for i in np.flatnonzero(scene.agent_type == AgentType.PEDESTRIAN):
-        xy = scene.log_pos[i, scene.log_valid[i].astype(bool)].astype(np.float64)
+        ok = np.flatnonzero(scene.log_valid[i])
+        xy = scene.log_pos[i, ok].astype(np.float64)
         near = (np.abs(xy[:, None] - 0.5 * (a + b)[None]).max(-1) < LANE_HALF_M + 0.5 * np.abs(b - a).max(-1))
-        if near.any() and segment_distance(xy[:, None], a[None], b[None])[near].min() < LANE_HALF_M:
+        if not near.any():
+            continue
+        d = np.where(near, segment_distance(xy[:, None], a[None], b[None]), np.inf).min(-1)
+        on = d < LANE_HALF_M
+        if on.any():
             n += 1
-    return n
+            step = on[:-1] & on[1:] & (np.diff(ok) == 1)
+            speeds.append(np.linalg.norm(np.diff(xy, axis=0), axis=-1)[step] / scene.dt)
+    return n, np.concatenate(speeds) if speeds else np.zeros(0)
 
 
 def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0) -> dict[str, np.ndarray]:
@@ -211,13 +222,14 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     out["lateral_shift"] = np.asarray(shift)
     present = scene.log_valid.any(1)
     vehicles = present & (scene.agent_type == AgentType.VEHICLE)
+    lane_peds, out["pedestrian_lane_speed"] = _lane_pedestrians(scene)
     moved = np.array([np.ptp(scene.log_pos[i][scene.log_valid[i]], axis=0).max() if present[i] else 0.0
                       for i in range(scene.num_agents)])
     per_scene = {
         "agents": present.sum(),
         "controlled": control.eligible(scene, cfg).sum(),
         "pedestrians": (present & (scene.agent_type == AgentType.PEDESTRIAN)).sum(),
-        "pedestrians_on_lanes": _pedestrians_on_lanes(scene),
+        "pedestrians_on_lanes": lane_peds,
         "cyclists": (present & (scene.agent_type == AgentType.CYCLIST)).sum(),
         "parked_share": (vehicles & (moved < PARKED_M)).sum() / max(vehicles.sum(), 1),
         "edge_density": _edge_density(scene, scene.log_pos[cand, init].astype(np.float64)),
