@@ -138,7 +138,9 @@ def check_invariants(sc, tag=""):
     assert t == p["num_steps"] and sc.dt == pytest.approx(p["dt"]), tag
     assert sc.log_valid.all(), tag
     assert (sc.agent_type == AgentType.VEHICLE).all()
-    assert ((sc.length >= 4.0) & (sc.length <= 5.5)).all() and ((sc.width >= 1.8) & (sc.width <= 2.2)).all()
+    car = (sc.length >= 4.0) & (sc.length <= 5.5) & (sc.width >= 1.8) & (sc.width <= 2.2)
+    truck = (sc.length > 5.5) & (sc.length <= 14.0) & (sc.width >= 2.0) & (sc.width <= 2.6)  # long_vehicles
+    assert (car | (truck if p.get("long_vehicles", 0.0) > 0 else False)).all(), tag
     for arr in (sc.log_pos, sc.log_yaw, sc.log_vel, sc.goal, sc.road_points):
         assert np.isfinite(arr).all(), tag
     md = sc.metadata
@@ -428,6 +430,37 @@ def test_lane_changes_end_on_the_parallel_lane():
     assert np.array_equal(plain.log_pos, generate_scene("merge", 0, ProceduralParams(lane_changes=0.0)).log_pos)
     with pytest.raises(ValueError, match="lane_changes"):
         ProceduralParams(lane_changes=1.5)
+
+
+def test_long_vehicles_keep_every_invariant():
+    """With long_vehicles, vans, trucks and buses (5.5-14 m long, 2.0-2.6 m wide) drive among the cars with
+    every invariant kept and their logs clear of the road edges and of each other (the log audit finds
+    nothing); a share of those drawn keep a car's size where the longer box would not fit. Off by default:
+    no moving vehicle is longer than 5.5 m and the scene is the same."""
+    from tg_gpudrive.data.log_audit import audit
+    from tg_gpudrive.data.procedural.traffic import LONG_LENGTH, LONG_WIDTH
+
+    params = ProceduralParams(long_vehicles=0.5, parking=0.8)
+    lengths, widths = [], []
+    for kind in SCENARIO_TYPES:
+        for seed in range(2):
+            sc = generate_scene(kind, seed, params)
+            check_all(sc, f"long vehicles {kind} seed {seed}")
+            assert audit(sc, 10, 2.0) == {}, (kind, seed)
+            moving = (sc.agent_type == AgentType.VEHICLE) & (np.ptp(sc.log_pos, axis=1).max(-1) > 1.0)
+            lengths += sc.length[moving].tolist()
+            widths += sc.width[moving].tolist()
+    L, W = np.array(lengths), np.array(widths)
+    long = L > 5.5 + 1e-6
+    assert 0.2 <= long.mean() <= 0.5, long.mean()
+    assert L[long].max() <= LONG_LENGTH[-1][1][1] and (L[long] > LONG_LENGTH[0][1][1]).any()
+    assert W[long].min() >= LONG_WIDTH[0] and W[long].max() <= LONG_WIDTH[1]
+    plain = generate_scene("dual_lane_intersection", 0)
+    assert plain.length.max() <= 5.5
+    off = generate_scene("dual_lane_intersection", 0, ProceduralParams(long_vehicles=0.0))
+    assert np.array_equal(plain.log_pos, off.log_pos) and np.array_equal(plain.length, off.length)
+    with pytest.raises(ValueError, match="long_vehicles"):
+        ProceduralParams(long_vehicles=1.5)
 
 
 def test_street_knobs_are_deterministic_and_off_by_default():

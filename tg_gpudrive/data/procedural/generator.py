@@ -38,7 +38,8 @@ import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
 from tg_gpudrive.data.procedural.traffic import (Crossing, TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_changes,
-                                                 plan_lane_offsets, plan_park_clearance, settle, spawn)
+                                                 plan_lane_offsets, plan_long_vehicles, plan_park_clearance, settle,
+                                                 spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
@@ -49,6 +50,7 @@ PARK_SPACE = (4.5, 7.0)  # m of an empty space
 PARK_KERB_CLEAR = 0.1  # m a parked box keeps from the kerb (and may reach over the lane edge)
 _WALKER_STREAM = 0xF007  # third seed word of the pedestrians' stream
 _CHANGE_STREAM = 0x1C4A  # third seed word of the lane changes' stream
+_LONG_STREAM = 0x7B05  # third seed word of the long vehicles' stream
 WALKER_SIZE = 0.8  # m, a pedestrian's box is this square (WOMD pedestrians: about 0.9 x 0.9)
 WALKER_KERB = (1.0, 3.0)  # m from the kerb, on the side away from the lanes
 WALKER_SPEED = (0.8, 1.6)  # m/s of those who walk
@@ -125,11 +127,15 @@ class ProceduralParams:
                     straight paths end 1.5 m or more to the side of where they started in 17 % of
                     cases; procedural ones in 3 % by default. A vehicle in the new lane that it
                     would touch is dropped, as for every overlap.
+    long_vehicles   probability that a moving vehicle is a van, truck or bus (traffic.py LONG_LENGTH:
+                    5.5-14 m long, 2.0-2.6 m wide) instead of a car (4-5.5 m), where the longer box fits
+                    at its start and sweeps no curb along its route. 8 % of real WOMD dev-scene
+                    candidates are longer than 5.5 m; procedural ones none by default.
 
     Street furniture (parking, stop lines, kerb stops, lane offsets) is drawn from its own random
-    stream, pedestrians, crossings and lane changes from one each: with parking = 0, stop_lines = 0,
-    lane_offset = 0, pedestrians = 0, crossings = 0 and lane_changes = 0 (kerb stops need parking) every scene is
-    what it was before these knobs existed, bit for bit.
+    stream, pedestrians, crossings, lane changes and long vehicles from one each: with parking = 0,
+    stop_lines = 0, lane_offset = 0, pedestrians = 0, crossings = 0, lane_changes = 0 and long_vehicles = 0
+    (kerb stops need parking) every scene is what it was before these knobs existed, bit for bit.
     """
 
     size_scale: float = 1.0
@@ -157,6 +163,7 @@ class ProceduralParams:
     pedestrians: float = 0.0
     crossings: float = 0.0
     lane_changes: float = 0.0
+    long_vehicles: float = 0.0
 
     def __post_init__(self):
         checks = [
@@ -172,8 +179,9 @@ class ProceduralParams:
             (self.time_headway > 0 and self.min_gap > 0, "time_headway and min_gap must be positive"),
             (0 < self.max_accel <= 2.5 and 0 < self.comfort_decel <= 3.5, "max_accel <= 2.5, comfort_decel <= 3.5"),
             (self.spawn_range >= 10.0, "spawn_range must be >= 10 m"),
-            (all(0.0 <= x <= 1.0 for x in (self.parking, self.stop_lines, self.kerb_stops, self.lane_changes)),
-             "parking, stop_lines, kerb_stops and lane_changes must be in [0, 1]"),
+            (all(0.0 <= x <= 1.0 for x in (self.parking, self.stop_lines, self.kerb_stops, self.lane_changes,
+                                           self.long_vehicles)),
+             "parking, stop_lines, kerb_stops, lane_changes and long_vehicles must be in [0, 1]"),
             (0 <= self.max_parked <= 128, "max_parked must be in [0, 128]"),
             (0.0 <= self.lane_offset <= 1.0, "lane_offset must be in [0, 1] m"),
             (0.0 <= self.park_reach <= 2.0, "park_reach must be in [0, 2] m"),
@@ -232,6 +240,8 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
         if len(veh) < p.min_vehicles:
             boost *= 1.5
             continue
+        plan_long_vehicles(tm, veh, np.random.default_rng([SCENARIO_TYPES.index(scenario_type), int(seed) % (1 << 64),
+                                                           _LONG_STREAM]), p.long_vehicles)
         plan_lane_offsets(veh, street, p.lane_offset, p.lane_width)
         if p.park_reach > 0:
             plan_park_clearance(tm, veh, street, p.lane_width)
