@@ -10,6 +10,11 @@ the partner's type and whether its log moves at all. The events are grouped by (
 policies and seeds and printed as a markdown table, the most recurrent first: a row present in every run
 is a trait of the scene that more sampling will not average away; the rate bar says how many such rows
 a policy may keep.
+
+`--approach WORLD:AGENT:PARTNER` (scene agent indices, repeatable) follows one pair instead, every 0.4 s up
+to the agent's first collision: both speeds, the gap between their centres and whether the partner is
+among the agent's observed partner rows. It tells a vehicle that never saw what it hit from one that saw
+it and drove on.
 """
 
 from __future__ import annotations
@@ -22,11 +27,15 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+import torch
+import warp as wp
+
 from tg_gpudrive.agents import open_policy
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.enums import AgentType
 from tg_gpudrive.evaluation.episodes import record_episodes
 from tg_gpudrive.evaluation.risk import collision_partners
+from tg_gpudrive.kernels.observation import EGO_DIM, PARTNER_DIM
 
 STANDING_M = 1.0  # m: a partner whose whole log moves less than this stands still
 
@@ -62,6 +71,53 @@ def group(events: list[dict]) -> list[dict]:
     return out
 
 
+def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[tuple, list[dict]]:
+    """One episode of every world under `policy`: per (world, agent, partner) case (scene agent indices),
+    a row per step up to the agent's first collision, with both speeds, the centres' gap and whether the
+    partner is one of the agent's observed partner rows."""
+    W, A, K = sim.num_worlds, sim.max_agents, sim.cfg.partner_k
+    slot_agent = np.asarray(sim.model.slot_agent)
+    slots = {}
+    for w, a, b in cases:
+        if not 0 <= w < W:
+            raise SystemExit(f"--approach {w}:{a}:{b}: no world {w} (the scenes give {W})")
+        have = [int(np.flatnonzero(slot_agent[w] == x)[0]) if (slot_agent[w] == x).any() else None for x in (a, b)]
+        if None in have:
+            raise SystemExit(f"--approach {w}:{a}:{b}: agent {(a, b)[have.index(None)]} has no slot in world {w}")
+        slots[(w, a, b)] = have
+    torch.manual_seed(seed)
+    sim.reset()
+    out: dict[tuple, list[dict]] = {c: [] for c in cases}
+    for step in range(sim.episode_length):
+        pos, speed = sim.pos.cpu().numpy(), sim.speed.cpu().numpy()
+        collided = sim.collided.cpu().numpy() != 0
+        part_j = wp.to_torch(sim.state.part_j).view(W, A, K).cpu().numpy()
+        obs = sim.obs.cpu().numpy()
+        for (w, a, b), (sa, sb) in slots.items():
+            rows = out[(w, a, b)]
+            if rows and rows[-1]["collided"]:
+                continue
+            rows_k = obs[w, sa, EGO_DIM:EGO_DIM + K * PARTNER_DIM].reshape(K, PARTNER_DIM)[:, 0] > 0.5
+            seen = {int(j) - w * A for j, present in zip(part_j[w, sa], rows_k) if present}
+            rows.append({"step": step, "speed": float(speed[w, sa]), "partner_speed": float(speed[w, sb]),
+                         "gap": float(np.linalg.norm(pos[w, sa] - pos[w, sb])), "seen": sb in seen,
+                         "collided": bool(collided[w, sa]) and step > 0})
+        policy(sim)
+        sim.step()
+    return out
+
+
+def print_approach(name: str, seed: int, case: tuple, rows: list[dict], every: int = 4) -> None:
+    w, a, b = case
+    hit = next((r["step"] for r in rows if r["collided"]), None)
+    print(f"\n{name}, seed {seed}, world {w}: agent {a} and agent {b}"
+          f" ({'first collision at step ' + str(hit) if hit is not None else 'no collision'})\n")
+    print("| step | speed [m/s] | partner speed [m/s] | gap [m] | partner observed |")
+    print("|---:|---:|---:|---:|---|")
+    for r in rows[::every] + ([rows[-1]] if (len(rows) - 1) % every else []):
+        print(f"| {r['step']} | {r['speed']:.1f} | {r['partner_speed']:.1f} | {r['gap']:.1f} | {'yes' if r['seen'] else 'no'} |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--policies", nargs="+", required=True, help="checkpoints, run directories or built-in names")
@@ -69,17 +125,31 @@ def main(argv=None) -> int:
     p.add_argument("--num-scenes", type=int, default=None, help="procedural specs: how many (seed 90000)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     p.add_argument("--device", default="cpu")
+    p.add_argument("--approach", action="append", default=[], metavar="WORLD:AGENT:PARTNER",
+                   help="follow this pair (scene agent indices) instead of tabling the collisions")
     args = p.parse_args(argv)
+    try:
+        cases = [tuple(int(x) for x in c.split(":")) for c in args.approach]
+    except ValueError:
+        cases = [()]
+    if any(len(c) != 3 for c in cases):
+        p.error("--approach takes WORLD:AGENT:PARTNER, three integers")
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=90000) if args.num_scenes else resolve_scenes(args.scenes)
     scenes = [src.get(i) for i in range(len(src))]
     events, vehicles = [], Counter()
     runs = [(spec, seed) for spec in args.policies for seed in args.seeds]
     for spec, seed in tqdm(runs, desc="crash_anatomy", unit="run"):
         opened = open_policy(spec, scenes, args.device, collision_mode="ignore", seed=seed, option="--policies")
+        if cases:
+            for case, rows in approach(opened.sim, opened.policy, seed, cases).items():
+                print_approach(Path(spec).name, seed, case, rows)
+            continue
         tr = record_episodes(opened.sim, opened.policy, seed=seed)
         types = opened.sim.agent_type.cpu().numpy()
         vehicles[spec] = int(tr.policy.sum())
         events += [{**describe(tr, types, r), "run": (spec, seed)} for r in collision_partners(tr)]
+    if cases:
+        return 0
     rows = group(events)
     print(f"\n{len(events)} first collisions over {len(runs)} runs ({', '.join(f'{Path(s).name}: {n} policy vehicles' for s, n in vehicles.items())} a run)\n")
     print("| world | scene | agent | runs with it | partner | contact | speed [m/s] | partner speed [m/s] | step |")

@@ -45,3 +45,33 @@ def test_script_prints_a_row_per_colliding_vehicle(capsys):
     # collision is one row, recurring in 1 of 1 runs
     assert n > 0 and len(table) == n
     assert all("| 1 of 1 |" in ln for ln in table)
+
+
+def test_approach_follows_a_pair_from_the_logged_start():
+    """--approach on a real WOMD test scene: at the first step the gap is the two logs' distance at the
+    start step, the speeds are the logs', and the agent's nearest neighbour is among its observed partner rows;
+    a bad pair is refused with its name."""
+    import numpy as np
+    import pytest
+
+    from tg_gpudrive.agents import open_policy
+    from tg_gpudrive.data.sources import resolve_scenes
+
+    src = resolve_scenes(str(Path(__file__).resolve().parent / "data"))
+    scenes = [src.get(i) for i in range(len(src))]
+    opened = open_policy("constant", scenes, "cpu", collision_mode="ignore", seed=0, option="--policies")
+    sim, sc = opened.sim, scenes[0]
+    t0 = int(sim.model.init_step)
+    slot_agent = np.asarray(sim.model.slot_agent)[0]
+    a = int(slot_agent[np.flatnonzero(sim.policy_agents[0].cpu().numpy())[0]])
+    here = np.flatnonzero(sc.log_valid[:, t0])
+    others = here[here != a]
+    d = np.linalg.norm(sc.log_pos[others, t0] - sc.log_pos[a, t0], axis=-1)
+    b = int(others[np.argmin(d)])
+    rows = crash_anatomy.approach(sim, opened.policy, 0, [(0, a, b)])[(0, a, b)]
+    first = rows[0]
+    assert first["step"] == 0 and first["gap"] == pytest.approx(d.min(), abs=1e-3) and first["seen"]
+    assert first["speed"] == pytest.approx(np.linalg.norm(sc.log_vel[a, t0]), abs=1e-3)
+    assert first["partner_speed"] == pytest.approx(np.linalg.norm(sc.log_vel[b, t0]), abs=1e-3)
+    with pytest.raises(SystemExit, match="no world 7"):
+        crash_anatomy.approach(sim, opened.policy, 0, [(7, a, b)])
