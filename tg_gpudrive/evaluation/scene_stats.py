@@ -63,11 +63,11 @@ from tg_gpudrive.engine import control
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
-FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "vehicle_length", "route_length", "lateral_shift", "agents", "controlled",
-            "pedestrians", "pedestrians_on_lanes", "pedestrian_lane_speed", "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
-UNITS = {"speed": "m/s", "pedestrian_lane_speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
-         "vehicle_length": "m", "route_length": "m",
-         "lateral_shift": "m",
+FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "vehicle_length", "route_length",
+            "lateral_shift", "agents", "controlled", "pedestrians", "pedestrians_on_lanes", "pedestrian_lane_speed",
+            "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
+UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
+         "vehicle_length": "m", "route_length": "m", "lateral_shift": "m", "pedestrian_lane_speed": "m/s",
          "edge_density": "m/ha", "lane_width": "m"}
 PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
 EDGE_REACH_M = 50.0  # m around the candidates' init positions where road-edge density is measured
