@@ -6,7 +6,7 @@
 Every policy drives every scene once per sampling seed (a slot for every agent, the rest replaying
 their logs, ignore mode). Each policy vehicle's first collision is described by evaluation/risk.py's
 `collision_partners` (the nearest agent then, the contact in the vehicle's frame, both speeds), plus
-the partner's type and whether its log moves at all. The events are grouped by (world, vehicle) over
+the partner's type, its scene agent index (for `--approach`) and whether its log moves at all. The events are grouped by (world, vehicle) over
 policies and seeds and printed as a markdown table, the most recurrent first: a row present in every run
 is a trait of the scene that more sampling will not average away; the rate bar says how many such rows
 a policy may keep.
@@ -46,8 +46,8 @@ def describe(tr, types: np.ndarray, row: dict) -> dict:
     e, b = row["episode"], row["partner"]
     path = tr.pos[e, b][tr.valid[e, b]]
     standing = len(path) == 0 or float(np.ptp(path, axis=0).max()) < STANDING_M
-    return {**row, "agent": int(tr.slot_agent[e, row["agent"]]), "partner_type": AgentType(int(types[e, b])).name.lower(),
-            "partner_standing": standing}
+    return {**row, "agent": int(tr.slot_agent[e, row["agent"]]), "partner": int(tr.slot_agent[e, b]),
+            "partner_type": AgentType(int(types[e, b])).name.lower(), "partner_standing": standing}
 
 
 def group(events: list[dict]) -> list[dict]:
@@ -63,6 +63,7 @@ def group(events: list[dict]) -> list[dict]:
         who = common(lambda x: ("policy" if x["partner_policy"] else "replayed")
                       + (" standing" if x["partner_standing"] else "") + " " + x["partner_type"])
         out.append({"world": e, "agent": a, "runs": len({x["run"] for x in evs}), "partner": who,
+                    "partner_agent": common(lambda x: x["partner"]),
                     "contact": common(lambda x: x["contact"]),
                     "speed": (min(x["speed"] for x in evs), max(x["speed"] for x in evs)),
                     "partner_speed": (min(x["partner_speed"] for x in evs), max(x["partner_speed"] for x in evs)),
@@ -152,13 +153,14 @@ def main(argv=None) -> int:
         return 0
     rows = group(events)
     print(f"\n{len(events)} first collisions over {len(runs)} runs ({', '.join(f'{Path(s).name}: {n} policy vehicles' for s, n in vehicles.items())} a run)\n")
-    print("| world | scene | agent | runs with it | partner | contact | speed [m/s] | partner speed [m/s] | step |")
+    print("| world | scene | agent | runs with it | partner (agent) | contact | speed [m/s] | partner speed [m/s] | step |")
     print("|---:|---|---:|---:|---|---|---|---|---|")
     def rng(x, f="{:.1f}"):
         lo, hi = f.format(x[0]), f.format(x[1])
         return lo if lo == hi else f"{lo}-{hi}"
     for r in rows:
-        print(f"| {r['world']} | {scenes[r['world']].scene_id} | {r['agent']} | {r['runs']} of {len(runs)} | {r['partner']} | "
+        print(f"| {r['world']} | {scenes[r['world']].scene_id} | {r['agent']} | {r['runs']} of {len(runs)} | "
+              f"{r['partner']} ({r['partner_agent']}) | "
               f"{r['contact']} | {rng(r['speed'])} | {rng(r['partner_speed'])} | {rng(r['steps'], '{}')} |")
     return 0
 

@@ -12,8 +12,8 @@ crash_anatomy = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(crash_anatomy)
 
 
-def event(run, episode, agent, partner_policy, partner_type, standing, contact, speed, partner_speed, step):
-    return {"run": run, "episode": episode, "agent": agent, "partner": 0, "partner_policy": partner_policy,
+def event(run, episode, agent, partner_policy, partner_type, standing, contact, speed, partner_speed, step, partner=0):
+    return {"run": run, "episode": episode, "agent": agent, "partner": partner, "partner_policy": partner_policy,
             "partner_type": partner_type, "partner_standing": standing, "contact": contact, "speed": speed,
             "partner_speed": partner_speed, "step": step}
 
@@ -21,9 +21,9 @@ def event(run, episode, agent, partner_policy, partner_type, standing, contact, 
 def test_group_counts_runs_and_ranges_most_recurrent_first():
     events = [
         event(("a", 0), 9, 18, False, "pedestrian", False, "crossing", 1.5, 2.9, 16),
-        event(("a", 0), 4, 14, True, "vehicle", False, "ahead", 11.7, 3.2, 45),
-        event(("a", 1), 4, 14, True, "vehicle", False, "ahead", 12.3, 3.0, 46),
-        event(("b", 0), 4, 14, True, "vehicle", False, "crossing", 11.9, 4.2, 30),
+        event(("a", 0), 4, 14, True, "vehicle", False, "ahead", 11.7, 3.2, 45, partner=9),
+        event(("a", 1), 4, 14, True, "vehicle", False, "ahead", 12.3, 3.0, 46, partner=9),
+        event(("b", 0), 4, 14, True, "vehicle", False, "crossing", 11.9, 4.2, 30, partner=5),
         event(("b", 0), 15, 35, False, "vehicle", True, "ahead", 6.8, 0.0, 21),
     ]
     rows = crash_anatomy.group(events)
@@ -31,6 +31,7 @@ def test_group_counts_runs_and_ranges_most_recurrent_first():
     top = rows[0]
     assert top["partner"] == "policy vehicle" and top["contact"] == "ahead"
     assert top["speed"] == (11.7, 12.3) and top["partner_speed"] == (3.0, 4.2) and top["steps"] == (30, 46)
+    assert top["partner_agent"] == 9  # the commonest partner of the three runs
     assert rows[1]["partner"] == "replayed pedestrian"
     assert rows[2]["partner"] == "replayed standing vehicle"
 
