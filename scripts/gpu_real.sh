@@ -6,10 +6,11 @@
 #   (cd /tmp && [PHASE=train|eval|all] [PLAN=file] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
 # TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
-# evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2") adds generator knobs to the urban procedural part. The plan (PLAN names a file of such lines; the default
-# below is the data-scaling curve): one run per line, "name real-store extra-settings", where real-store
-# is a store name under STORES (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the
-# worlds to procedural scenes at real speeds, taken from the urban half) or - for procedural scenes alone,
+# evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2,long_vehicles=0.1") adds generator knobs to the
+# urban procedural part. The plan (PLAN names a file of such lines; the default below is the data-scaling curve):
+# one run per line, "name real-store extra-settings", where real-store is a store name under STORES
+# (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the worlds to procedural scenes at
+# real speeds, taken from the urban half) or - for procedural scenes alone,
 # and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
 # first fine-tunes the shipped world model on the same real scenes and the procedural mix, on roads
 # simplified as real_mix.yaml's (teacher

@@ -37,9 +37,9 @@ from typing import Callable
 import numpy as np
 
 from tg_gpudrive.data.procedural import geometry as geo
-from tg_gpudrive.data.procedural.traffic import (Crossing, TrafficModel, overlapping_pairs, plan_kerb_stops, plan_lane_changes,
-                                                 plan_lane_offsets, plan_long_vehicles, plan_park_clearance, settle,
-                                                 spawn)
+from tg_gpudrive.data.procedural.traffic import (Crossing, TrafficModel, draw_banded, overlapping_pairs, plan_kerb_stops,
+                                                 plan_lane_changes, plan_lane_offsets, plan_long_vehicles,
+                                                 plan_park_clearance, settle, spawn)
 from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
@@ -451,13 +451,7 @@ def walk_sidewalks(m: geo.RoadMap, rng: np.random.Generator, mean: float, ro, ve
 
 def cross_speed(rng: np.random.Generator) -> float:
     """A crossing pedestrian's speed: from a CROSS_HURRY band with its share, else from CROSS_SPEED."""
-    u, band = float(rng.random()), CROSS_SPEED
-    for share, hurry in CROSS_HURRY:
-        if u < share:
-            band = hurry
-            break
-        u -= share
-    return float(rng.uniform(*band))
+    return draw_banded(rng, CROSS_HURRY, CROSS_SPEED)
 
 
 def plan_crossings(m: geo.RoadMap, rng: np.random.Generator, mean: float, duration: float) -> list[Crossing]:

@@ -440,30 +440,34 @@ LONG_LENGTH = ((0.60, (5.5, 6.2)), (0.25, (6.2, 9.0)), (0.12, (9.0, 12.5)), (0.0
 LONG_WIDTH = (2.0, 2.6)
 
 
-def plan_long_vehicles(tm: TrafficModel, veh: Vehicles, rng: np.random.Generator, share: float) -> int:
+def draw_banded(rng: np.random.Generator, bands, rest: tuple[float, float]) -> float:
+    """A value uniform in one of `bands` ((share, (lo, hi)), ...), each picked with its share, else
+    uniform in `rest` (lo, hi): one draw to pick, one for the value."""
+    u = float(rng.random())
+    for share, band in bands:
+        if u < share:
+            return float(rng.uniform(*band))
+        u -= share
+    return float(rng.uniform(*rest))
+
+
+def plan_long_vehicles(tm: TrafficModel, veh: Vehicles, rng: np.random.Generator, share: float) -> None:
     """Each vehicle becomes a van, a truck or a bus with probability `share` (LONG_LENGTH, LONG_WIDTH); in
     place. It keeps its size where the longer box would touch another vehicle's at its start (with the
     final check's margin) or sweep a curb anywhere along its route from there. The conflict zones stay
-    sized for MAX_LEN boxes, so the drive's overlap check (`settle`) drops any pair that still meets.
-    Returns how many vehicles were made long."""
+    sized for MAX_LEN boxes, so the drive's overlap check (`settle`) drops any pair that still meets."""
     if share <= 0 or not len(veh):
-        return 0
+        return
     segs = tm.map.curb_segments()
     routes = [tm.route(r) for r in veh.routes]
     at = [min(int(round(s / DS)), len(r.grid_yaw) - 1) for r, s in zip(routes, veh.s0)]
     xy0 = np.array([r.grid_xy[k] for r, k in zip(routes, at)])[:, None]
     yaw0 = np.array([r.grid_yaw[k] for r, k in zip(routes, at)])[:, None]
-    made = 0
     for i in range(len(veh)):
         if rng.random() >= share:
             continue
-        u, band = float(rng.random()), LONG_LENGTH[-1][1]
-        for p, b in LONG_LENGTH:
-            if u < p:
-                band = b
-                break
-            u -= p
-        L, W = float(rng.uniform(*band)), float(rng.uniform(*LONG_WIDTH))
+        L = draw_banded(rng, LONG_LENGTH[:-1], LONG_LENGTH[-1][1])
+        W = float(rng.uniform(*LONG_WIDTH))
         r, k = routes[i], at[i]
         if tm.map.curb_hits(r.grid_xy[k:], r.grid_yaw[k:], L / 2 + SWEEP_INFLATE, W / 2 + SWEEP_INFLATE, segs).any():
             continue
@@ -472,8 +476,6 @@ def plan_long_vehicles(tm: TrafficModel, veh: Vehicles, rng: np.random.Generator
         if overlapping_pairs(xy0, yaw0, length, width, of=i):
             continue
         veh.length[i], veh.width[i] = L, W
-        made += 1
-    return made
 
 
 LANE_OFFSET_RAMP = 6.0  # m over which a lane offset fades in after a curve and out before one
