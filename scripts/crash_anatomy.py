@@ -86,23 +86,27 @@ def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[
         if None in have:
             raise SystemExit(f"--approach {w}:{a}:{b}: agent {(a, b)[have.index(None)]} has no slot in world {w}")
         slots[(w, a, b)] = have
+    # only the followed agents' rows come to the host each step, not the worlds' whole state
+    dev = sim.pos.device
+    ws = torch.tensor([w for w, _, _ in slots], device=dev)
+    sa_, sb_ = (torch.tensor([s[k] for s in slots.values()], device=dev) for k in (0, 1))
+    part_rows = slice(EGO_DIM, EGO_DIM + K * PARTNER_DIM)
     torch.manual_seed(seed)
     sim.reset()
     out: dict[tuple, list[dict]] = {c: [] for c in cases}
     for step in range(sim.episode_length):
-        pos, speed = sim.pos.cpu().numpy(), sim.speed.cpu().numpy()
-        collided = sim.collided.cpu().numpy() != 0
-        part_j = wp.to_torch(sim.state.part_j).view(W, A, K).cpu().numpy()
-        obs = sim.obs.cpu().numpy()
-        for (w, a, b), (sa, sb) in slots.items():
+        gap = (sim.pos[ws, sa_] - sim.pos[ws, sb_]).norm(dim=-1).cpu().numpy()
+        speed_a, speed_b = sim.speed[ws, sa_].cpu().numpy(), sim.speed[ws, sb_].cpu().numpy()
+        collided = (sim.collided[ws, sa_] != 0).cpu().numpy()
+        part_j = wp.to_torch(sim.state.part_j).view(W, A, K)[ws, sa_].cpu().numpy()
+        present = (sim.obs[ws, sa_, part_rows].reshape(len(ws), K, PARTNER_DIM)[..., 0] > 0.5).cpu().numpy()
+        for n, ((w, a, b), (_, sb)) in enumerate(slots.items()):
             rows = out[(w, a, b)]
             if rows and rows[-1]["collided"]:
                 continue
-            rows_k = obs[w, sa, EGO_DIM:EGO_DIM + K * PARTNER_DIM].reshape(K, PARTNER_DIM)[:, 0] > 0.5
-            seen = {int(j) - w * A for j, present in zip(part_j[w, sa], rows_k) if present}
-            rows.append({"step": step, "speed": float(speed[w, sa]), "partner_speed": float(speed[w, sb]),
-                         "gap": float(np.linalg.norm(pos[w, sa] - pos[w, sb])), "seen": sb in seen,
-                         "collided": bool(collided[w, sa]) and step > 0})
+            seen = {int(j) - w * A for j in part_j[n][present[n]]}
+            rows.append({"step": step, "speed": float(speed_a[n]), "partner_speed": float(speed_b[n]),
+                         "gap": float(gap[n]), "seen": sb in seen, "collided": bool(collided[n]) and step > 0})
         policy(sim)
         sim.step()
     return out
