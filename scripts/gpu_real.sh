@@ -7,11 +7,12 @@
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
 # TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
 # evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2,long_vehicles=0.1") adds generator knobs to the
-# urban procedural part. The plan (PLAN names a file of such lines; the default below is the data-scaling curve):
-# one run per line, "name real-store extra-settings", where real-store is a store name under STORES
+# urban procedural part of every run. The plan (PLAN names a file of such lines; the default below is the
+# data-scaling curve): one run per line, "name real-store extra-settings [urban-extra]", where real-store is a store name under STORES
 # (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the worlds to procedural scenes at
 # real speeds, taken from the urban half) or - for procedural scenes alone,
-# and extra-settings a comma-separated list of --set KEY=VALUE (or -). A run whose name starts with "wm"
+# extra-settings a comma-separated list of --set KEY=VALUE (or -), and urban-extra generator knobs added to
+# this run's urban part after URBAN_EXTRA's (e.g. ",crossings=2"). A run whose name starts with "wm"
 # first fine-tunes the shipped world model on the same real scenes and the procedural mix, on roads
 # simplified as real_mix.yaml's (teacher
 # forcing, then one closed-loop round) and trains with it as the magnet; its traffic rates on the held-out
@@ -26,7 +27,7 @@ runs=${RUNS:-/tmp/runs}
 phase=${PHASE:-all}
 tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
-proc="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5${URBAN_EXTRA:-}]"
+urban_knobs="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5${URBAN_EXTRA:-}"
 ngpu=$(nvidia-smi -L | wc -l)
 plan="real0 - -
 real5 womd_dev_train_5 -
@@ -36,20 +37,21 @@ real44 womd_dev_train -"
 [ -z "${PLAN:-}" ] || plan=$(grep -v '^#' "$PLAN")
 mkdir -p "$out" "$runs"
 
-# the procedural part at real speeds: longer arms, desired speeds N(16, 4) m/s, vehicles placed up to 120 m
-# upstream (against the urban mix, vehicle steps above 10 m/s rise from 7 % to 26 %, real logs 26 %)
-fast="${proc%]},speed_mean=16,speed_std=4,size_scale=2,spawn_range=120]"
-mix() {  # the training scenes of a real store (- for none); store+fastNN gives NN % of the worlds to $fast
-  local store=${1%+fast*} share=0
+mix() {  # store [urban-extra]: the training scenes of a real store (- for none); store+fastNN gives NN % of
+  # the worlds to $fast, the procedural part at real speeds: longer arms, desired speeds N(16, 4) m/s, vehicles
+  # placed up to 120 m upstream (against the urban mix, vehicle steps above 10 m/s rise from 7 % to 26 %, real
+  # logs 26 %)
+  local store=${1%+fast*} share=0 proc="$urban_knobs${2:-}]"
+  local fast="${proc%]},speed_mean=16,speed_std=4,size_scale=2,spawn_range=120]"
   [[ $1 == *+fast* ]] && share=${1##*+fast}
-  local urban fastw; read -r urban fastw <<< "$(python3 -c "print(round(0.5 - $share / 100, 2), $share / 100)")"
+  local urbanw fastw; read -r urbanw fastw <<< "$(python3 -c "print(round(0.5 - $share / 100, 2), $share / 100)")"
   if [ "$store" = - ]; then echo "$proc"
   elif [ "$share" = 0 ]; then echo "mix:$proc=0.5,$stores/$store=0.5"
-  else echo "mix:$proc=$urban,$fast=$fastw,$stores/$store=0.5"; fi
+  else echo "mix:$proc=$urbanw,$fast=$fastw,$stores/$store=0.5"; fi
 }
 
-world_model() {  # name store: the shipped world model fine-tuned on the run's scenes -> $runs/name_wm/model.pt
-  local name=$1 scenes; scenes=$(mix "$2")
+world_model() {  # name store [urban-extra]: the shipped world model fine-tuned on the run's scenes -> $runs/name_wm/model.pt
+  local name=$1 scenes; scenes=$(mix "$2" "${3:-}")
   rm -rf "$runs/${name}_wm_tf" "$runs/${name}_wm"  # train-world-model writes into a fresh directory
   $tg train-world-model --config "$repo/configs/worldmodel/gpu.yaml" --set init_model=shipped --set steps=1500 \
     --set env.road_simplify=0.1 --set "scenes=$scenes" --out "$runs/${name}_wm_tf" > "$out/wm_$name.log" 2>&1 &&
@@ -59,17 +61,17 @@ world_model() {  # name store: the shipped world model fine-tuned on the run's s
   tail -c 2000 "$out/wm_$name.log" > "$out/wm_$name.tail" && mv "$out/wm_$name.tail" "$out/wm_$name.log"
 }
 
-train() {  # gpu name store sets
-  local gpu=$1 name=$2 store=$3 sets=$4 extra=()
+train() {  # gpu name store sets [urban-extra]
+  local gpu=$1 name=$2 store=$3 sets=$4 urban=${5:-} extra=()
   [ "$sets" = - ] || IFS=, read -ra kv <<< "$sets"
   for s in "${kv[@]:-}"; do [ -z "$s" ] || extra+=(--set "$s"); done
   export CUDA_VISIBLE_DEVICES=$gpu
   if [[ $name == wm* ]]; then
-    world_model "$name" "$store" && extra+=(--set "prior_model=$runs/${name}_wm/model.pt")
+    world_model "$name" "$store" "$urban" && extra+=(--set "prior_model=$runs/${name}_wm/model.pt")
     python3 "$repo/scripts/wm_traffic.py" --models shipped "$runs/${name}_wm/model.pt" --scenes "$held" \
       --num-scenes 17 --seeds 0 1 --json > "$out/wm_traffic_$name.json" 2>/dev/null
   fi
-  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$(mix "$store")" --set updates="$updates" \
+  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$(mix "$store" "$urban")" --set updates="$updates" \
     --set time_limit_s="${TIME_LIMIT:-470}" "${extra[@]}" --out "$runs/$name" --overwrite \
     --json > "$out/train_$name.json" 2> "$out/train_$name.log"
   tail -c 600 "$out/train_$name.log" > "$out/train_$name.tail" && mv "$out/train_$name.tail" "$out/train_$name.log"
@@ -95,9 +97,9 @@ evaluate() {  # gpu name
 }
 
 k=0
-while read -r name store sets; do
+while read -r name store sets urban; do
   gpu=$((k % ngpu))
-  ( [ "$phase" = eval ] || train $gpu "$name" "$store" "$sets"
+  ( [ "$phase" = eval ] || train $gpu "$name" "$store" "$sets" "$urban"
     [ "$phase" = train ] || evaluate $gpu "$name" ) &
   k=$((k + 1))
 done <<< "$plan"

@@ -4,8 +4,8 @@
         [--warmup 2] [--trace trace.json] [--json]
 
 The trainer's rollout and update carry named ranges (torch.profiler.record_function): in the rollout
-`live_rows` (which agents act: the step's host sync), `actor`, `sample`, `critic`, `magnet` (within it
-`magnet.context`, the history window, and `magnet.forward`, the world model), `engine` and `buffers`;
+`magnet.context` (the magnet's history window), `live_rows` (which agents act: the step's host sync),
+`actor`, `sample`, `critic`, `magnet` (within it `magnet.forward`, the world model), `engine` and `buffers`;
 in the update `advantages`, `lagrange`, and per minibatch `forward` (actor, critic, quantiles, the KL
 terms), `backward` and `optimizer` (clipping and Adam). After `--warmup` plain iterations it times
 `--iters` more without the profiler (the wall clock of rollout and update, synchronised), then

@@ -150,14 +150,21 @@ class RolloutCollector:
         policy's output, the observations, the critic's values and the magnet, and hand the actions to
         the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
-        with phase("rollout/live_rows"):  # the one host sync of a step: how many rows act
+        # the motion windows first: their reset checks read the host, and here that read waits only for the
+        # engine's step, which the live rows' count waits for anyway, not for the networks queued after it
+        ctx = None
+        if self.prior_logits:
+            with phase("rollout/magnet.context"):
+                ctx = self.prior.context(sim, C)
+        if self.actor_hist is not None:
+            self.actor_hist.sync(sim)
+        with phase("rollout/live_rows"):  # the host sync of a step: how many rows act
             obs = sim.obs[:, :C]
             mask = sim.active[:, :C] != 0
             # the other slots get the no-op action, which the engine ignores for agents that do not act
             w_idx, c_idx = mask.nonzero(as_tuple=True)
         hist = None
-        if self.actor_hist is not None:  # the actor's motion window, synced once per step
-            self.actor_hist.sync(sim)
+        if self.actor_hist is not None:  # the actor's motion window
             buf.hist[t] = self.actor_hist.features(sim, slice(0, C), self.cfg.actor_history_partners)
             hist = buf.hist[t][w_idx, c_idx]
         with phase("rollout/actor"), nets.autocast():
@@ -176,7 +183,7 @@ class RolloutCollector:
         with phase("rollout/critic"), nets.autocast():
             buf.value[t], buf.quant[t] = nets.critic(obs, mask, w_idx * C + c_idx)
         with phase("rollout/magnet"):
-            self._magnet(buf, t, C, obs, w_idx, c_idx)
+            self._magnet(buf, t, C, ctx, obs, w_idx, c_idx)
         act = buf.act[t]
         if head.discrete:
             sim.actions_index[:, :C] = act.to(torch.int32)
@@ -207,12 +214,12 @@ class RolloutCollector:
             return torch.zeros(0, dtype=torch.long, device=self.device)
         return torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0]
 
-    def _magnet(self, buf: Rollout, t: int, C: int, obs: Tensor, w_idx: Tensor, c_idx: Tensor) -> None:
-        """The magnet of step t: the discrete prior's logits once per live row (bf16 on GPU; computing them
-        per minibatch and epoch instead doubled the update time with the world model), else its context."""
+    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, obs: Tensor, w_idx: Tensor,
+                c_idx: Tensor) -> None:
+        """The magnet of step t: the discrete prior's logits once per live row from its context `ctx` (bf16 on
+        GPU; computing them per minibatch and epoch instead doubled the update time with the world model),
+        else its context."""
         if self.prior_logits:
-            with phase("rollout/magnet.context"):  # the history window (and its host sync), apart from the model
-                ctx = self.prior.context(self.sim, C)
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
                 frac = self.cfg.magnet_fraction
                 pick = torch.randperm(len(w_idx), generator=self.gen, device=self.device)[:math.ceil(frac * len(w_idx))]
