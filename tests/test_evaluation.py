@@ -239,6 +239,17 @@ def test_collision_partners_by_hand():
     rows, summary = partners([stopped, behind], [zeros, zeros], [True, True])
     assert sorted((r["contact"], r["partner_policy"]) for r in rows) == [("ahead", True), ("from behind", True)]
     assert summary["collision_with_policy_rate"] == 1.0
+    # the car ahead leaves the scene in the step of the contact (its goal reached, goal_behaviour remove):
+    # still the partner, not some farther agent that stays
+    sc = make_scene(np.stack([stopped, behind, across + [40.0, 0.0]]), np.stack([zeros, zeros, north]), length=4.0,
+                    width=2.0, roads=road)
+    tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array([True, True, False])]), keep)
+    k = int(np.argmax(tr.collided[0, 1]))
+    of_1 = lambda: [(r["partner"], r["contact"], r["partner_policy"]) for r in rk.collision_partners(tr)  # noqa: E731
+                    if r["agent"] == 1]
+    assert k > 0 and tr.valid[0, 2, k] and of_1() == [(0, "ahead", True)]
+    tr.valid[0, 0, k:] = False
+    assert of_1() == [(0, "ahead", True)]
 
 
 # ----------------------------------------------------------------- CCE-gap

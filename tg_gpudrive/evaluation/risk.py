@@ -18,7 +18,8 @@ at the same step, policy-driven or replayed):
                    one event
 
 Who a collision involves (`collision_partners`), at the agent's first collided step: the partner
-is the other present agent with the nearest centre; "policy" when the policy drives it too, else
+is the other agent with the nearest centre among those present then or the step before (one that
+reaches its goal in the step of the contact leaves the scene in that step: goal_behaviour remove); "policy" when the policy drives it too, else
 "other" (a replayed log or background car, which does not react); the contact is "from behind"
 when the partner is behind the agent (in the agent's frame) and heads within CONTACT_ANGLE of it,
 "ahead" when it is in front and heads the same way, else "crossing" (side, head-on or crossing).
@@ -114,7 +115,7 @@ def collision_partners(tr: Trajectories) -> list[dict]:
     hit = tr.collided & tr.valid
     for e, a in zip(*np.nonzero(tr.policy & hit.any(-1))):
         k = int(np.argmax(hit[e, a]))
-        others = tr.valid[e, :, k].copy()
+        others = tr.valid[e, :, k] | tr.valid[e, :, k - 1]  # k >= 1: the reset state carries no events
         others[a] = False
         if not others.any():
             continue
