@@ -505,7 +505,7 @@ def test_report_on_tiny_runs(tmp_path):
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
     md = (out / "report.md").read_text()
     for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model", "| cce | CCE-MAPPO",
-                  "| mappo | MAPPO", "realism (ours)"):
+                  "| mappo | MAPPO", "realism (ours)", "grid.png shows scene "):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",
@@ -731,6 +731,41 @@ def test_worst_scenes_rank_scenes_by_failures_per_agent_episode():
     assert rows[0] == {"scene": 1, "scene_id": "b", "agent_episodes": 4, "collisions": 1, "offroad": 3,
                        "failure_rate": 0.75}
     assert rows[1]["failure_rate"] == 0.25 and worst_scenes(gen, k=1) == rows[:1]
+
+
+def test_the_grid_scene_is_where_the_knob_moves_the_distance_kept_most():
+    """knob_scene: per scene, the mean over policy agent-episodes of each agent's least distance to another
+    (over its present steps), the largest beta's cell minus the smallest's, averaged over the alphas; the
+    scene with the largest difference, by hand."""
+    from types import SimpleNamespace
+
+    from tg_gpudrive.evaluation.report_stats import knob_scene, scene_distances
+
+    scenes = [SimpleNamespace(scene_id=n) for n in "abc"]
+
+    def gen(least):  # least[scene] for both policy agents of one episode per scene; agent 2 not the policy's
+        E, A, K = 3, 3, 4
+        nearest = np.full((E, A, K), 40.0)
+        valid = np.ones((E, A, K), bool)
+        for e, d in enumerate(least):
+            nearest[e, :2, 1] = d
+            nearest[e, :, 3] = 0.5  # the last step is not present: never the least
+        valid[:, :, 3] = False
+        nearest[:, 2] = 0.1
+        return SimpleNamespace(policy=np.array([[True, True, False]] * E), valid=valid, nearest=nearest,
+                               scene_index=np.arange(E), scenes=scenes)
+
+    assert scene_distances(gen([3.0, 5.0, 7.0])) == {"a": 3.0, "b": 5.0, "c": 7.0}
+    cells = {(2.0, 0.1): gen([3.0, 5.0, 7.0]), (6.0, 0.1): gen([4.0, 8.0, 7.5]),  # +1, +3, +0.5
+             (2.0, 0.9): gen([3.0, 5.0, 7.0]), (6.0, 0.9): gen([4.0, 5.0, 7.0]),  # +1, 0, 0
+             (4.0, 0.1): gen([0.0, 0.0, 0.0])}  # a middle beta takes no part
+    pick = knob_scene(cells)
+    assert pick == ("b", 1.5)  # means over alpha: a 1.0, b 1.5, c 0.25
+    cells[(6.0, 0.9)] = gen([6.0, 5.0, 7.0])
+    assert knob_scene(cells) == ("a", 2.0)
+    # one beta: the smallest alpha's distance minus the largest's; one cell: no pick
+    assert knob_scene({(4.0, 0.1): gen([3.0, 9.0, 7.0]), (4.0, 0.9): gen([3.0, 5.0, 7.0])}) == ("b", 4.0)
+    assert knob_scene({(4.0, 0.1): gen([3.0, 9.0, 7.0])}) is None
 
 
 def test_cce_gap_reports_robust_summaries_beside_the_mean():

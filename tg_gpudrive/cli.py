@@ -267,14 +267,25 @@ def _report_parser(sub) -> None:
     p.add_argument("--top", type=int, default=d.top, help="critical scenarios exported per run")
     p.add_argument("--device", default="auto",
                    help="auto (default: cuda when Warp and torch see one, else cpu), cpu, cuda or cuda:N")
-    p.add_argument("--grid-scene", type=int, default=d.grid_scene,
-                   help="evaluation scene (0 .. --scenes - 1) that grid.png shows in every beta x alpha cell")
+    p.add_argument("--grid-scene", type=_grid_scene, default=d.grid_scene, metavar="INDEX|auto",
+                   help="evaluation scene (0 .. --scenes - 1) that grid.png shows in every beta x alpha cell; "
+                        "auto (default): the one where the knob moves the distance the agents keep most")
     p.add_argument("--grid-gifs", action="store_true",
                    help="also write frames/<run>.gif, the whole episode of that scene, per cell (default: off)")
     p.add_argument("--no-baselines", action="store_true",
                    help="leave out log replay, expert, behaviour prior and world model, and the CCE-gap of the "
                         "policy runs started from (a process that fills the cache for some of the runs, beside "
                         "one that does these shared parts)")
+
+
+def _grid_scene(text: str) -> int | None:
+    """--grid-scene: a scene index, or auto (None: report_stats.knob_scene picks it)."""
+    if text == "auto":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a scene index or auto, got {text!r}") from None
 
 
 def _report_br_args(p: argparse.ArgumentParser, d: ReportOptions) -> None:

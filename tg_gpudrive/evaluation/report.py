@@ -31,8 +31,10 @@ Writes into `out`:
                         critical scenario; it names the two CSV files below and holds none of their rows
     per_agent.csv       the CCE-gap of every agent of every policy (report_markdown.PER_AGENT_COLUMNS)
     per_scene.csv       every exported critical scenario of every run (report_markdown.PER_SCENE_COLUMNS)
-    grid.png            the paper's beta x alpha figure: one scene (--grid-scene) per CCE-MAPPO cell,
-                        beta down the rows, alpha across, whole trajectories drawn
+    grid.png            the paper's beta x alpha figure: one scene per CCE-MAPPO cell, beta down the rows,
+                        alpha across, whole trajectories drawn; the scene is --grid-scene, or by default
+                        the one where the knob moves the distance the cells' agents keep most
+                        (report_stats.knob_scene)
     frames/<run>.gif    with --grid-gifs: that scene's episode per cell
     multipliers.png     lambda and CVaR of the cost during training, per run (metrics.csv)
     fidelity.png        histograms of speed, accel, nearest distance, curvature: logs vs generated
@@ -82,7 +84,7 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, re
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
-from tg_gpudrive.evaluation.report_stats import gap_curve, measure, tail_means, worst_scenes
+from tg_gpudrive.evaluation.report_stats import gap_curve, knob_scene, measure, tail_means, worst_scenes
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import load_actor, load_policy
 from tg_gpudrive.agents.builtin import expert_policy
@@ -123,7 +125,9 @@ class ReportOptions:
     top: int = 3  # critical scenarios exported per run
     device: str | None = "auto"  # auto (cuda when one is visible, else cpu) | cpu | cuda:N; None: the run's config
     frame_size: int = 320
-    grid_scene: int = 0  # which evaluation scene (0 .. scenes-1) the beta x alpha figure shows
+    # which evaluation scene (0 .. scenes-1) the beta x alpha figure shows; None: the scene where the knob
+    # moves the distance kept most (report_stats.knob_scene), so that the rows differ where they can
+    grid_scene: int | None = None
     grid_gifs: bool = False  # also write frames/<run>.gif, the whole episode of that scene, per cell
     progress: bool = True  # a tqdm bar over the policies evaluated (stderr)
     # log replay, expert, behaviour prior and world model on the first run's scenes, and the CCE-gap of
@@ -225,6 +229,23 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
     return np.asarray(Image.open(path).convert("RGB"))
+
+
+def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
+    """Each cell's picture for grid.png, of one scene: --grid-scene, or the one where the knob moves the
+    distance kept most (knob_scene over the cells' recorded episodes; scene 0 when it finds none)."""
+    if not got.cell_runs:
+        return
+    pick = None if opts.grid_scene is not None else knob_scene(
+        {cell: got.generated[run[-1]] for cell, run in got.cell_runs.items()})
+    for cell, (cfg, scenes, masks, ckpt, device, label) in got.cell_runs.items():
+        ids = [s.scene_id for s in scenes]
+        g = opts.grid_scene if opts.grid_scene is not None else ids.index(pick[0]) if pick and pick[0] in ids else 0
+        got.cells[cell] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
+                                      out / "frames" / f"{label}.png", gif=opts.grid_gifs)
+        got.grid_scene = scenes[g].scene_id
+    if pick:
+        got.grid_scene += f" (where the knob moves the distance kept most: {pick[1]:+.2f} m)"
 
 
 def _br_copies(opts: ReportOptions, device: str) -> int:
@@ -363,6 +384,7 @@ class _Collected:
     gaps: dict = dataclasses.field(default_factory=dict)
     gap_curves: dict = dataclasses.field(default_factory=dict)
     cells: dict = dataclasses.field(default_factory=dict)
+    cell_runs: dict = dataclasses.field(default_factory=dict)
     grid_scene: str = ""
     logged: object = None
     worst: dict | None = None
@@ -390,12 +412,13 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     with_wm = discrete or bool(first.prior_model)  # a continuous run names its own (continuous) world model
     n_base = (2 + discrete + with_wm) if opts.baselines else 0
     bar = tqdm(total=len(runs) + n_base, desc="report", unit="policy", disable=not opts.progress)
-    if not 0 <= opts.grid_scene < opts.scenes:
+    if opts.grid_scene is not None and not 0 <= opts.grid_scene < opts.scenes:
         raise ValueError(f"--grid-scene {opts.grid_scene}: the report evaluates scenes 0 .. {opts.scenes - 1}")
     got = _Collected()
     try:
         for i, run in enumerate(runs):
             _report_run(i, run, got, opts, out, bar, discrete, with_wm)
+        _grid_frames(got, opts, out)
     finally:
         torch.set_num_threads(threads)
         bar.close()
@@ -460,11 +483,8 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     res["kind"] = run_kind(cfg)
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
-    if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cells:  # a cell's first training seed
-        g = opts.grid_scene
-        got.cells[(cfg.env.beta, cfg.alpha)] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
-                                                           out / "frames" / f"{label}.png", gif=opts.grid_gifs)
-        got.grid_scene = scenes[g].scene_id
+    if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cell_runs:  # a cell's first training seed
+        got.cell_runs[(cfg.env.beta, cfg.alpha)] = (cfg, scenes, masks, ckpt, device, label)
     # the most critical scenarios, as GPUDrive JSON with their risk figures
     crit = res["critical"]
     files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
@@ -519,6 +539,7 @@ def _meta(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOpt
     """The settings a report ran with (summary.json's "meta", report.md's opening)."""
     return {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
             "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap, "worst_scenes": got.worst,
+            "grid_scene": got.grid_scene,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,

@@ -73,7 +73,8 @@ def _opening(meta: dict) -> list[str]:
             f"[{PER_SCENE_CSV}]({PER_SCENE_CSV}).\n",
             "**realism (ours)** is a Waymo-Sim-Agents-*style* likelihood score computed by this project, "
             "not the official challenge metric.\n",
-            "![grid](grid.png)\n"]
+            "![grid](grid.png)\n",
+            *([f"grid.png shows scene {meta['grid_scene']}.\n"] if meta.get("grid_scene") else [])]
 
 
 def _comparison_section(results: list[dict]) -> list[str]:

@@ -6,6 +6,7 @@
     flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
     knob_effects(cells)                each figure's change between a knob's extreme cells, with intervals
     worst_scenes(gen)                  the scenes where the policy's agents fail most
+    knob_scene(gens)                   the scene where beta (or alpha) moves the distance kept most
     tail_means(rows, keys)             training figures averaged over the last updates
     gap_curve(start, kept, last, u)    the CCE-gap over a run's training
 
@@ -55,6 +56,43 @@ def worst_scenes(gen, k: int = WORST_SCENES) -> list[dict]:
     rows = [{"scene": i, "scene_id": gen.scenes[i].scene_id, "agent_episodes": n, "collisions": c, "offroad": o,
              "failure_rate": f / n} for i, (n, c, o, f) in by.items() if n and f]
     return sorted(rows, key=lambda r: (-r["failure_rate"], -r["agent_episodes"], r["scene"]))[:k]
+
+
+def scene_distances(gen) -> dict[str, float]:
+    """Per scene id: the mean, over the policy's agent-episodes of every rollout seed, of each agent's least
+    centre distance to another agent (`nearest`, over its present steps)."""
+    pol = np.asarray(gen.policy, bool) & np.asarray(gen.valid, bool).any(-1)
+    least = np.where(gen.valid, gen.nearest, np.inf).min(-1)  # (E, A)
+    sums: dict[str, list[float]] = {}
+    for e, i in enumerate(np.asarray(gen.scene_index)):
+        t = sums.setdefault(gen.scenes[int(i)].scene_id, [0.0, 0])
+        t[0] += float(least[e][pol[e]].sum())
+        t[1] += int(pol[e].sum())
+    return {k: a / n for k, (a, n) in sums.items() if n}
+
+
+def knob_scene(cells: dict[tuple[float, float], object]) -> tuple[str, float] | None:
+    """The scene (id) where the knob moves the distance kept most, and by how much (m): per scene, the mean
+    least distance (`scene_distances`) of the largest beta's cell minus the smallest beta's, averaged over
+    the alphas both have; with a single beta, the smallest alpha's minus the largest alpha's (the paper's
+    direction: a larger beta or a smaller alpha keeps more distance). `cells` maps (beta, alpha) to recorded
+    episodes. None with fewer than two cells, or no scene that the extreme cells share."""
+    betas = sorted({b for b, _ in cells})
+    alphas = sorted({a for _, a in cells})
+    if len(betas) > 1:
+        pairs = [((betas[-1], a), (betas[0], a)) for a in alphas if (betas[0], a) in cells and (betas[-1], a) in cells]
+    else:
+        pairs = [((betas[0], alphas[0]), (betas[0], alphas[-1]))] if len(alphas) > 1 else []
+    diffs: dict[str, list[float]] = {}
+    for hi, lo in pairs:
+        d_hi, d_lo = scene_distances(cells[hi]), scene_distances(cells[lo])
+        for k in d_hi.keys() & d_lo.keys():
+            diffs.setdefault(k, []).append(d_hi[k] - d_lo[k])
+    full = {k: float(np.mean(v)) for k, v in diffs.items() if len(v) == len(pairs)}
+    if not full:
+        return None
+    best = max(sorted(full), key=lambda k: full[k])
+    return best, full[best]
 
 
 def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
