@@ -763,8 +763,8 @@ def test_the_grid_scene_is_where_the_knob_moves_the_distance_kept_most():
     assert pick == ("b", 1.5)  # means over alpha: a 1.0, b 1.5, c 0.25
     cells[(6.0, 0.9)] = gen([6.0, 5.0, 7.0])
     assert knob_scene(cells) == ("a", 2.0)
-    # one beta: the smallest alpha's distance minus the largest's; one cell: no pick
-    assert knob_scene({(4.0, 0.1): gen([3.0, 9.0, 7.0]), (4.0, 0.9): gen([3.0, 5.0, 7.0])}) == ("b", 4.0)
+    # one beta: the largest alpha's distance minus the smallest's; one cell: no pick
+    assert knob_scene({(4.0, 0.9): gen([3.0, 9.0, 7.0]), (4.0, 0.1): gen([3.0, 5.0, 7.0])}) == ("b", 4.0)
     assert knob_scene({(4.0, 0.1): gen([3.0, 9.0, 7.0])}) is None
 
 

@@ -74,15 +74,15 @@ def scene_distances(gen) -> dict[str, float]:
 def knob_scene(cells: dict[tuple[float, float], object]) -> tuple[str, float] | None:
     """The scene (id) where the knob moves the distance kept most, and by how much (m): per scene, the mean
     least distance (`scene_distances`) of the largest beta's cell minus the smallest beta's, averaged over
-    the alphas both have; with a single beta, the smallest alpha's minus the largest alpha's (the paper's
-    direction: a larger beta or a smaller alpha keeps more distance). `cells` maps (beta, alpha) to recorded
+    the alphas both have; with a single beta, the largest alpha's minus the smallest alpha's (the paper's
+    direction: a larger beta, or a larger alpha, the more risk-averse, keeps more distance). `cells` maps (beta, alpha) to recorded
     episodes. None with fewer than two cells, or no scene that the extreme cells share."""
     betas = sorted({b for b, _ in cells})
     alphas = sorted({a for _, a in cells})
     if len(betas) > 1:
         pairs = [((betas[-1], a), (betas[0], a)) for a in alphas if (betas[0], a) in cells and (betas[-1], a) in cells]
     else:
-        pairs = [((betas[0], alphas[0]), (betas[0], alphas[-1]))] if len(alphas) > 1 else []
+        pairs = [((betas[0], alphas[-1]), (betas[0], alphas[0]))] if len(alphas) > 1 else []
     diffs: dict[str, list[float]] = {}
     for hi, lo in pairs:
         d_hi, d_lo = scene_distances(cells[hi]), scene_distances(cells[lo])
