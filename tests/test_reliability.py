@@ -260,3 +260,18 @@ def test_fuzz_every_set_key_gives_a_config_or_one_error_naming_it():
                 sim.step()  # the action buffers as they are
             stepped += 1
     assert stepped >= 20
+
+
+def test_a_script_without_a_main_guard_is_told_why_scene_workers_died(tmp_path):
+    """Many procedural scenes are generated in spawned worker processes, which import the main script
+    again: a script that builds scenes at its top level kills them. The error says so and names the guard,
+    instead of a bare BrokenProcessPool."""
+    script = tmp_path / "no_guard.py"
+    script.write_text("import os\n"
+                      "os.cpu_count = lambda: 3  # enough cores for the worker pool on any machine\n"
+                      "from tg_gpudrive.data.sources import ProceduralSource\n"
+                      "ProceduralSource(['merge'], n=64).get_many(range(64))\n")
+    r = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert r.returncode != 0
+    last = r.stderr.strip().splitlines()[-1]
+    assert last.startswith("RuntimeError: procedural:merge: the worker processes") and '__name__ == "__main__"' in last

@@ -35,6 +35,7 @@ import multiprocessing
 import os
 from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -163,9 +164,16 @@ class ProceduralSource(SceneSource):
         workers = min(os.cpu_count() or 1, 16)
         if len(missing) >= 64 and workers > 2:
             # spawn, not fork: the parent may already hold a CUDA context
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                for i, sc in zip(missing, pool.map(_generate, [self._args(i) for i in missing], chunksize=16)):
-                    cache[i] = sc
+            try:
+                with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                    for i, sc in zip(missing, pool.map(_generate, [self._args(i) for i in missing], chunksize=16)):
+                        cache[i] = sc
+            except BrokenProcessPool:
+                raise RuntimeError(
+                    f"{self.name}: the worker processes that generate its scenes died. They start with 'spawn', "
+                    "which imports the main script again in each of them: a script that builds scenes (a "
+                    "Trainer, a Simulator, resolve_scenes) at its top level needs that code under "
+                    "`if __name__ == \"__main__\":`") from None
             while len(cache) > self.cache_size:
                 cache.popitem(last=False)
         return [self.get(i) for i in indices]
