@@ -239,8 +239,9 @@ def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
     pick = None if opts.grid_scene is not None else knob_scene(
         {cell: got.generated[run[-1]] for cell, run in got.cell_runs.items()})
     for cell, (cfg, scenes, masks, ckpt, device, label) in got.cell_runs.items():
-        ids = [s.scene_id for s in scenes]
-        g = opts.grid_scene if opts.grid_scene is not None else ids.index(pick[0]) if pick and pick[0] in ids else 0
+        g = opts.grid_scene
+        if g is None:
+            g = next((k for k, s in enumerate(scenes) if pick and s.scene_id == pick[0]), 0)
         got.cells[cell] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
                                       out / "frames" / f"{label}.png", gif=opts.grid_gifs)
         got.grid_scene = scenes[g].scene_id
