@@ -3,9 +3,10 @@
     python scripts/profile_train.py --config configs/train/gpu.yaml --set num_worlds=4096 [--iters 3]
         [--warmup 2] [--trace trace.json] [--json]
 
-The trainer's rollout and update carry named ranges (torch.profiler.record_function): in the rollout
-`magnet.context` (the magnet's history window), `live_rows` (which agents act: the step's host sync),
-`actor`, `sample`, `critic`, `magnet` (within it `magnet.forward`, the world model), `engine` and `buffers`;
+The trainer's rollout and update carry named ranges (torch.profiler.record_function): per step of the
+rollout `magnet.context` (the magnet's history window), `live_rows` (which agents act: the step's host sync),
+`actor`, `sample`, `magnet` (its context kept), `engine` and `buffers`, and after the steps `critic` (the
+values of every step) and `magnet.forward` (the world model's logits);
 in the update `advantages`, `lagrange`, and per minibatch `forward` (actor, critic, quantiles, the KL
 terms), `backward` and `optimizer` (clipping and Adam). After `--warmup` plain iterations it times
 `--iters` more without the profiler (the wall clock of rollout and update, synchronised), then

@@ -141,6 +141,40 @@ def test_magnet_fraction_computes_the_prior_on_that_share_of_live_rows_and_weigh
     assert float(groups.prior_weight[g, c].mean()) == pytest.approx(1.0, abs=0.25)
 
 
+@pytest.mark.parametrize("fraction", [1.0, 0.25])
+def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, fraction, monkeypatch):
+    """The critic's values and the magnet's logits, computed from the stored observations and contexts
+    after the rollout (in batches cut small here), equal those of the state at each step: a second
+    simulator replays the rollout's actions, and at every step the critic and the prior run on its live
+    state."""
+    import tg_gpudrive.learn.collector as collector_mod
+    monkeypatch.setattr(collector_mod, "CRITIC_SLOTS", 3 * 16)  # a few steps per critic call
+    monkeypatch.setattr(collector_mod, "MAGNET_ROWS", 7)
+    CASES["replay"] = dict(magnet_fraction=fraction)
+    try:
+        cfg, sim, nets, collector, *_, prior = _setup(tmp_path / "a", "replay")
+        _, sim2, _, _, *_, prior2 = _setup(tmp_path / "b", "replay")
+    finally:
+        del CASES["replay"]
+    batch = collector.collect()
+    T, C = cfg.rollout_steps, batch.mask.shape[-1]
+    take = batch.mask if batch.prior_weight is None else batch.prior_weight > 0
+    for t in range(T + 1):
+        obs, mask = sim2.obs[:, :C], sim2.active[:, :C] != 0
+        value, quant = nets.critic(obs, mask)
+        torch.testing.assert_close(batch.value[t][mask], value[mask], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(batch.quant[t][mask], quant[mask], rtol=1e-5, atol=1e-5)
+        if t == T:
+            break
+        assert torch.equal(batch.mask[t], mask)
+        ctx = prior2.context(sim2, C)
+        torch.testing.assert_close(batch.prior[t][take[t]], prior2.distribution(ctx[take[t]], obs[take[t]]),
+                                   rtol=1e-5, atol=1e-5)
+        sim2.actions_index[:, :C] = batch.act[t].to(torch.int32)
+        sim2.step()
+    assert int(take.sum()) > 0
+
+
 def test_magnet_fraction_is_for_the_discrete_magnet():
     from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig
 

@@ -39,6 +39,8 @@ class ExpertPrior(BehaviourPrior):
     gradient, and the prior itself keeps some entropy (a magnet with none pulls
     the policy to a deterministic one that stops exploring)."""
 
+    context_dim = 4  # the expert action's 3 values and its validity
+
     def __init__(self, sim: Simulator, sigma_accel: float = 0.7, sigma_curvature: float = 0.01,
                  closed_loop: bool = True, floor: float = 0.05):
         cfg = sim.cfg

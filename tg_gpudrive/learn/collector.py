@@ -2,11 +2,15 @@
 and keep what the update reads.
 
 Per step the actor runs on the live rows only (often under half of W x C) and samples with the trainer's
-own generator (so a resumed run replays the same actions); the critic values every slot; the magnet
-(the behaviour prior) stores its logits or its context; the engine steps; rewards, costs, ends and the
-episodes that ended go into the buffers and the rollout's counters, all on the device. Controlled agents
-sit in slots [0, C) of every world, so every buffer is a (T, W, C, ...) block. The buffers are allocated
-once per shape (several GB at 4,096 worlds) and overwritten by every rollout.
+own generator (so a resumed run replays the same actions); the magnet (the behaviour prior) keeps its
+context; the engine steps; rewards, costs, ends and the episodes that ended go into the buffers and the
+rollout's counters, all on the device. Controlled agents sit in slots [0, C) of every world, so every
+buffer is a (T, W, C, ...) block. The buffers are allocated once per shape (several GB at 4,096 worlds)
+and overwritten by every rollout.
+
+What acting does not need waits for the rollout's end: the critic's values and the world model's magnet
+logits are then computed from the stored observations and contexts in a few large batches, not in one
+small call per step (each such call paid its kernels' launch latency with nothing to hide it).
 """
 
 from __future__ import annotations
@@ -25,6 +29,10 @@ from tg_gpudrive.history import HistoryBuffer, hist_dim
 
 Tensor = torch.Tensor
 STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "min_dist", "speed")
+# the batches of the computations after the rollout: agent slots per critic call, rows per magnet call
+# (a few hundred MB of activations each at gpu.yaml's sizes)
+CRITIC_SLOTS = 1 << 20
+MAGNET_ROWS = 1 << 17
 
 
 class NonFinite(RuntimeError):
@@ -78,6 +86,9 @@ class Rollout(ByName):
     # (T, W, C) the weight of each row's KL to the magnet: 1 / magnet_fraction on the rows whose prior
     # logits were computed, 0 elsewhere; None: every live row has them (magnet_fraction 1)
     prior_weight: Tensor | None = None
+    # (T, W, C, context_dim) the discrete magnet's context, from which its logits are computed after the
+    # rollout; None without a discrete magnet
+    prior_ctx: Tensor | None = None
     # the rollout's counters, summed on the device (and over the ranks by the trainer): reward `terms`,
     # `alive` agent-steps, their `speed`, and the `episodes` that ended with their `goal`, `collided`,
     # `offroad` and `min_dist` outcomes
@@ -138,17 +149,41 @@ class RolloutCollector:
                 sim.step()
             with phase("rollout/buffers"):
                 self._record_step(buf, stats, t, C)
-        obs, mask = sim.obs[:, :C], sim.active[:, :C] != 0
-        with phase("rollout/critic"), nets.autocast():
-            buf.value[T], buf.quant[T] = nets.critic(obs, mask)
+        with phase("rollout/critic"):
+            self._values(buf, T, C)
+        if self.prior_logits:
+            with phase("rollout/magnet.forward"):
+                self._prior_logits(buf)
         if bool(bad):
             raise NonFinite("non-finite policy output")
         return dataclasses.replace(buf, stats=stats)
 
+    def _values(self, buf: Rollout, T: int, C: int) -> None:
+        """The critic's values and cost quantiles of every step's stored observations, a few steps per call,
+        and of the state after the last step (the bootstrap row T)."""
+        sim, critic = self.sim, self.nets.critic
+        chunk = max(1, CRITIC_SLOTS // (sim.num_worlds * C))
+        with self.nets.autocast():
+            for t0 in range(0, T, chunk):
+                t1 = min(T, t0 + chunk)
+                buf.value[t0:t1], buf.quant[t0:t1] = critic(buf.obs[t0:t1], buf.mask[t0:t1])
+            buf.value[T], buf.quant[T] = critic(sim.obs[:, :C], sim.active[:, :C] != 0)
+
+    def _prior_logits(self, buf: Rollout) -> None:
+        """The magnet's logits on the rows that take it (every live row, or the `magnet_fraction` picked per
+        step), from the stored contexts and observations, in batches of MAGNET_ROWS (bf16 under autocast on
+        the GPU; a fixed target, so computing them once per rollout rather than per minibatch and epoch)."""
+        take = buf.mask if buf.prior_weight is None else buf.prior_weight > 0
+        t, w, c = take.nonzero(as_tuple=True)  # the rollout's one host sync after its steps
+        with self.nets.autocast():
+            for s in range(0, len(t), MAGNET_ROWS):
+                i = (t[s:s + MAGNET_ROWS], w[s:s + MAGNET_ROWS], c[s:s + MAGNET_ROWS])
+                buf.prior[i] = self.prior.distribution(buf.prior_ctx[i], buf.obs[i]).float()
+
     def _act(self, buf: Rollout, t: int, C: int) -> Tensor:
         """Step t before the engine steps: sample the live agents' actions, store them with the rollout
-        policy's output, the observations, the critic's values and the magnet, and hand the actions to
-        the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
+        policy's output, the observations and the magnet's context (or, continuous, the prior's), and hand
+        the actions to the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
         # the motion windows first: their reset checks read the host, and here that read waits only for the
         # engine's step, which the live rows' count waits for anyway, not for the networks queued after it
@@ -180,10 +215,8 @@ class RolloutCollector:
             a = self._sample(out, len(w_idx))
         with phase("rollout/buffers"):
             self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out)
-        with phase("rollout/critic"), nets.autocast():
-            buf.value[t], buf.quant[t] = nets.critic(obs, mask, w_idx * C + c_idx)
         with phase("rollout/magnet"):
-            self._magnet(buf, t, C, ctx, obs, w_idx, c_idx)
+            self._magnet(buf, t, C, ctx, w_idx, c_idx)
         act = buf.act[t]
         if head.discrete:
             sim.actions_index[:, :C] = act.to(torch.int32)
@@ -214,20 +247,16 @@ class RolloutCollector:
             return torch.zeros(0, dtype=torch.long, device=self.device)
         return torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0]
 
-    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, obs: Tensor, w_idx: Tensor,
-                c_idx: Tensor) -> None:
-        """The magnet of step t: the discrete prior's logits once per live row from its context `ctx` (bf16 on
-        GPU; computing them per minibatch and epoch instead doubled the update time with the world model),
-        else its context."""
+    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, w_idx: Tensor, c_idx: Tensor) -> None:
+        """The magnet of step t: the discrete prior's context `ctx` (its logits follow after the rollout) and,
+        with `magnet_fraction` < 1, which live rows take them; else the continuous prior's context."""
         if self.prior_logits:
+            buf.prior_ctx[t] = ctx
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
                 frac = self.cfg.magnet_fraction
                 pick = torch.randperm(len(w_idx), generator=self.gen, device=self.device)[:math.ceil(frac * len(w_idx))]
-                w_idx, c_idx = w_idx[pick], c_idx[pick]
                 buf.prior_weight[t].zero_()
-                buf.prior_weight[t][w_idx, c_idx] = 1.0 / frac
-            with phase("rollout/magnet.forward"), self.nets.autocast():
-                buf.prior[t][w_idx, c_idx] = self.prior.distribution(ctx[w_idx, c_idx], obs[w_idx, c_idx]).float()
+                buf.prior_weight[t][w_idx[pick], c_idx[pick]] = 1.0 / frac
         elif self.cfg.eta1 > 0:
             buf.prior[t] = self.prior.context(self.sim, C)
 
@@ -268,7 +297,8 @@ class RolloutCollector:
             prior=steps(self._prior_dim()),
             old=steps(sim.num_actions) if discrete else (torch.zeros(act, device=dev), torch.zeros(act, device=dev)),
             hist=steps(cfg.actor_history, hist_dim(cfg.actor_history_partners)) if self.actor_hist is not None else None,
-            prior_weight=steps() if self.prior_logits and cfg.magnet_fraction < 1 else None)
+            prior_weight=steps() if self.prior_logits and cfg.magnet_fraction < 1 else None,
+            prior_ctx=steps(self.prior.context_dim) if self.prior_logits else None)
         self._buf_key = key
         return self._buf
 
@@ -276,4 +306,4 @@ class RolloutCollector:
         """Per row and step: the magnet's logits (discrete), its context (continuous), nothing (eta1 0)."""
         if self.cfg.eta1 <= 0:
             return 0
-        return self.sim.num_actions if self.prior_logits else getattr(self.prior, "context_dim", 4)
+        return self.sim.num_actions if self.prior_logits else self.prior.context_dim
