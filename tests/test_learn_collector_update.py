@@ -175,6 +175,21 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
     assert int(take.sum()) > 0
 
 
+@pytest.mark.parametrize("groups, mb", [(10, 3), (12, 4), (5, 8)])
+def test_epoch_live_rows_are_each_minibatchs_own(groups, mb):
+    """The live rows found once an epoch are, minibatch by minibatch, those its own mask gives (uneven last
+    minibatch, empty ones and a single short one included)."""
+    from tg_gpudrive.learn.update import epoch_live_rows
+    mask = torch.rand(groups, 4, generator=torch.Generator().manual_seed(groups)) < 0.4
+    mask[:mb] = False  # the first minibatch has no live row
+    live = epoch_live_rows(mask, mb)
+    assert len(live) == len(range(0, groups, mb))
+    for (g, c), s in zip(live, range(0, groups, mb)):
+        ref_g, ref_c = mask[s:s + mb].nonzero(as_tuple=True)
+        assert torch.equal(g, ref_g) and torch.equal(c, ref_c)
+    assert len(live[0][0]) == 0
+
+
 def test_magnet_fraction_is_for_the_discrete_magnet():
     from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig
 

@@ -138,12 +138,13 @@ def flatten(batch: Rollout, tg: Targets, discrete: bool) -> Groups:
 
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
-                   prior: BehaviourPrior) -> tuple[Tensor, dict]:
+                   prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, dict]:
     """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups
-    (attention over each group's slots) with their heads on the live rows only."""
+    (attention over each group's slots) with their heads on the live rows only. `live`: the live rows as
+    (position in idx, slot), in row-major order, when the caller has them (else found here, a host sync)."""
     mi = b.mask[idx]
     # the actor is per agent: run it on the live rows only (often under half of W x C)
-    g, c = mi.nonzero(as_tuple=True)
+    g, c = mi.nonzero(as_tuple=True) if live is None else live
     weight = 1.0
     if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
         g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
@@ -186,6 +187,19 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     return loss, parts
 
 
+def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
+    """The live rows of each minibatch of an epoch, found at once: `mask` (groups in the epoch's order, C),
+    minibatch k its groups [k mb, (k + 1) mb); per minibatch (position in it, slot), row-major. One host
+    sync an epoch, not one per minibatch, so the host queues the minibatches' kernels ahead of the GPU."""
+    g, c = mask.nonzero(as_tuple=True)
+    counts = torch.bincount(g // mb, minlength=-(-mask.shape[0] // mb)).tolist()
+    out, at = [], 0
+    for k, n in enumerate(counts):
+        out.append((g[at:at + n] - k * mb, c[at:at + n]))
+        at += n
+    return out
+
+
 def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
              gen: torch.Generator, prior: BehaviourPrior) -> dict:
     """`epochs` passes of shuffled minibatches, one optimiser step each; the mean loss parts. Raises
@@ -197,9 +211,12 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
     n_mb = 0
     for _ in range(cfg.epochs):
         perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
-        for s in range(0, n_groups, mb):
+        starts = range(0, n_groups, mb)
+        with phase("update/live_rows"):
+            live = epoch_live_rows(b.mask[perm], mb)
+        for s, rows in zip(starts, live):
             with phase("update/forward"):
-                loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior)
+                loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior, rows)
                 bad |= ~torch.isfinite(loss)
             with phase("update/backward"):
                 opt.zero_grad(set_to_none=True)
