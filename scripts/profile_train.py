@@ -7,8 +7,9 @@ The trainer's rollout and update carry named ranges (torch.profiler.record_funct
 rollout `magnet.context` (the magnet's history window), `live_rows` (which agents act: the step's host sync),
 `actor`, `sample`, `magnet` (its context kept), `engine` and `buffers`, and after the steps `critic` (the
 values of every step) and `magnet.forward` (the world model's logits);
-in the update `advantages`, `lagrange`, and per minibatch `forward` (actor, critic, quantiles, the KL
-terms), `backward` and `optimizer` (clipping and Adam). After `--warmup` plain iterations it times
+in the update `advantages`, `lagrange`, per epoch `live_rows` (every minibatch's live rows: its host
+sync), and per minibatch `forward` (actor, critic, quantiles, the KL terms), `backward` and `optimizer`
+(clipping and Adam). After `--warmup` plain iterations it times
 `--iters` more without the profiler (the wall clock of rollout and update, synchronised), then
 profiles as many: per range the host time and the device time of the kernels launched inside it, per
 iteration, then the `--rows` operators that took the most device (or, on the CPU, host) time. `--trace`

@@ -134,10 +134,12 @@ def test_profile_train_names_every_phase_of_an_iteration():
     phases = res["phases"]
     want = {f"rollout/{p}" for p in ("live_rows", "actor", "sample", "buffers", "critic", "magnet", "magnet.context",
                                      "magnet.forward", "engine")}
-    want |= {f"update/{p}" for p in ("advantages", "lagrange", "forward", "backward", "optimizer")}
+    want |= {f"update/{p}" for p in ("advantages", "lagrange", "live_rows", "forward", "backward", "optimizer")}
     assert want <= set(phases), sorted(phases)
     assert all(phases[p]["host_ms"] > 0 for p in want)
-    assert phases["rollout/engine"]["calls"] == 4 and phases["rollout/critic"]["calls"] == 5  # + the bootstrap
+    # per step: the engine and the magnet's context; after the steps, once: the values and the magnet's logits
+    assert phases["rollout/engine"]["calls"] == 4 and phases["rollout/magnet"]["calls"] == 4
+    assert phases["rollout/critic"]["calls"] == 1 and phases["rollout/magnet.forward"]["calls"] == 1
     assert res["rollout_s"] > 0 and res["update_s"] > 0 and res["agent_steps_per_s"] > 0
 
 
