@@ -17,3 +17,12 @@ def test_pyproject_lists_every_package():
     found |= {"tg_gpudrive.kernels"} if (REPO / "kernels" / "__init__.py").exists() else set()
     assert found <= listed, f"packages missing from pyproject.toml: {sorted(found - listed)}"
     assert setup["package-dir"]["tg_gpudrive.kernels"] == "kernels"
+
+
+def test_every_packaged_checkpoint_is_package_data():
+    """A non-editable install ships only the package-data files: every .pt beside the code (the packaged
+    policies and world models that configs name, e.g. real_mix.yaml's `init_policy: shipped_v2`) is listed."""
+    data = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    for pt in (REPO / "tg_gpudrive").rglob("*.pt"):
+        pkg = ".".join(pt.parent.relative_to(REPO).parts)
+        assert pt.name in data.get(pkg, []), f"{pt.relative_to(REPO)} is missing from pyproject's package-data[{pkg!r}]"
