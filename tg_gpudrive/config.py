@@ -242,8 +242,8 @@ class TrainConfig:
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
     eta1: float = 0.05
-    # discrete magnet: the share of the live rows whose prior logits are computed at each rollout step
-    # (a random subset, the same size every step); their KL to the prior weighs 1 / magnet_fraction, so
+    # discrete magnet: the share of the live rows, picked at each rollout step (a random subset, the same
+    # size every step), whose prior logits are computed; their KL to the prior weighs 1 / magnet_fraction, so
     # the loss's expectation is unchanged at that share of the world model's cost. 1: every row
     magnet_fraction: float = 1.0
     eta2: float = 20.0
