@@ -193,11 +193,7 @@ def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
     sync an epoch, not one per minibatch, so the host queues the minibatches' kernels ahead of the GPU."""
     g, c = mask.nonzero(as_tuple=True)
     counts = torch.bincount(g // mb, minlength=-(-mask.shape[0] // mb)).tolist()
-    out, at = [], 0
-    for k, n in enumerate(counts):
-        out.append((g[at:at + n] - k * mb, c[at:at + n]))
-        at += n
-    return out
+    return list(zip((g % mb).split(counts), c.split(counts)))
 
 
 def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
@@ -211,10 +207,9 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
     n_mb = 0
     for _ in range(cfg.epochs):
         perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
-        starts = range(0, n_groups, mb)
         with phase("update/live_rows"):
             live = epoch_live_rows(b.mask[perm], mb)
-        for s, rows in zip(starts, live):
+        for s, rows in zip(range(0, n_groups, mb), live):
             with phase("update/forward"):
                 loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior, rows)
                 bad |= ~torch.isfinite(loss)
