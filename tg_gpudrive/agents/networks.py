@@ -19,7 +19,6 @@ the world: each agent's embedding attends over the embeddings of the others
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from tg_gpudrive.history import hist_dim, hist_scale
@@ -56,30 +55,12 @@ class ObsEncoder(nn.Module):
         self.fuse = mlp([3 * embed, hidden, hidden])
 
     @staticmethod
-    def _masked_embed(net: nn.Sequential, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        """`net(x) * mask[..., None]` for a per-entry `net` of Linear, ReLU, Linear, ReLU, without a
-        multiply over its (entries x embed) output, the largest tensor of the networks. The mask enters
-        as one more input column that carries the first layer's bias, and one more hidden unit copies it
-        to carry the second's: an absent entry meets zero input and zero bias at both layers, and
-        ReLU(0) = 0. The hidden width is padded to a multiple of 8 (bf16 products want aligned rows),
-        and the biases' gradients come out of the weight products. The parameters are `net`'s own."""
-        l1, l2 = net[0], net[2]
-        m = mask.to(x.dtype)[..., None]
-        pad = -(l1.out_features + 1) % 8
-        w1 = torch.cat([l1.weight, l1.bias[:, None]], 1)
-        extra = w1.new_zeros(1 + pad, w1.shape[1])
-        extra[0, -1] = 1.0  # the hidden unit that copies the mask
-        h = torch.relu(F.linear(torch.cat([x * m, m], -1), torch.cat([w1, extra], 0)))
-        w2 = torch.cat([l2.weight, l2.bias[:, None], l2.weight.new_zeros(l2.out_features, pad)], 1)
-        return torch.relu(F.linear(h, w2))
-
-    @staticmethod
-    def _pool(feat: torch.Tensor) -> torch.Tensor:
-        """Max-pool over the entries (dim -2) of features that are >= 0 and 0 where an entry is absent
-        (`_masked_embed`): absent entries never beat a present one, and a row with no entries pools to
-        zeros. `max` rather than `amax`: its backward scatters to one index instead of comparing the
-        whole tensor against the result, the update's costliest backward op."""
-        return feat.max(dim=-2).values
+    def _pool(feat: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        """Masked max-pool over the entries (dim -2) of features that are >= 0 (the encoders end in a
+        ReLU): absent entries become 0, so they never beat a present one and a row with no entries
+        pools to zeros. `max` rather than `amax`: its backward scatters to one index instead of
+        comparing the whole tensor against the result, the update's costliest backward op."""
+        return (feat * mask[..., None]).max(dim=-2).values
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         lead = obs.shape[:-1]
@@ -87,8 +68,8 @@ class ObsEncoder(nn.Module):
         ego = obs[..., :EGO_DIM] / self.ego_scale
         part = obs[..., EGO_DIM:EGO_DIM + k * PARTNER_DIM].reshape(*lead, k, PARTNER_DIM)
         road = obs[..., EGO_DIM + k * PARTNER_DIM:].reshape(*lead, kr, ROAD_DIM)
-        p = self._pool(self._masked_embed(self.partner, part / self.partner_scale, part[..., 0] > 0.5))
-        r = self._pool(self._masked_embed(self.road, road / self.road_scale, road[..., 0] > 0.5))
+        p = self._pool(self.partner(part / self.partner_scale), part[..., 0] > 0.5)
+        r = self._pool(self.road(road / self.road_scale), road[..., 0] > 0.5)
         return self.fuse(torch.cat([self.ego(ego), p, r], dim=-1))
 
 
