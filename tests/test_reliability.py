@@ -275,3 +275,26 @@ def test_a_script_without_a_main_guard_is_told_why_scene_workers_died(tmp_path):
     assert r.returncode != 0
     last = r.stderr.strip().splitlines()[-1]
     assert last.startswith("RuntimeError: procedural:merge: the worker processes") and '__name__ == "__main__"' in last
+
+
+def test_a_run_without_matplotlib_keeps_its_files_and_says_why_no_curves(tmp_path, monkeypatch, caplog):
+    """curves.png needs the render extra; without it the run's end logs one line and returns, so a finished
+    run is never reported as a crash."""
+    import builtins
+
+    from tg_gpudrive.learn.runlog import RunLog
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *args, **kwargs):
+        if name == "matplotlib" or name.startswith("matplotlib."):
+            raise ModuleNotFoundError(f"No module named '{name}'", name="matplotlib")
+        return real_import(name, *args, **kwargs)
+
+    run = RunLog(tmp_path, lead=True)
+    run.metrics({"update": 1, "agent_steps": 10, "goal_rate": 0.5})
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    with caplog.at_level("WARNING"):
+        assert run.plot() is None
+    assert "matplotlib is not installed" in caplog.text
+    assert (tmp_path / "metrics.csv").exists() and not (tmp_path / "curves.png").exists()

@@ -74,7 +74,14 @@ class RunLog:
         """PNG of the training curves (metrics.csv -> curves.png)."""
         if not (self.lead and self.metrics_path.exists()):
             return None
-        return plot_curves(self.metrics_path, self.out / "curves.png")
+        try:
+            return plot_curves(self.metrics_path, self.out / "curves.png")
+        except ModuleNotFoundError as e:  # the render extra: a finished run's files stand without it
+            if e.name != "matplotlib":
+                raise
+            log.warning("%s: curves.png not drawn, matplotlib is not installed (pip install 'tg_gpudrive[render]'); "
+                        "metrics.csv holds the curves", self.out)
+            return None
 
     def close(self) -> None:
         if self._tb is not None:
