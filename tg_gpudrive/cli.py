@@ -60,7 +60,7 @@ from tg_gpudrive.learn import distributed
 from tg_gpudrive.agents import BUILTIN, open_policy
 from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
 from tg_gpudrive.learn.train import train_main
-from tg_gpudrive.agents.builtin import expert_policy
+from tg_gpudrive.agents.builtin import BACKGROUNDS, expert_policy
 from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.enums import CollisionMode, ControlMode
 from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args
@@ -101,9 +101,10 @@ def _background_args(p: argparse.ArgumentParser) -> None:
                    help="who the policy drives: every eligible vehicle (default: the engine config's `control`) "
                         "or the --control-k vehicles nearest the scene's conflict point")
     p.add_argument("--control-k", type=int, default=5, help="nearest_conflict: how many (default 5)")
-    p.add_argument("--background", choices=["log", "world_model"], default="log",
-                   help="who drives the other eligible vehicles: log replay (default) or the world model, "
-                        "reacting to the policy's vehicles")
+    p.add_argument("--background", choices=list(BACKGROUNDS), default="log",
+                   help="who drives the other eligible vehicles: log replay (default), the world model, or idm "
+                        "(each on its logged path and timing, braking for whoever is on that path); the last two "
+                        "react to the policy's vehicles")
     p.add_argument("--background-model", default=None, metavar="PATH",
                    help="--background world_model: a world-model checkpoint (model.pt or a train-world-model "
                         "run directory, or small_cpu: the packaged CPU model; default: the shipped model of the "
@@ -382,8 +383,8 @@ def _open(args, spec: str, scenes, *, engine, auto_reset: bool = True, option: s
                          background_model=getattr(args, "background_model", None), seed=args.seed,
                          deterministic=getattr(args, "deterministic", False), auto_reset=auto_reset, option=option)
     if opened.background is not None and not bool((opened.sim.background != 0).any()):
-        log.warning("--background world_model: no background vehicle (the policy drives every eligible one); "
-                    "choose fewer with --control nearest_conflict --control-k K")
+        log.warning("--background %s: no background vehicle (the policy drives every eligible one); "
+                    "choose fewer with --control nearest_conflict --control-k K", args.background)
     return opened
 
 

@@ -7,10 +7,13 @@ A policy is a callable `policy(sim) -> None` that writes the action buffers of t
 Who drives the vehicles the policy does not (`BACKGROUNDS`):
 
     log          they replay their logs (the engine's default)
-    world_model  the learned world model drives them reactively: they are marked
-                 background in the Simulator (`background_masks`) and
-                 `make_background_driver` writes their actions after the policy
-                 and before every `sim.step()`
+    world_model  the learned world model drives them reactively
+    idm          each follows its own logged path and timing and brakes for whoever
+                 is on that path (agents/idm.py: reactive log replay)
+
+Reactive ones are marked background in the Simulator (`background_masks`) and
+`make_background_driver` writes their actions after the policy and before every
+`sim.step()`.
 
 A background driver is itself a `policy(sim)` that writes only the background
 rows, so it must run after the policy (policies may write every row).
@@ -24,6 +27,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from tg_gpudrive.agents.idm import IDMDriver
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
@@ -73,7 +77,7 @@ def builtin_policy(name: str, seed: int, device: str) -> Policy:
     raise ValueError(f"policy: expected expert, random or constant, got {name!r}")
 
 
-BACKGROUNDS = ("log", "world_model")
+BACKGROUNDS = ("log", "world_model", "idm")
 
 
 def check_background(background: str, option: str = "background") -> str:
@@ -84,7 +88,7 @@ def check_background(background: str, option: str = "background") -> str:
 
 def background_masks(scenes: Sequence, cfg, background: str = "log",
                      controlled: Sequence[np.ndarray] | None = None) -> list[np.ndarray] | None:
-    """The Simulator's `background` argument: None for log replay; for the world model
+    """The Simulator's `background` argument: None for log replay; for a reactive background
     `engine.control.background_masks` (the eligible vehicles the policy does not drive)."""
     if check_background(background) == "log":
         return None
@@ -93,14 +97,16 @@ def background_masks(scenes: Sequence, cfg, background: str = "log",
 
 def make_background_driver(sim: Simulator, background: str = "log", model: str | Path | None = None,
                            seed: int = 0, option: str = "background_model") -> Policy | None:
-    """None for log replay; else a `WorldModelDriver` of the background rows, with the checkpoint
-    `model` (a world-model .pt, a train-world-model run directory or a packaged name) or the shipped model.
-    The model's action space must match the simulator's (the loader raises ValueError otherwise;
-    the shipped model is discrete)."""
-    if check_background(background) == "log":
-        if model is not None:
-            raise ValueError(f"{option}: only used with background world_model, got background log")
+    """None for log replay; an `IDMDriver` of the background rows for idm; else a `WorldModelDriver` of
+    them, with the checkpoint `model` (a world-model .pt, a train-world-model run directory or a packaged
+    name) or the shipped model. The model's action space must match the simulator's (the loader raises
+    ValueError otherwise; the shipped model is discrete)."""
+    if check_background(background) != "world_model" and model is not None:
+        raise ValueError(f"{option}: only used with background world_model, got background {background}")
+    if background == "log":
         return None
+    if background == "idm":
+        return IDMDriver(rows="background")
     if model is None:
         wm = load_shipped(sim)
     else:

@@ -1,0 +1,266 @@
+"""Reactive log replay: each vehicle follows its own logged path and timing, and brakes for whoever is in
+its way (the Intelligent Driver Model, IDM, on the agents ahead along that path). Waymax's `IDMRoutePolicy`
+is the same idea; here the log's timing stays the target, so a vehicle with a free path drives as its log
+does and only the car-following departs from it.
+
+    driver = IDMDriver(rows="background")       # driver(sim) before every sim.step()
+
+Per vehicle and step (all in torch, batched over worlds and agents):
+
+1. **Where it is on its path**: the log's positions are its path, parameterised by arc length; the vehicle
+   sits at its current position's projection (searched forward from the last one, so a path that comes
+   back on itself is not short-cut).
+2. **Tracking the log** (`a_track`): the speed that closes the gap to where the log is one step later,
+   along the path, like the engine's expert tracking controller (kernels/dynamics.py `tracking_target`).
+3. **Following** (`a_idm`): every present agent whose box lies across the next `reach` metres of the path
+   (its half extent across the path plus the vehicle's half width) is a leader; the nearest sets the IDM
+   acceleration `a_max (1 - (s* / s)^2)` with `s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))`, `s` the
+   bumper gap along the path and `dv` the closing speed. Without a leader there is no bound.
+4. The acceleration is the smaller of the two; the curvature is pure pursuit of the path point `lookahead`
+   ahead (at least `min_lookahead` metres). Both go through the engine's action box or nearest grid bin.
+
+A vehicle delayed by a leader catches up with its log afterwards, at most `catch_up` m/s above the log's
+own top speed. It does not reason about crossing traffic beyond what lies on its path, nor yield at
+junctions the log did not: its log's timing is what keeps it out of conflicts, as in plain replay.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from tg_gpudrive.kernels.dynamics import TRACK_GAIN_LONG
+from tg_gpudrive.kernels.kinds import DYNAMICS_BICYCLE
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class IDMParams:
+    """The car-following model (SI units) and how far ahead it looks."""
+
+    a_max: float = 2.0          # m/s^2, IDM's acceleration scale
+    b: float = 3.0              # m/s^2, comfortable deceleration
+    s0: float = 2.0             # m, the gap kept at a standstill
+    headway: float = 1.0        # s, the time gap kept at speed (IDM's T)
+    reach: float = 50.0         # m of path ahead searched for leaders
+    spacing: float = 1.0        # m between the path samples leaders are matched to
+    margin: float = 0.3         # m added to the half widths when asking whether a box lies across the path
+    lookahead: float = 0.6      # s of speed to the pure-pursuit point ...
+    min_lookahead: float = 4.0  # ... but at least this many metres
+    catch_up: float = 2.0       # m/s above the log's top speed a delayed vehicle may drive
+
+    def __post_init__(self):
+        for name in ("a_max", "b", "reach", "spacing", "min_lookahead"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"IDMParams.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("s0", "headway", "margin", "lookahead", "catch_up"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"IDMParams.{name} must be >= 0, got {getattr(self, name)}")
+
+
+def idm_accel(v: Tensor, gap: Tensor, dv: Tensor, p: IDMParams) -> Tensor:
+    """IDM's interaction term only (no free-road term: the log's timing sets the free speed): the
+    acceleration for speed `v`, bumper gap `gap` (> 0) and closing speed `dv` = v - v_leader."""
+    s_star = p.s0 + (v * p.headway + v * dv / (2.0 * math.sqrt(p.a_max * p.b))).clamp(min=0.0)
+    return p.a_max * (1.0 - (s_star / gap.clamp(min=1e-3)) ** 2)
+
+
+class IDMDriver:
+    """`driver(sim)`: writes IDM-on-the-log actions for the background rows (`rows="background"`), every
+    integrated row (`"controlled"`) or the policy's rows (`"policy"`); call it once per step, before
+    `sim.step()`. Other rows are left as they are. Bicycle dynamics only (discrete or continuous)."""
+
+    ROWS = ("background", "controlled", "policy")
+
+    def __init__(self, rows: str = "background", params: IDMParams | None = None):
+        if rows not in self.ROWS:
+            raise ValueError(f"rows: expected one of {', '.join(self.ROWS)}, got {rows!r}")
+        self.rows, self.p = rows, params or IDMParams()
+        self._sim = None  # the simulator (and scene build) the cached paths belong to
+        self._idx: Tensor | None = None  # (W, A) each vehicle's path index (its projection)
+        self._last_step: Tensor | None = None  # (W,) the log step of the last call, to see resets
+
+    # --------------------------------------------------------------- paths
+    def _bind(self, sim) -> None:
+        """Cache the logged paths of `sim`'s slots: positions with gaps filled, cumulative arc length,
+        logged speed and each slot's top logged speed."""
+        if sim.model.dynamics != DYNAMICS_BICYCLE:
+            raise ValueError("IDMDriver drives the bicycle (action_space discrete or continuous), "
+                             "not delta_local")
+        pos = sim.slot_log("log_pos").float()  # (W, A, T, 2)
+        vel = sim.slot_log("log_vel").float()
+        valid = sim.slot_log("log_valid") != 0  # (W, A, T)
+        W, A, T = valid.shape
+        t = torch.arange(T, device=pos.device).expand(W, A, T)
+        # the last valid step at or before each step, and the first at or after it (T - 1 / 0 where none)
+        prev = torch.where(valid, t, torch.zeros_like(t)).cummax(-1).values
+        has_prev = valid.cumsum(-1) > 0
+        nxt = torch.where(valid, t, torch.full_like(t, T - 1)).flip(-1).cummin(-1).values.flip(-1)
+        has_next = valid.flip(-1).cumsum(-1).flip(-1) > 0
+        take = lambda x, i: x.gather(2, i[..., None].expand(*i.shape, x.shape[-1]))  # noqa: E731
+        p_prev, p_next, v_prev = take(pos, prev), take(pos, nxt), take(vel, prev)
+        # gaps: linear between the valid steps around them; after the log's end: on at its last velocity
+        # (a vehicle whose log stops mid-episode, leaving the sensors' range, drives on rather than
+        # parking where others' logs later pass); before its start: its first position
+        f = ((t - prev) / (nxt - prev).clamp(min=1)).float()[..., None]
+        inner = p_prev + (p_next - p_prev) * f
+        after = p_prev + v_prev * ((t - prev).float() * float(sim.model.dt))[..., None]
+        pos = torch.where((has_prev & has_next)[..., None], inner, torch.where(has_prev[..., None], after, p_next))
+        seg = (pos[:, :, 1:] - pos[:, :, :-1]).norm(dim=-1)
+        self.path = pos
+        self.arc = torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], -1)  # (W, A, T)
+        speed = vel.norm(dim=-1)
+        # the path's own speed where the log is missing
+        step_speed = torch.cat([seg, seg[..., -1:]], -1) / float(sim.model.dt)
+        self.log_speed = torch.where(valid, speed, step_speed)
+        self.top_speed = self.log_speed.amax(-1)  # (W, A)
+        self._sim, self._build = sim, id(sim.model)
+        self._idx = None
+
+    def _progress(self, sim) -> Tensor:
+        """(W, A) the path index each vehicle is at: after a reset its log step, else the nearest path
+        point in a window ahead of the last one (later points win near-ties, so a logged stop is left
+        behind once the vehicle moves on)."""
+        step = sim.world_step.long()
+        W, A, T = self.arc.shape
+        fresh = self._idx is None or self._last_step is None
+        idx = step[:, None].expand(W, A).clone() if fresh else self._idx
+        if not fresh:
+            restarted = step < self._last_step  # a world reset since the last call
+            idx = torch.where(restarted[:, None], step[:, None].expand(W, A), idx)
+            win = (idx[..., None] + torch.arange(-2, 31, device=idx.device)).clamp(0, T - 1)  # (W, A, K)
+            pts = self.path.gather(2, win[..., None].expand(*win.shape, 2))
+            d = (pts - sim.pos[:, :, None].float()).norm(dim=-1)
+            best = d.min(-1, keepdim=True).values
+            k = torch.where(d <= best + 0.3, torch.arange(win.shape[-1], device=idx.device), -1).amax(-1)
+            idx = win.gather(-1, k[..., None]).squeeze(-1)
+        self._idx, self._last_step = idx, step
+        return idx
+
+    def _arc_at(self, pos: Tensor, idx: Tensor) -> Tensor:
+        """(W, A) the arc length of `pos` projected onto the path segments either side of point `idx`."""
+        T = self.arc.shape[-1]
+        best_d, best_s = None, None
+        for lo in (idx - 1, idx):
+            lo = lo.clamp(0, T - 2)
+            p0 = self.path.gather(2, lo[..., None, None].expand(*lo.shape, 1, 2)).squeeze(2)
+            p1 = self.path.gather(2, (lo + 1)[..., None, None].expand(*lo.shape, 1, 2)).squeeze(2)
+            a0 = self.arc.gather(2, lo[..., None]).squeeze(-1)
+            seg = p1 - p0
+            n = seg.norm(dim=-1).clamp(min=1e-6)
+            f = (((pos - p0) * seg).sum(-1) / (n * n)).clamp(0.0, 1.0)
+            d = (p0 + seg * f[..., None] - pos).norm(dim=-1)
+            s = a0 + f * n
+            if best_d is None:
+                best_d, best_s = d, s
+            else:
+                best_s = torch.where(d < best_d, s, best_s)
+                best_d = torch.minimum(d, best_d)
+        return best_s
+
+    def _along(self, s: Tensor) -> tuple[Tensor, Tensor]:
+        """Path points and unit tangents at arc lengths `s` (W, A, K): (W, A, K, 2) each, linear between
+        logged points, the last point's tangent beyond the path's end."""
+        W, A, T = self.arc.shape
+        j = torch.searchsorted(self.arc.contiguous(), s.contiguous(), right=True).clamp(1, T - 1)  # (W, A, K)
+        a0, a1 = self.arc.gather(2, j - 1), self.arc.gather(2, j)
+        p0 = self.path.gather(2, (j - 1)[..., None].expand(*j.shape, 2))
+        p1 = self.path.gather(2, j[..., None].expand(*j.shape, 2))
+        seg = p1 - p0
+        f = ((s - a0) / (a1 - a0).clamp(min=1e-6)).clamp(0.0, 1.0)
+        pts = p0 + seg * f[..., None]
+        tan = seg / seg.norm(dim=-1, keepdim=True).clamp(min=1e-6)
+        return pts, tan
+
+    # --------------------------------------------------------------- control
+    def _leaders(self, sim, s_cur: Tensor) -> tuple[Tensor, Tensor]:
+        """(gap along the path to the nearest agent across it, that agent's speed along the path), (W, A);
+        gap inf where the path ahead is clear."""
+        p = self.p
+        K = int(p.reach / p.spacing) + 1
+        s = s_cur[..., None] + p.spacing * torch.arange(K, device=s_cur.device)  # (W, A, K)
+        pts, tan = self._along(s)
+        pos, yaw = sim.pos.float(), sim.yaw.float()
+        head = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
+        others = (sim.present != 0)  # (W, A): who can be in the way
+        # each other agent o against each path sample k of each vehicle a: (W, A, O, K)
+        rel = pos[:, None, :, None, :] - pts[:, :, None, :, :]
+        dist = rel.norm(dim=-1)
+        d_min, k = dist.min(-1)  # (W, A, O)
+        t_k = tan.gather(2, k[..., None].expand(*k.shape, 2))  # the path's tangent there, (W, A, O, 2)
+        cos_t = (head[:, None] * t_k).sum(-1).abs()  # |cos| of the other's heading against the tangent
+        sin_t = (1.0 - cos_t ** 2).clamp(min=0.0).sqrt()
+        L, Wd = sim.length.float(), sim.width.float()
+        across = 0.5 * (L[:, None] * sin_t + Wd[:, None] * cos_t)  # the other's half extent across the path
+        along = 0.5 * (L[:, None] * cos_t + Wd[:, None] * sin_t)
+        ahead = ((pos[:, None] - pos[:, :, None]) * head[:, :, None]).sum(-1) > 0  # in front of the vehicle
+        A = pos.shape[1]
+        not_self = ~torch.eye(A, dtype=torch.bool, device=pos.device)
+        hit = (others[:, None] & not_self & ahead & (d_min <= across + 0.5 * Wd[:, :, None] + p.margin))
+        gap = k.float() * p.spacing - 0.5 * L[:, :, None] - along
+        gap = torch.where(hit, gap, torch.full_like(gap, math.inf))
+        g, o = gap.min(-1)  # the nearest leader per vehicle
+        v_o = sim.vel.float()[torch.arange(pos.shape[0], device=pos.device)[:, None], o]  # (W, A, 2)
+        t_o = t_k.gather(2, o[..., None, None].expand(*o.shape, 1, 2)).squeeze(2)
+        return g, (v_o * t_o).sum(-1).clamp(min=0.0)
+
+    def actions(self, sim) -> tuple[Tensor, Tensor]:
+        """(acceleration, curvature) for every slot, (W, A) each, before the action box."""
+        if self._sim is not sim or self._build != id(sim.model):
+            self._bind(sim)
+        p, dt = self.p, float(sim.model.dt)
+        idx = self._progress(sim)
+        W, A, T = self.arc.shape
+        s_cur = self._arc_at(sim.pos.float(), idx)
+        v = sim.speed.float()
+        # tracking: the speed that reaches the log's next-step arc position
+        nxt = (sim.world_step.long() + 1).clamp(max=T - 1)[:, None, None].expand(W, A, 1)
+        s_log = self.arc.gather(2, nxt).squeeze(-1)
+        v_log = self.log_speed.gather(2, nxt).squeeze(-1)
+        e_long = s_log - (s_cur + v * dt) - 0.5 * (v_log - v) * dt
+        v_target = (v_log + TRACK_GAIN_LONG * e_long / dt).clamp(min=0.0)
+        v_target = torch.minimum(v_target, self.top_speed + p.catch_up)
+        a_track = (v_target - v) / dt
+        gap, v_lead = self._leaders(sim, s_cur)
+        a_idm = torch.where(torch.isfinite(gap), idm_accel(v, gap, v - v_lead, p), torch.full_like(v, math.inf))
+        accel = torch.minimum(a_track, a_idm)
+        # pure pursuit of the path point `lookahead` ahead
+        la = (p.lookahead * v).clamp(min=p.min_lookahead)
+        tgt, _ = self._along((s_cur + la)[..., None])
+        d = tgt[..., 0, :] - sim.pos.float()
+        c, s = torch.cos(sim.yaw.float()), torch.sin(sim.yaw.float())
+        x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
+        kappa = 2.0 * y / (x * x + y * y).clamp(min=1e-3)
+        return accel, kappa
+
+    def __call__(self, sim) -> None:
+        if self.rows == "background":
+            sel = sim.background != 0
+        elif self.rows == "controlled":
+            sel = sim.integrated != 0
+        else:
+            sel = sim.policy_agents
+        sel = sel & (sim.present != 0)
+        accel, kappa = self.actions(sim)
+        m = sim.model
+        accel = accel.clamp(-m.max_accel, m.max_accel)
+        kappa = kappa.clamp(-m.max_curvature, m.max_curvature)
+        if m.discrete:
+            ia = nearest_bin(accel, m.max_accel, m.accel_bins)
+            ik = nearest_bin(kappa, m.max_curvature, m.curvature_bins)
+            idx = (ia * m.curvature_bins + ik).to(sim.actions_index.dtype)
+            sim.actions_index.copy_(torch.where(sel, idx, sim.actions_index))
+        else:
+            u = torch.stack([accel, kappa], -1).to(sim.actions.dtype)
+            sim.actions[..., :2] = torch.where(sel[..., None], u, sim.actions[..., :2])
+
+
+def nearest_bin(v: Tensor, hi: float, n: int) -> Tensor:
+    """The index of the bin of the grid of `n` values over [-hi, hi] nearest to `v` (the engine's
+    `nearest_bin`)."""
+    if n <= 1:
+        return torch.zeros_like(v, dtype=torch.long)
+    return torch.round((v + hi) / (2 * hi) * (n - 1)).long().clamp(0, n - 1)
