@@ -3,7 +3,8 @@
     python scripts/wm_traffic.py --models shipped runs/wm_gpu/model.pt runs/wm_cont/model.pt:0.1 \\
         --scenes procedural:all --seed 90000 --num-scenes 256 --device cuda --seeds 0 1 [--json]
 
-Each `--models` entry is a world-model checkpoint (or a packaged name: `shipped`, `small_cpu`), optionally `:T` for the driver's
+Each `--models` entry is a world-model checkpoint (or a packaged name: `shipped`, `small_cpu`), or `idm` (reactive
+log replay, agents/idm.py, on the discrete grid of --set's engine), optionally `:T` for the driver's
 sampling temperature (`:0` greedy; default: WorldModelDriver's, 1 discrete / 0.1 continuous). The
 scenes are generated for the model's action space and `env` (max_agents, partner_k, road_k from
 the checkpoint's training config when it has one, else --set). Prints one row per model and seed
@@ -21,6 +22,7 @@ import time
 import torch
 from tqdm import tqdm
 
+from tg_gpudrive.agents.idm import IDMDriver
 from tg_gpudrive.config import EngineConfig, apply_overrides, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import resolve_device
@@ -51,11 +53,14 @@ def main(argv=None) -> int:
     replayed = set()  # (action space, env) pairs whose expert replay is printed
     for spec in args.models:
         path, _, temp = spec.partition(":")
-        path = str(world_model_file(path))  # _env_of reads the checkpoint's training config
-        env = _env_of(path, args.set)
-        model = load_world_model(path, device=device)
-        # the checkpoint decides the action space; scenes and replay are per action space and env
-        env = dataclasses.replace(env, action_space=model.action_space)
+        if path == "idm":
+            model, env = None, from_dict(EngineConfig, apply_overrides({}, args.set), "--set")
+        else:
+            path = str(world_model_file(path))  # _env_of reads the checkpoint's training config
+            env = _env_of(path, args.set)
+            model = load_world_model(path, device=device)
+            # the checkpoint decides the action space; scenes and replay are per action space and env
+            env = dataclasses.replace(env, action_space=model.action_space)
         src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
         scenes = [src.get(i) for i in range(min(args.num_scenes, len(src)))]
         batches = [scenes[b:b + args.batch] for b in range(0, len(scenes), args.batch)]
@@ -80,6 +85,9 @@ def main(argv=None) -> int:
         if key not in replayed:
             replayed.add(key)
             run(lambda: None, f"expert replay ({env.action_space})", None)
+        if model is None:  # deterministic: one run
+            run(lambda: IDMDriver(rows="background"), spec, None)
+            continue
         kw = {} if temp == "" else {"temperature": float(temp)}
         for seed in args.seeds:
             run(lambda: WorldModelDriver(model, rows="background", seed=seed, **kw), spec, seed)
