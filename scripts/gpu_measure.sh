@@ -10,6 +10,9 @@
 #   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
 #             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
+#   ttqside   variants of gpu.yaml side by side, one per GPU or GPU group, each to the held-out quality stop
+#             (goal >= 0.95, collision <= 0.05, off-road <= 0.02 on the window and on 256 held-out scenes);
+#             VARIANTS="name|gpus|nproc|--set k=v ...;name|..." e.g. "lr2|0|1|--set lr=0.002;two|1,2|2|"
 #   storebuild  a 10,000-scene procedural store in /tmp/store (CPU only: runs beside GPU stages)
 #   store10k  training on that store with resampling (STORE_NPROC GPUs), held-out rates per collision mode
 #   grid      the beta x alpha experiment grid and its report (scripts/run_experiments.py); on two GPUs
@@ -120,6 +123,21 @@ ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
     --set target_goal_rate=0.95 --set checkpoint_every=100000 "${SETS[@]}" 2>&1 | bar 3
   python3 "$R"/scripts/plot_curves.py "$RES/run/metrics.csv" "$RES/curves.png"
+  ;;
+ttqside)
+  IFS=';' read -ra VS <<< "${VARIANTS:?VARIANTS=name|gpus|nproc|sets;...}"
+  for v in "${VS[@]}"; do
+    IFS='|' read -r name gpus nproc sets <<< "$v"
+    (CUDA_VISIBLE_DEVICES=$gpus timeout $((${TTQ_LIMIT:-300} + 100)) python3 -m tg_gpudrive.cli train --config "$CFG" \
+      --nproc "${nproc:-1}" --out "$RES/$name" --set target_goal_rate=0.95 --set target_max_collision=0.05 \
+      --set target_max_offroad=0.02 --set target_heldout=procedural:all --set time_limit_s=${TTQ_LIMIT:-300} \
+      $sets "${SETS[@]}" 2>&1 | bar 2 | sed "s/^/$name: /") &
+  done
+  wait
+  for v in "${VS[@]}"; do
+    t="$RES/${v%%|*}/target.json"
+    if [ -f "$t" ]; then echo "${v%%|*}: $(tr -d '\n ' < "$t")"; else echo "${v%%|*}: quality not reached"; fi
+  done
   ;;
 storebuild)
   [ -f /tmp/store/manifest.json ] || timeout 300 python3 "$R"/scripts/bench_store.py --n ${STORE_N:-10000} \
