@@ -175,7 +175,7 @@ def test_single_and_parallel_envs_take_the_background_option():
 def test_bad_background_values_are_clear_errors(tmp_path):
     scene = crossing_scene(T=20)
     cfg = dict(max_agents=4, road_k=8, partner_k=4)
-    with pytest.raises(ValueError, match="background: expected one of log, world_model, got 'replay'"):
+    with pytest.raises(ValueError, match="background: expected one of log, world_model, idm, got 'replay'"):
         TGVectorEnv([scene], config=cfg, background="replay")
     with pytest.raises(ValueError, match="background"):
         TGSingleAgentEnv(scene, config=cfg, background="expert")

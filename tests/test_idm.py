@@ -79,11 +79,12 @@ def test_the_leader_gap_is_the_bumper_distance_along_the_path(device):
     sim.reset()
     drv = IDMDriver(params=IDMParams(spacing=0.25))
     drv._bind(sim)
-    s_cur = drv._arc_at(sim.pos.float(), drv._progress(sim))
-    gap, v_lead = drv._leaders(sim, s_cur)
+    w, a = torch.tensor([0, 0], device=sim.pos.device), torch.tensor([0, 1], device=sim.pos.device)
+    s_cur = drv._arc_at(drv.path[w, a], drv.arc[w, a], sim.pos[w, a].float(), drv._progress(sim, w, a))
+    gap, v_lead = drv._leaders(sim, w, a, s_cur)
     # follower: 23 m centre to centre, minus two half lengths; the leader sees nobody ahead
-    assert abs(float(gap[0, 1]) - 19.0) <= 0.25 and math.isinf(float(gap[0, 0]))
-    assert abs(float(v_lead[0, 1]) - 10.0) < 1e-4
+    assert abs(float(gap[1]) - 19.0) <= 0.25 and math.isinf(float(gap[0]))
+    assert abs(float(v_lead[1]) - 10.0) < 1e-4
 
 
 @pytest.mark.parametrize("action_space", ["discrete", "continuous"])

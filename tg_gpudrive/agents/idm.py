@@ -74,22 +74,20 @@ class IDMDriver:
     `sim.step()`. Other rows are left as they are. Bicycle dynamics only (discrete or continuous)."""
 
     ROWS = ("background", "controlled", "policy")
+    CHUNK = 2048  # rows per leader search: its (rows, agents, path samples) tensors bound its memory
 
     def __init__(self, rows: str = "background", params: IDMParams | None = None):
         if rows not in self.ROWS:
             raise ValueError(f"rows: expected one of {', '.join(self.ROWS)}, got {rows!r}")
         self.rows, self.p = rows, params or IDMParams()
-        self._sim = None  # the simulator (and scene build) the cached paths belong to
-        self._idx: Tensor | None = None  # (W, A) each vehicle's path index (its projection)
+        self._model = None  # the simulator's Model (its scene build) the cached paths belong to
+        self._idx: Tensor | None = None  # (W, A) each vehicle's path index (its projection), -1 unknown
         self._last_step: Tensor | None = None  # (W,) the log step of the last call, to see resets
 
     # --------------------------------------------------------------- paths
     def _bind(self, sim) -> None:
         """Cache the logged paths of `sim`'s slots: positions with gaps filled, cumulative arc length,
         logged speed and each slot's top logged speed."""
-        if sim.model.dynamics != DYNAMICS_BICYCLE:
-            raise ValueError("IDMDriver drives the bicycle (action_space discrete or continuous), "
-                             "not delta_local")
         pos = sim.slot_log("log_pos").float()  # (W, A, T, 2)
         vel = sim.slot_log("log_vel").float()
         valid = sim.slot_log("log_valid") != 0  # (W, A, T)
@@ -117,38 +115,47 @@ class IDMDriver:
         step_speed = torch.cat([seg, seg[..., -1:]], -1) / float(sim.model.dt)
         self.log_speed = torch.where(valid, speed, step_speed)
         self.top_speed = self.log_speed.amax(-1)  # (W, A)
-        self._sim, self._build = sim, id(sim.model)
+        self._model = sim.model  # held, so a rebuilt simulator's new Model is never mistaken for it
         self._idx = None
 
-    def _progress(self, sim) -> Tensor:
-        """(W, A) the path index each vehicle is at: after a reset its log step, else the nearest path
-        point in a window ahead of the last one (later points win near-ties, so a logged stop is left
-        behind once the vehicle moves on)."""
+    def _progress(self, sim, w: Tensor, a: Tensor) -> Tensor:
+        """(R,) the path index each row (w, a) is at: the nearest path point in a window ahead of the last
+        one (later points win near-ties, so a logged stop is left behind once the vehicle moves on); for a
+        row seen the first time, or whose world was reset since the last call, the nearest point within
+        3 s of the world's log step (its own step where it sits on its log, as after a reset)."""
         step = sim.world_step.long()
         W, A, T = self.arc.shape
-        fresh = self._idx is None or self._last_step is None
-        idx = step[:, None].expand(W, A).clone() if fresh else self._idx
-        if not fresh:
-            restarted = step < self._last_step  # a world reset since the last call
-            idx = torch.where(restarted[:, None], step[:, None].expand(W, A), idx)
-            win = (idx[..., None] + torch.arange(-2, 31, device=idx.device)).clamp(0, T - 1)  # (W, A, K)
-            pts = self.path.gather(2, win[..., None].expand(*win.shape, 2))
-            d = (pts - sim.pos[:, :, None].float()).norm(dim=-1)
-            best = d.min(-1, keepdim=True).values
-            k = torch.where(d <= best + 0.3, torch.arange(win.shape[-1], device=idx.device), -1).amax(-1)
-            idx = win.gather(-1, k[..., None]).squeeze(-1)
-        self._idx, self._last_step = idx, step
+        if self._idx is None:
+            self._idx = torch.full((W, A), -1, dtype=torch.long, device=step.device)
+            self._last_step = step.clone()
+        self._idx[step < self._last_step] = -1  # worlds reset since the last call
+        self._last_step = step.clone()
+        idx, st = self._idx[w, a], step[w]
+        fresh = idx < 0
+        off = torch.arange(-30, 31, device=step.device)
+        base = torch.where(fresh, st, idx)
+        win = (base[:, None] + off).clamp(0, T - 1)  # (R, 61)
+        pts = self.path[w[:, None], a[:, None], win]
+        d = (pts - sim.pos[w, a].float()[:, None]).norm(dim=-1)
+        d = torch.where(fresh[:, None] | (off >= -2), d, torch.full_like(d, math.inf))
+        # fresh: the nearest, nearest in time among equals; else the latest of the near-nearest
+        k_fresh = (d + 0.01 * off.abs()).argmin(-1)
+        best = d.min(-1, keepdim=True).values
+        k_on = torch.where(d <= best + 0.3, off + 30, -1).amax(-1)
+        idx = win.gather(1, torch.where(fresh, k_fresh, k_on)[:, None]).squeeze(1)
+        self._idx[w, a] = idx
         return idx
 
-    def _arc_at(self, pos: Tensor, idx: Tensor) -> Tensor:
-        """(W, A) the arc length of `pos` projected onto the path segments either side of point `idx`."""
-        T = self.arc.shape[-1]
+    @staticmethod
+    def _arc_at(path: Tensor, arc: Tensor, pos: Tensor, idx: Tensor) -> Tensor:
+        """(R,) the arc length of `pos` (R, 2) projected onto the segments either side of point `idx` of the
+        rows' paths (R, T, 2) with arc lengths (R, T)."""
+        T = arc.shape[-1]
+        r = torch.arange(len(idx), device=idx.device)
         best_d, best_s = None, None
         for lo in (idx - 1, idx):
             lo = lo.clamp(0, T - 2)
-            p0 = self.path.gather(2, lo[..., None, None].expand(*lo.shape, 1, 2)).squeeze(2)
-            p1 = self.path.gather(2, (lo + 1)[..., None, None].expand(*lo.shape, 1, 2)).squeeze(2)
-            a0 = self.arc.gather(2, lo[..., None]).squeeze(-1)
+            p0, p1, a0 = path[r, lo], path[r, lo + 1], arc[r, lo]
             seg = p1 - p0
             n = seg.norm(dim=-1).clamp(min=1e-6)
             f = (((pos - p0) * seg).sum(-1) / (n * n)).clamp(0.0, 1.0)
@@ -161,101 +168,107 @@ class IDMDriver:
                 best_d = torch.minimum(d, best_d)
         return best_s
 
-    def _along(self, s: Tensor) -> tuple[Tensor, Tensor]:
-        """Path points and unit tangents at arc lengths `s` (W, A, K): (W, A, K, 2) each, linear between
-        logged points, the last point's tangent beyond the path's end."""
-        W, A, T = self.arc.shape
-        j = torch.searchsorted(self.arc.contiguous(), s.contiguous(), right=True).clamp(1, T - 1)  # (W, A, K)
-        a0, a1 = self.arc.gather(2, j - 1), self.arc.gather(2, j)
-        p0 = self.path.gather(2, (j - 1)[..., None].expand(*j.shape, 2))
-        p1 = self.path.gather(2, j[..., None].expand(*j.shape, 2))
+    @staticmethod
+    def _along(path: Tensor, arc: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+        """Points and unit tangents of the rows' paths (R, T, 2) at arc lengths `s` (R, K): (R, K, 2) each,
+        linear between logged points, the last segment's tangent beyond the path's end."""
+        T = arc.shape[-1]
+        j = torch.searchsorted(arc.contiguous(), s.contiguous(), right=True).clamp(1, T - 1)  # (R, K)
+        a0, a1 = arc.gather(1, j - 1), arc.gather(1, j)
+        p0 = path.gather(1, (j - 1)[..., None].expand(*j.shape, 2))
+        p1 = path.gather(1, j[..., None].expand(*j.shape, 2))
         seg = p1 - p0
         f = ((s - a0) / (a1 - a0).clamp(min=1e-6)).clamp(0.0, 1.0)
-        pts = p0 + seg * f[..., None]
-        tan = seg / seg.norm(dim=-1, keepdim=True).clamp(min=1e-6)
-        return pts, tan
+        return p0 + seg * f[..., None], seg / seg.norm(dim=-1, keepdim=True).clamp(min=1e-6)
 
     # --------------------------------------------------------------- control
-    def _leaders(self, sim, s_cur: Tensor) -> tuple[Tensor, Tensor]:
-        """(gap along the path to the nearest agent across it, that agent's speed along the path), (W, A);
-        gap inf where the path ahead is clear."""
+    def _leaders(self, sim, w: Tensor, a: Tensor, s_cur: Tensor) -> tuple[Tensor, Tensor]:
+        """For rows (w, a) at arc lengths `s_cur`: (the bumper gap along the path to the nearest agent across
+        it, that agent's speed along the path), (R,) each; the gap is inf where the path ahead is clear.
+        Rows go in chunks of CHUNK, each against every agent of its world: (chunk, agents, samples)."""
         p = self.p
         K = int(p.reach / p.spacing) + 1
-        s = s_cur[..., None] + p.spacing * torch.arange(K, device=s_cur.device)  # (W, A, K)
-        pts, tan = self._along(s)
         pos, yaw = sim.pos.float(), sim.yaw.float()
         head = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
-        others = (sim.present != 0)  # (W, A): who can be in the way
-        # each other agent o against each path sample k of each vehicle a: (W, A, O, K)
-        rel = pos[:, None, :, None, :] - pts[:, :, None, :, :]
-        dist = rel.norm(dim=-1)
-        d_min, k = dist.min(-1)  # (W, A, O)
-        t_k = tan.gather(2, k[..., None].expand(*k.shape, 2))  # the path's tangent there, (W, A, O, 2)
-        cos_t = (head[:, None] * t_k).sum(-1).abs()  # |cos| of the other's heading against the tangent
-        sin_t = (1.0 - cos_t ** 2).clamp(min=0.0).sqrt()
-        L, Wd = sim.length.float(), sim.width.float()
-        across = 0.5 * (L[:, None] * sin_t + Wd[:, None] * cos_t)  # the other's half extent across the path
-        along = 0.5 * (L[:, None] * cos_t + Wd[:, None] * sin_t)
-        ahead = ((pos[:, None] - pos[:, :, None]) * head[:, :, None]).sum(-1) > 0  # in front of the vehicle
+        L, Wd, vel = sim.length.float(), sim.width.float(), sim.vel.float()
+        present = sim.present != 0
         A = pos.shape[1]
-        not_self = ~torch.eye(A, dtype=torch.bool, device=pos.device)
-        hit = (others[:, None] & not_self & ahead & (d_min <= across + 0.5 * Wd[:, :, None] + p.margin))
-        gap = k.float() * p.spacing - 0.5 * L[:, :, None] - along
-        gap = torch.where(hit, gap, torch.full_like(gap, math.inf))
-        g, o = gap.min(-1)  # the nearest leader per vehicle
-        v_o = sim.vel.float()[torch.arange(pos.shape[0], device=pos.device)[:, None], o]  # (W, A, 2)
-        t_o = t_k.gather(2, o[..., None, None].expand(*o.shape, 1, 2)).squeeze(2)
-        return g, (v_o * t_o).sum(-1).clamp(min=0.0)
+        gaps, speeds = [], []
+        for c in range(0, len(w), self.CHUNK):
+            wc, ac = w[c:c + self.CHUNK], a[c:c + self.CHUNK]
+            s = s_cur[c:c + self.CHUNK, None] + p.spacing * torch.arange(K, device=pos.device)  # (R, K)
+            pts, tan = self._along(self.path[wc, ac], self.arc[wc, ac], s)
+            P = pos[wc]  # every agent of the row's world, (R, A, 2)
+            d_min, k = (P[:, :, None] - pts[:, None]).norm(dim=-1).min(-1)  # (R, A)
+            t_k = tan.gather(1, k[..., None].expand(*k.shape, 2))  # the path's tangent there
+            cos_t = (head[wc] * t_k).sum(-1).abs()  # the other's heading against it
+            sin_t = (1.0 - cos_t ** 2).clamp(min=0.0).sqrt()
+            Lo, Wo = L[wc], Wd[wc]
+            across = 0.5 * (Lo * sin_t + Wo * cos_t)  # the other's half extent across the path
+            along = 0.5 * (Lo * cos_t + Wo * sin_t)
+            ahead = ((P - pos[wc, ac][:, None]) * head[wc, ac][:, None]).sum(-1) > 0
+            hit = (present[wc] & ahead & (torch.arange(A, device=pos.device) != ac[:, None])
+                   & (d_min <= across + 0.5 * Wd[wc, ac][:, None] + p.margin))
+            gap = torch.where(hit, k.float() * p.spacing - 0.5 * L[wc, ac][:, None] - along,
+                              torch.full_like(d_min, math.inf))
+            g, o = gap.min(-1)
+            r = torch.arange(len(wc), device=pos.device)
+            gaps.append(g)
+            speeds.append((vel[wc, o] * t_k[r, o]).sum(-1).clamp(min=0.0))
+        return torch.cat(gaps), torch.cat(speeds)
 
-    def actions(self, sim) -> tuple[Tensor, Tensor]:
-        """(acceleration, curvature) for every slot, (W, A) each, before the action box."""
-        if self._sim is not sim or self._build != id(sim.model):
+    def actions(self, sim, w: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
+        """(acceleration, curvature) of rows (w, a), (R,) each, before the action box."""
+        if self._model is not sim.model:
             self._bind(sim)
         p, dt = self.p, float(sim.model.dt)
-        idx = self._progress(sim)
-        W, A, T = self.arc.shape
-        s_cur = self._arc_at(sim.pos.float(), idx)
-        v = sim.speed.float()
+        T = self.arc.shape[-1]
+        path, arc = self.path[w, a], self.arc[w, a]
+        pos, v = sim.pos[w, a].float(), sim.speed[w, a].float()
+        s_cur = self._arc_at(path, arc, pos, self._progress(sim, w, a))
         # tracking: the speed that reaches the log's next-step arc position
-        nxt = (sim.world_step.long() + 1).clamp(max=T - 1)[:, None, None].expand(W, A, 1)
-        s_log = self.arc.gather(2, nxt).squeeze(-1)
-        v_log = self.log_speed.gather(2, nxt).squeeze(-1)
+        nxt = (sim.world_step.long()[w] + 1).clamp(max=T - 1)
+        r = torch.arange(len(w), device=w.device)
+        s_log, v_log = arc[r, nxt], self.log_speed[w, a, nxt]
         e_long = s_log - (s_cur + v * dt) - 0.5 * (v_log - v) * dt
         v_target = (v_log + TRACK_GAIN_LONG * e_long / dt).clamp(min=0.0)
-        v_target = torch.minimum(v_target, self.top_speed + p.catch_up)
+        v_target = torch.minimum(v_target, self.top_speed[w, a] + p.catch_up)
         a_track = (v_target - v) / dt
-        gap, v_lead = self._leaders(sim, s_cur)
+        gap, v_lead = self._leaders(sim, w, a, s_cur)
         a_idm = torch.where(torch.isfinite(gap), idm_accel(v, gap, v - v_lead, p), torch.full_like(v, math.inf))
         accel = torch.minimum(a_track, a_idm)
         # pure pursuit of the path point `lookahead` ahead
-        la = (p.lookahead * v).clamp(min=p.min_lookahead)
-        tgt, _ = self._along((s_cur + la)[..., None])
-        d = tgt[..., 0, :] - sim.pos.float()
-        c, s = torch.cos(sim.yaw.float()), torch.sin(sim.yaw.float())
-        x, y = c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]
-        kappa = 2.0 * y / (x * x + y * y).clamp(min=1e-3)
-        return accel, kappa
+        tgt, _ = self._along(path, arc, (s_cur + (p.lookahead * v).clamp(min=p.min_lookahead))[:, None])
+        d = tgt[:, 0] - pos
+        yaw = sim.yaw[w, a].float()
+        c, s = torch.cos(yaw), torch.sin(yaw)
+        x, y = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+        return accel, 2.0 * y / (x * x + y * y).clamp(min=1e-3)
 
     def __call__(self, sim) -> None:
+        if sim.model.dynamics != DYNAMICS_BICYCLE:
+            raise ValueError("IDMDriver drives the bicycle (action_space discrete or continuous), "
+                             "not delta_local")
         if self.rows == "background":
             sel = sim.background != 0
         elif self.rows == "controlled":
             sel = sim.integrated != 0
         else:
             sel = sim.policy_agents
-        sel = sel & (sim.present != 0)
-        accel, kappa = self.actions(sim)
+        w, a = (sel & (sim.present != 0)).nonzero(as_tuple=True)
+        if len(w) == 0:
+            return
+        accel, kappa = self.actions(sim, w, a)
         m = sim.model
         accel = accel.clamp(-m.max_accel, m.max_accel)
         kappa = kappa.clamp(-m.max_curvature, m.max_curvature)
         if m.discrete:
             ia = nearest_bin(accel, m.max_accel, m.accel_bins)
             ik = nearest_bin(kappa, m.max_curvature, m.curvature_bins)
-            idx = (ia * m.curvature_bins + ik).to(sim.actions_index.dtype)
-            sim.actions_index.copy_(torch.where(sel, idx, sim.actions_index))
+            sim.actions_index[w, a] = (ia * m.curvature_bins + ik).to(sim.actions_index.dtype)
         else:
-            u = torch.stack([accel, kappa], -1).to(sim.actions.dtype)
-            sim.actions[..., :2] = torch.where(sel[..., None], u, sim.actions[..., :2])
+            sim.actions[w, a, 0] = accel.to(sim.actions.dtype)
+            sim.actions[w, a, 1] = kappa.to(sim.actions.dtype)
 
 
 def nearest_bin(v: Tensor, hi: float, n: int) -> Tensor:
