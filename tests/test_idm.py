@@ -134,3 +134,42 @@ def test_background_idm_through_the_driver_factory_and_the_cli(capsys):
     assert main(base + ["--background", "idm"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert (out["background"], out["background_model"]) == ("idm", None) and out["agents_background"] > 0
+
+
+def test_training_among_idm_vehicles_drives_the_left_out_ones_and_resumes_exactly(tmp_path):
+    """augment.control_fraction leaves vehicles out of the policy; with background idm the IDM driver moves
+    them (near their logs, not on them), the policy's rows are the log run's, and a resumed run ends with
+    the uninterrupted one's weights."""
+    import dataclasses
+
+    from test_background import _log_gap
+    from test_train import tiny
+
+    from tg_gpudrive.config import AugmentConfig, ConfigError, TrainConfig
+    from tg_gpudrive.learn.train import Trainer
+
+    def cfg(out, **kw):
+        return dataclasses.replace(tiny(out, num_worlds=4, prior="expert", **kw),
+                                   augment=AugmentConfig(control_fraction=0.5))
+
+    log_run = Trainer(cfg(tmp_path / "log", updates=1), tmp_path / "log", progress=False)
+    idm_run = Trainer(cfg(tmp_path / "idm", updates=1, background="idm"), tmp_path / "idm", progress=False)
+    assert torch.equal(idm_run.sim.policy_agents, log_run.sim.policy_agents)
+    bg = idm_run.sim.background != 0
+    assert int(bg.sum()) > 0 and not bool((log_run.sim.background != 0).any())
+    assert isinstance(idm_run.collector.background, IDMDriver) and log_run.collector.background is None
+    log_run.train()
+    idm_run.train()
+    assert float(_log_gap(log_run.sim, bg).max()) == 0.0  # replayed exactly
+    gap = _log_gap(idm_run.sim, bg)
+    assert 0.0 < float(gap.max()) < 2.0  # driven, along their logs
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    Trainer(cfg(a, updates=2, background="idm"), a, progress=False).train()
+    Trainer(cfg(b, updates=1, background="idm"), b, progress=False).train()
+    Trainer(cfg(b, updates=2, background="idm"), b, resume=b, progress=False).train()
+    wa, wb = (torch.load(d / "checkpoint.pt", weights_only=False)["actor"] for d in (a, b))
+    for k in wa:
+        torch.testing.assert_close(wa[k], wb[k], rtol=0, atol=0)
+    with pytest.raises(ConfigError, match="background: expected one of log, world_model, idm"):
+        TrainConfig(background="replay")

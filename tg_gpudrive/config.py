@@ -35,6 +35,7 @@ from tg_gpudrive.enums import (
 
 COST_SHAPES = ("step", "hinge")  # EngineConfig.cost_shape, in the order of the reward kernel's codes
 COST_PARTNERS = ("all", "players")  # EngineConfig.cost_partners, in the order of the collision kernel's codes
+BACKGROUNDS = ("log", "world_model", "idm")  # who drives the vehicles the policy does not (agents.builtin)
 REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
@@ -218,6 +219,10 @@ class TrainConfig:
     control: ControlMode = ControlMode.VEHICLES  # vehicles | nearest_conflict | ids (engine.control)
     control_k: int = 5  # nearest_conflict: how many
     control_ids: list[int] = dataclasses.field(default_factory=list)
+    # who drives the eligible vehicles the policy does not (those augment.control_fraction leaves out):
+    # log (replay, reacting to nobody) | idm (their logged paths and timing, braking for whoever is on
+    # them: agents/idm.py) | world_model (the run's prior_model, or the shipped one)
+    background: str = "log"
     device: str = "auto"  # auto (cuda when Warp and torch see one, else cpu) | cpu | cuda | cuda:N
     seed: int = 0
     # PPO
@@ -313,6 +318,8 @@ class TrainConfig:
                               f"a window, got {self.actor_history_partners}")
         if self.lambda_on not in ("cvar", "mean"):
             raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
+        if self.background not in BACKGROUNDS:
+            raise ConfigError(f"background: expected one of {', '.join(BACKGROUNDS)}, got {self.background!r}")
         if self.prior not in ("expert", "world_model"):
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         check_ranges(self, {

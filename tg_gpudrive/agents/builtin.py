@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from tg_gpudrive.agents.idm import IDMDriver
+from tg_gpudrive.config import BACKGROUNDS
 from tg_gpudrive.engine import control
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_shipped, load_world_model
@@ -77,7 +78,6 @@ def builtin_policy(name: str, seed: int, device: str) -> Policy:
     raise ValueError(f"policy: expected expert, random or constant, got {name!r}")
 
 
-BACKGROUNDS = ("log", "world_model", "idm")
 
 
 def check_background(background: str, option: str = "background") -> str:

@@ -5,11 +5,11 @@ does and only the car-following departs from it.
 
     driver = IDMDriver(rows="background")       # driver(sim) before every sim.step()
 
-Per vehicle and step (all in torch, batched over worlds and agents):
+Per driven vehicle and step (all in torch, batched over the driven rows):
 
 1. **Where it is on its path**: the log's positions are its path, parameterised by arc length; the vehicle
-   sits at its current position's projection (searched forward from the last one, so a path that comes
-   back on itself is not short-cut).
+   sits at its current position's projection, searched among the log steps around its world's step (so a
+   path that comes back on itself is not short-cut), from the state alone.
 2. **Tracking the log** (`a_track`): the speed that closes the gap to where the log is one step later,
    along the path, like the engine's expert tracking controller (kernels/dynamics.py `tracking_target`).
 3. **Following** (`a_idm`): every present agent whose box lies across the next `reach` metres of the path
@@ -75,14 +75,13 @@ class IDMDriver:
 
     ROWS = ("background", "controlled", "policy")
     CHUNK = 2048  # rows per leader search: its (rows, agents, path samples) tensors bound its memory
+    BEHIND, AHEAD = 60, 15  # log steps searched for a vehicle's place on its path, around its world's step
 
     def __init__(self, rows: str = "background", params: IDMParams | None = None):
         if rows not in self.ROWS:
             raise ValueError(f"rows: expected one of {', '.join(self.ROWS)}, got {rows!r}")
         self.rows, self.p = rows, params or IDMParams()
         self._model = None  # the simulator's Model (its scene build) the cached paths belong to
-        self._idx: Tensor | None = None  # (W, A) each vehicle's path index (its projection), -1 unknown
-        self._last_step: Tensor | None = None  # (W,) the log step of the last call, to see resets
 
     # --------------------------------------------------------------- paths
     def _bind(self, sim) -> None:
@@ -116,35 +115,20 @@ class IDMDriver:
         self.log_speed = torch.where(valid, speed, step_speed)
         self.top_speed = self.log_speed.amax(-1)  # (W, A)
         self._model = sim.model  # held, so a rebuilt simulator's new Model is never mistaken for it
-        self._idx = None
 
     def _progress(self, sim, w: Tensor, a: Tensor) -> Tensor:
-        """(R,) the path index each row (w, a) is at: the nearest path point in a window ahead of the last
-        one (later points win near-ties, so a logged stop is left behind once the vehicle moves on); for a
-        row seen the first time, or whose world was reset since the last call, the nearest point within
-        3 s of the world's log step (its own step where it sits on its log, as after a reset)."""
-        step = sim.world_step.long()
-        W, A, T = self.arc.shape
-        if self._idx is None:
-            self._idx = torch.full((W, A), -1, dtype=torch.long, device=step.device)
-            self._last_step = step.clone()
-        self._idx[step < self._last_step] = -1  # worlds reset since the last call
-        self._last_step = step.clone()
-        idx, st = self._idx[w, a], step[w]
-        fresh = idx < 0
-        off = torch.arange(-30, 31, device=step.device)
-        base = torch.where(fresh, st, idx)
-        win = (base[:, None] + off).clamp(0, T - 1)  # (R, 61)
-        pts = self.path[w[:, None], a[:, None], win]
-        d = (pts - sim.pos[w, a].float()[:, None]).norm(dim=-1)
-        d = torch.where(fresh[:, None] | (off >= -2), d, torch.full_like(d, math.inf))
-        # fresh: the nearest, nearest in time among equals; else the latest of the near-nearest
-        k_fresh = (d + 0.01 * off.abs()).argmin(-1)
-        best = d.min(-1, keepdim=True).values
-        k_on = torch.where(d <= best + 0.3, off + 30, -1).amax(-1)
-        idx = win.gather(1, torch.where(fresh, k_fresh, k_on)[:, None]).squeeze(1)
-        self._idx[w, a] = idx
-        return idx
+        """(R,) the path index each row (w, a) is at: of the path points from `BEHIND` steps before its
+        world's log step to `AHEAD` after it, those within 0.3 m of the nearest, the one nearest in time
+        to the step. A vehicle held up behind its log is found where it is; one waiting inside a logged
+        stop is placed at the stop's end once the log has moved on. It depends on the state alone, so a
+        resumed run drives as the uninterrupted one."""
+        T = self.arc.shape[-1]
+        off = torch.arange(-self.BEHIND, self.AHEAD + 1, device=w.device)
+        win = (sim.world_step.long()[w][:, None] + off).clamp(0, T - 1)  # (R, K)
+        d = (self.path[w[:, None], a[:, None], win] - sim.pos[w, a].float()[:, None]).norm(dim=-1)
+        near = d <= d.min(-1, keepdim=True).values + 0.3
+        k = torch.where(near, off.abs(), torch.full_like(off, T)).argmin(-1)
+        return win.gather(1, k[:, None]).squeeze(1)
 
     @staticmethod
     def _arc_at(path: Tensor, arc: Tensor, pos: Tensor, idx: Tensor) -> Tensor:

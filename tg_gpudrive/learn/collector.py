@@ -129,6 +129,7 @@ class RolloutCollector:
                  gen: torch.Generator, device, actor_hist: HistoryBuffer | None = None):
         self.cfg, self.sim, self.nets, self.prior, self.gen, self.device = cfg, sim, nets, prior, gen, device
         self.actor_hist = actor_hist  # the actor's own motion window: kept in step with the engine
+        self.background = None  # a driver of the background rows (agents.builtin.make_background_driver), or None
         self.prior_logits = nets.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
         self._buf: Rollout | None = None
         self._buf_key = None
@@ -145,6 +146,9 @@ class RolloutCollector:
         bad = torch.zeros((), dtype=torch.bool, device=self.device)
         for t in range(T):
             bad |= self._act(buf, t, C)
+            if self.background is not None:
+                with phase("rollout/background"):
+                    self.background(sim)
             with phase("rollout/engine"):
                 sim.step()
             with phase("rollout/buffers"):

@@ -47,6 +47,7 @@ from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
 from tg_gpudrive.learn.update import Groups, minibatch_loss, ppo_update
+from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
@@ -190,7 +191,9 @@ class Trainer:
             scenes = self.sampler.sample()
         self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_worlds`)
         scenes, masks = self._worlds(scenes)
-        self.sim = Simulator(scenes, sized_for(cfg.env, scenes), self.device, controlled=masks)
+        env = sized_for(cfg.env, scenes)
+        self.sim = Simulator(scenes, env, self.device, controlled=masks,
+                             background=background_masks(scenes, env, cfg.background, masks))
 
     def _build_learner(self, ck: dict | None) -> None:
         """The networks (from the checkpoint `ck`, init_policy or fresh), the magnet, the optimiser, the
@@ -219,6 +222,10 @@ class Trainer:
         self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
         self.collector = RolloutCollector(cfg, self.sim, self.nets, prior, self.gen, self.device, self.actor_hist)
+        # the vehicles the policy does not drive: None (they replay their logs) or a driver of their rows
+        model = (cfg.prior_model or None) if cfg.background == "world_model" else None
+        self.collector.background = make_background_driver(self.sim, cfg.background, model, cfg.seed + self.rank,
+                                                           "prior_model")
 
     def _init_weights(self, source: str) -> None:
         """Actor and critic weights from the training checkpoint `source` (init_policy)."""
@@ -265,7 +272,9 @@ class Trainer:
 
     def _resample(self) -> None:
         scenes, masks = self._worlds(self.sampler.sample())
-        self.sim.set_scenes(scenes, controlled=masks, config=sized_for(self.cfg.env, scenes))
+        env = sized_for(self.cfg.env, scenes)
+        self.sim.set_scenes(scenes, controlled=masks, config=env,
+                            background=background_masks(scenes, env, self.cfg.background, masks))
 
     # ------------------------------------------------------ collect, learn
     @property
