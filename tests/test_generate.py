@@ -14,14 +14,17 @@ from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.evaluation.generate import TABLE
 
 
-def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys):
+@pytest.mark.parametrize("traffic", [[], ["--set", "control=nearest_conflict", "--set", "control_k=1",
+                                           "--set", "background=idm"]], ids=["all-policy", "idm-traffic"])
+def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, traffic):
     out = tmp_path / "gen"
     assert cli.main(["generate", "--scenes", "procedural:merge", "--beta", "2", "--alpha", "0.125", "--num", "2",
                      "--out", str(out), "--seconds", "3", "--num-scenes", "2", "--worlds", "2",
-                     "--rollout-seeds", "2", "--device", "cpu", "--json"]) == 0
+                     "--rollout-seeds", "2", "--device", "cpu", "--json", *traffic]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
+    assert run["background"] == ("idm" if traffic else "log")
     rows = list(csv.DictReader(open(out / "scenarios.csv")))
     assert tuple(rows[0]) == TABLE and 1 <= len(rows) == len(res["scenarios"]) <= 2
     # most critical first: more collisions, then a shorter time to collision

@@ -29,6 +29,12 @@ class Opened:
     checkpoint: Path | None = None
     trained: TrainConfig | None = None
 
+    def act(self, sim: Simulator) -> None:
+        """One step's actions: the policy's agents', then the background's (what `sim.step()` needs next)."""
+        self.policy(sim)
+        if self.background is not None:
+            self.background(sim)
+
 
 def _masks(scenes, env: EngineConfig, control, control_k, trained: TrainConfig | None):
     """Who the policy drives, decided once: `control` if given, else the run's training control (with

@@ -149,9 +149,11 @@ def generate(opts: GenerateOptions, progress: bool = True) -> dict:
         trained = train_main(cfg, str(run_dir), progress=progress)
     src = resolve_scenes(opts.scenes, n=opts.num_scenes, seed=opts.seed)
     scenes = [src[i] for i in range(len(src))]
-    opened = open_policy(str(run_dir), scenes, opts.device, seed=opts.seed)
+    # the rollout's traffic is the fine-tune's: `--set background=idm` (with fewer policy vehicles, e.g.
+    # `--set control=nearest_conflict --set control_k=2`) has the others react instead of replaying
+    opened = open_policy(str(run_dir), scenes, opts.device, seed=opts.seed, background=cfg.background)
     logged = logged_episodes(opened.sim)
-    generated = record_rollouts(opened.sim, opened.policy, range(opts.seed, opts.seed + opts.rollout_seeds),
+    generated = record_rollouts(opened.sim, opened.act, range(opts.seed, opts.seed + opts.rollout_seeds),
                                 label=f"beta{opts.beta:g}_alpha{opts.alpha:g}")
     rows = critical_scenarios(logged, generated, opts.num, opts.max_hellinger)
     files = export_episodes(generated, [r["episode"] for r in rows], out / "scenarios", rows)
