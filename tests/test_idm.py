@@ -136,6 +136,16 @@ def test_background_idm_through_the_driver_factory_and_the_cli(capsys):
     assert (out["background"], out["background_model"]) == ("idm", None) and out["agents_background"] > 0
 
 
+def test_render_draws_idm_traffic_around_the_policy(tmp_path, capsys):
+    pytest.importorskip("matplotlib")
+    args = ["render", "--scenes", str(DATA), "--policy", "shipped", "--control", "nearest_conflict",
+            "--control-k", "1", "--steps", "5", "--out", str(tmp_path / "idm.gif")]
+    assert main(args + ["--background", "idm"]) == 0
+    assert (tmp_path / "idm.gif").stat().st_size > 0
+    assert main(args + ["--background", "idm", "--background-model", "x.pt"]) == 2
+    assert "--background-model" in capsys.readouterr().err
+
+
 def test_training_among_idm_vehicles_drives_the_left_out_ones_and_resumes_exactly(tmp_path):
     """augment.control_fraction leaves vehicles out of the policy; with background idm the IDM driver moves
     them (near their logs, not on them), the policy's rows are the log run's, and a resumed run ends with

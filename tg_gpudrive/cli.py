@@ -227,6 +227,7 @@ def _render_parser(sub) -> None:
                    help="expert | random | constant | shipped (the packaged policy; shipped_v2, shipped_v1: the ones before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
+    _background_args(p)
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
     p.add_argument("--worlds", type=positive_int, default=None, help="worlds to simulate (default: world + 1)")
@@ -555,6 +556,7 @@ def cmd_render(args) -> int:
     # drawing needs the render extra (matplotlib, Pillow): imported by the one command that draws
     from tg_gpudrive.render import mp4_backend, render_episode
 
+    _check_background_args(args)
     out = Path(args.out)
     if out.suffix.lower() not in (".gif", ".mp4", ".png"):
         raise ValueError(f"--out {out}: expected a .gif, .mp4 or .png file name")
@@ -581,9 +583,9 @@ def cmd_render(args) -> int:
         opened = _open(args, args.policy, scenes, engine=engine, auto_reset=False, option="--policy")
     except FileNotFoundError as e:
         raise FileNotFoundError(f"{e} (expected expert, random, constant, shipped or a checkpoint path)") from None
-    sim, policy = opened.sim, opened.policy  # without auto-reset: the episode's final state is the last frame
+    sim = opened.sim  # without auto-reset: the episode's final state is the last frame
     t0 = time.perf_counter()
-    frames = render_episode(sim, policy, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
+    frames = render_episode(sim, opened.act, args.steps, world=args.world, out=out, fps=args.fps, progress=True,
                             seed=args.seed, size=size, center_agent=args.center_agent, view_radius=args.view_radius,
                             highlight=args.highlight, fit=args.fit)
     seconds = time.perf_counter() - t0
