@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import torch
 
+from tg_gpudrive.engine.control import DRIVER_ROWS, driver_rows
 from tg_gpudrive.kernels.dynamics import TRACK_GAIN_LONG
 from tg_gpudrive.kernels.kinds import DYNAMICS_BICYCLE
 
@@ -73,7 +74,7 @@ class IDMDriver:
     integrated row (`"controlled"`) or the policy's rows (`"policy"`); call it once per step, before
     `sim.step()`. Other rows are left as they are. Bicycle dynamics only (discrete or continuous)."""
 
-    ROWS = ("background", "controlled", "policy")
+    ROWS = DRIVER_ROWS
     CHUNK = 2048  # rows per leader search: its (rows, agents, path samples) tensors bound its memory
     BEHIND, AHEAD = 60, 15  # log steps searched for a vehicle's place on its path, around its world's step
 
@@ -233,13 +234,7 @@ class IDMDriver:
         if sim.model.dynamics != DYNAMICS_BICYCLE:
             raise ValueError("IDMDriver drives the bicycle (action_space discrete or continuous), "
                              "not delta_local")
-        if self.rows == "background":
-            sel = sim.background != 0
-        elif self.rows == "controlled":
-            sel = sim.integrated != 0
-        else:
-            sel = sim.policy_agents
-        w, a = (sel & (sim.present != 0)).nonzero(as_tuple=True)
+        w, a = driver_rows(sim, self.rows).nonzero(as_tuple=True)
         if len(w) == 0:
             return
         accel, kappa = self.actions(sim, w, a)

@@ -195,3 +195,20 @@ def cap_controlled(scene: Scene, mask: np.ndarray, cap: int, init_step: int) -> 
     keep = np.zeros_like(mask)
     keep[order[mask[order]][:cap]] = True
     return keep, int(mask.sum()) - cap
+
+
+DRIVER_ROWS = ("background", "controlled", "policy")  # which rows a driver of vehicles (world model, IDM) writes
+
+
+def driver_rows(sim, rows: str):
+    """(W, A) bool: the present agents a driver of `rows` writes actions for: the background ones, every
+    integrated one ("controlled", e.g. to drive a whole scene closed loop) or the policy's."""
+    if rows == "background":
+        sel = sim.background != 0
+    elif rows == "controlled":
+        sel = sim.integrated != 0
+    elif rows == "policy":
+        sel = sim.policy_agents
+    else:
+        raise ValueError(f"rows: expected one of {', '.join(DRIVER_ROWS)}, got {rows!r}")
+    return sel & (sim.present != 0)

@@ -34,6 +34,7 @@ from pathlib import Path
 import torch
 
 from tg_gpudrive.checkpoint import WORLD_MODEL, check_kind, save_atomic
+from tg_gpudrive.engine.control import DRIVER_ROWS, driver_rows
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
@@ -185,7 +186,7 @@ class WorldModelDriver:
     an episode. Tempering both the logits and the scales is needed; T = 0.1 drives about as well
     as greedy while keeping a little diversity (the sweep: BENCHMARKS.md, "World model")."""
 
-    ROWS = ("background", "controlled", "policy")
+    ROWS = DRIVER_ROWS
     CONTINUOUS_TEMPERATURE = 0.1
 
     def __init__(self, model: WorldModel, rows: str = "background", temperature: float | None = None,
@@ -225,13 +226,7 @@ class WorldModelDriver:
             self.gen = torch.Generator(device=sim.pos.device).manual_seed(self.seed)
         self.model.set_layout(sim.cfg.partner_k, sim.cfg.road_k)
         self.history.sync(sim)
-        if self.rows == "background":
-            sel = sim.background != 0
-        elif self.rows == "controlled":
-            sel = sim.integrated != 0
-        else:
-            sel = sim.policy_agents
-        sel = sel & (sim.present != 0)
+        sel = driver_rows(sim, self.rows)
         if not bool(sel.any()):
             self._last = (None, None, None, sel.shape)  # no row driven: zero logits everywhere
             return
