@@ -78,8 +78,6 @@ def builtin_policy(name: str, seed: int, device: str) -> Policy:
     raise ValueError(f"policy: expected expert, random or constant, got {name!r}")
 
 
-
-
 def check_background(background: str, option: str = "background") -> str:
     if background not in BACKGROUNDS:
         raise ValueError(f"{option}: expected one of {', '.join(BACKGROUNDS)}, got {background!r}")
