@@ -13,12 +13,13 @@ import pytest
 import torch
 
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
-from tg_gpudrive.agents.idm import IDMDriver, IDMParams, idm_accel, nearest_bin
+from tg_gpudrive.agents.idm import IDMDriver, IDMParams, idm_accel
 from tg_gpudrive.cli import main
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.scene import make_scene
+from tg_gpudrive.worldmodel.closed_loop import nearest_index
 from tg_gpudrive.worldmodel.metrics import background_rates
 
 DATA = Path(__file__).parent / "data"
@@ -31,7 +32,9 @@ def test_idm_accel_matches_hand_computed_values():
     v, gap, dv = torch.tensor([10.0, 0.0, 10.0]), torch.tensor([20.0, 4.0, 100.0]), torch.tensor([5.0, 0.0, -10.0])
     want = [2 * (1 - (22.2062 / 20) ** 2), 2 * (1 - (2 / 4) ** 2), 2 * (1 - (2 / 100) ** 2)]  # last: s* floors at s0
     torch.testing.assert_close(idm_accel(v, gap, dv, p), torch.tensor(want), rtol=1e-4, atol=1e-4)
-    assert nearest_bin(torch.tensor([-6.0, -0.1, 0.2, 6.0]), 4.0, 9).tolist() == [0, 4, 4, 8]
+    grid = EngineConfig(max_accel=4.0, accel_bins=9, curvature_bins=5)  # the action grid IDM snaps to
+    accel = torch.tensor([-6.0, -0.1, 0.2, 6.0])
+    assert (nearest_index(accel, torch.zeros(4), grid) // 5).tolist() == [0, 4, 4, 8]
     with pytest.raises(ValueError, match="IDMParams.b"):
         IDMParams(b=0)
     with pytest.raises(ValueError, match="rows"):

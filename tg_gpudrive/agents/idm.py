@@ -17,7 +17,13 @@ Per driven vehicle and step (all in torch, batched over the driven rows):
    acceleration `a_max (1 - (s* / s)^2)` with `s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))`, `s` the
    bumper gap along the path and `dv` the closing speed. Without a leader there is no bound.
 4. The acceleration is the smaller of the two; the curvature is pure pursuit of the path point `lookahead`
-   ahead (at least `min_lookahead` metres). Both go through the engine's action box or nearest grid bin.
+   ahead (at least `min_lookahead` metres). Both go through the engine's action box, then the nearest grid
+   bin (`closed_loop.nearest_index`, the engine's rounding).
+
+Why its own tracker and not the world model's corrective labeller (worldmodel/closed_loop.py), which also
+projects onto the log and pulls back to it: that one is gentle on purpose (labels for a model to imitate),
+and as this driver's tracker it left the vehicles around the policy further off their timing, with about
+twice the policy's collisions (BENCHMARKS.md, "Reactive log replay").
 
 A vehicle delayed by a leader catches up with its log afterwards, at most `catch_up` m/s above the log's
 own top speed. It does not reason about crossing traffic beyond what lies on its path, nor yield at
@@ -34,6 +40,7 @@ import torch
 from tg_gpudrive.engine.control import DRIVER_ROWS, driver_rows
 from tg_gpudrive.kernels.dynamics import TRACK_GAIN_LONG
 from tg_gpudrive.kernels.kinds import DYNAMICS_BICYCLE
+from tg_gpudrive.worldmodel.closed_loop import nearest_index
 
 Tensor = torch.Tensor
 
@@ -242,17 +249,8 @@ class IDMDriver:
         accel = accel.clamp(-m.max_accel, m.max_accel)
         kappa = kappa.clamp(-m.max_curvature, m.max_curvature)
         if m.discrete:
-            ia = nearest_bin(accel, m.max_accel, m.accel_bins)
-            ik = nearest_bin(kappa, m.max_curvature, m.curvature_bins)
-            sim.actions_index[w, a] = (ia * m.curvature_bins + ik).to(sim.actions_index.dtype)
+            sim.actions_index[w, a] = nearest_index(accel, kappa, sim.cfg).to(sim.actions_index.dtype)
         else:
             sim.actions[w, a, 0] = accel.to(sim.actions.dtype)
             sim.actions[w, a, 1] = kappa.to(sim.actions.dtype)
 
-
-def nearest_bin(v: Tensor, hi: float, n: int) -> Tensor:
-    """The index of the bin of the grid of `n` values over [-hi, hi] nearest to `v` (the engine's
-    `nearest_bin`)."""
-    if n <= 1:
-        return torch.zeros_like(v, dtype=torch.long)
-    return torch.round((v + hi) / (2 * hi) * (n - 1)).long().clamp(0, n - 1)
