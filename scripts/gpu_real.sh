@@ -91,6 +91,8 @@ evaluate() {  # gpu name
   for mode in stop remove; do
     rates "$gpu" "--checkpoint $runs/$name" "$held" --episodes 17 --seed 0 --collision-mode $mode
   done
+  # greedy actions: the policy without its sampling noise
+  rates "$gpu" "--checkpoint $runs/$name --deterministic" "$held" --episodes 17 --seed 0 --collision-mode ignore
   # the training scenes, unaugmented: the rates to choose between runs by, leaving the held-out ones for the report
   rates "$gpu" "--checkpoint $runs/$name" "$stores/womd_dev_train" --episodes 44 --seed 0 --collision-mode ignore
   rates "$gpu" "--checkpoint $runs/$name" procedural:all --num-scenes 256 --episodes 256 --seed 90000
