@@ -298,3 +298,12 @@ def test_a_run_without_matplotlib_keeps_its_files_and_says_why_no_curves(tmp_pat
         assert run.plot() is None
     assert "matplotlib is not installed" in caplog.text
     assert (tmp_path / "metrics.csv").exists() and not (tmp_path / "curves.png").exists()
+
+
+def test_an_empty_set_value_clears_a_string_key():
+    """`--set init_policy=` (or `init_policy:` left empty in YAML) is the empty string: a config that fine-tunes
+    a checkpoint can be trained from scratch without editing it."""
+    cfg = from_dict(TrainConfig, {"init_policy": None, "out_dir": "runs/x"}, "x.yaml")
+    assert cfg.init_policy == ""
+    with pytest.raises(ConfigError, match="x.yaml: lr: expected a number"):
+        from_dict(TrainConfig, {"lr": None}, "x.yaml")

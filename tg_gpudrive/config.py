@@ -372,6 +372,8 @@ def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:
             raise ConfigError(f"{source}: {key}: expected a number, got {value!r}")
         return float(value)
     if tp is str:
+        if value is None:  # `key:` left empty in YAML, or `--set key=`: the empty string (e.g. no init_policy)
+            return ""
         if not isinstance(value, str):
             raise ConfigError(f"{source}: {key}: expected a string, got {value!r}")
         return value
