@@ -5,6 +5,8 @@
 # expert replay.
 #   (cd /tmp && [PHASE=train|eval|all] [PLAN=file] bash REPO/scripts/gpu_real.sh STORES OUT_DIR [UPDATES])
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
+# Training longer than one device call: PHASE=train TIME_LIMIT=480 first, then, back to back on the warm machine,
+# RESUME=1 PHASE=train TIME_LIMIT=900 (each run continues from its checkpoint in $RUNS to 900 s in all), then PHASE=eval.
 # TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
 # evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2,long_vehicles=0.1") adds generator knobs to the
 # urban procedural part of every run. The plan (PLAN names a file of such lines; the default below is the
@@ -71,9 +73,14 @@ train() {  # gpu name store sets [urban-extra]
     python3 "$repo/scripts/wm_traffic.py" --models shipped "$runs/${name}_wm/model.pt" --scenes "$held" \
       --num-scenes 17 --seeds 0 1 --json > "$out/wm_traffic_$name.json" 2>/dev/null
   fi
-  $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$(mix "$store" "$urban")" --set updates="$updates" \
-    --set time_limit_s="${TIME_LIMIT:-470}" "${extra[@]}" --out "$runs/$name" --overwrite \
-    --json > "$out/train_$name.json" 2> "$out/train_$name.log"
+  if [ -n "${RESUME:-}" ] && [ -f "$runs/$name/checkpoint.pt" ]; then  # on to TIME_LIMIT s of training in all
+    $tg train --resume "$runs/$name" --set updates="$updates" --set time_limit_s="${TIME_LIMIT:-470}" \
+      --json > "$out/train_$name.json" 2> "$out/train_$name.log"
+  else
+    $tg train --config "$repo/configs/train/real_mix.yaml" --set "scenes=$(mix "$store" "$urban")" --set updates="$updates" \
+      --set time_limit_s="${TIME_LIMIT:-470}" "${extra[@]}" --out "$runs/$name" --overwrite \
+      --json > "$out/train_$name.json" 2> "$out/train_$name.log"
+  fi
   tail -c 600 "$out/train_$name.log" > "$out/train_$name.tail" && mv "$out/train_$name.tail" "$out/train_$name.log"
 }
 
@@ -116,8 +123,10 @@ for name in $(cut -d' ' -f1 <<< "$plan"); do
   cp "$runs/$name/curves.png" "$out/curves_$name.png" 2>/dev/null
 done
 (cd "$runs" && tar czf "$out/runs.tgz" */metrics.csv */config.json 2>/dev/null)
-python3 "$repo/scripts/slim_checkpoints.py" "$runs"  # each run's policy, about 1 MB
-for name in $(cut -d' ' -f1 <<< "$plan"); do
-  cp "$runs/$name/checkpoint.pt" "$out/$name.pt" 2>/dev/null
-done
+if [ "$phase" != train ]; then  # a train phase keeps the whole checkpoints in $runs, for a RESUME=1 call after it
+  python3 "$repo/scripts/slim_checkpoints.py" "$runs"  # each run's policy, about 1 MB
+  for name in $(cut -d' ' -f1 <<< "$plan"); do
+    cp "$runs/$name/checkpoint.pt" "$out/$name.pt" 2>/dev/null
+  done
+fi
 ls -la "$out"
