@@ -24,6 +24,7 @@ from tg_gpudrive import cli
 from tg_gpudrive.checkpoint import save_atomic
 from tg_gpudrive.config import REPO_CONFIGS, ConfigError, TrainConfig, from_dict
 from tg_gpudrive.data.procedural import generate_scene
+from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.learn.rundir import LOCK, RunLock
 from tg_gpudrive.learn.train import Trainer
@@ -303,7 +304,13 @@ def test_a_run_without_matplotlib_keeps_its_files_and_says_why_no_curves(tmp_pat
 def test_an_empty_set_value_clears_a_string_key():
     """`--set init_policy=` (or `init_policy:` left empty in YAML) is the empty string: a config that fine-tunes
     a checkpoint can be trained from scratch without editing it."""
-    cfg = from_dict(TrainConfig, {"init_policy": None, "out_dir": "runs/x"}, "x.yaml")
+    cfg = from_dict(TrainConfig, {"init_policy": None}, "x.yaml")
     assert cfg.init_policy == ""
     with pytest.raises(ConfigError, match="x.yaml: lr: expected a number"):
         from_dict(TrainConfig, {"lr": None}, "x.yaml")
+    # where the empty string would mean the working directory, it is refused
+    for key in ("scenes", "out_dir", "device"):
+        with pytest.raises(ConfigError, match=f"x.yaml: {key}: must not be empty"):
+            from_dict(TrainConfig, {key: None}, "x.yaml")
+    with pytest.raises(ValueError, match="scene spec is empty"):
+        resolve_scenes("  ")

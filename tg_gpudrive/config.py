@@ -305,6 +305,9 @@ class TrainConfig:
 
     def __post_init__(self):
         _set_mode(self, "control", ControlMode, SELECT_CONTROL)
+        for key in ("scenes", "device", "out_dir"):  # an empty one would read or write the working directory
+            if not getattr(self, key).strip():
+                raise ConfigError(f"{key}: must not be empty")
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):

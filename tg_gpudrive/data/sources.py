@@ -590,6 +590,8 @@ def resolve_scenes(spec: str, *, n: int | None = None, seed: int = 0) -> SceneSo
     without scene files; StoreError / SceneError for a bad store or file.
     """
     spec = str(spec).strip()
+    if not spec:  # Path("") is the working directory: never read it by accident
+        raise ValueError("scene spec is empty: give procedural:<type>, a store, a folder or a scene file")
     if n is not None and int(n) <= 0:
         raise ValueError(f"scene spec {spec!r}: n must be positive, got {n}")
     if spec.lower().startswith("mix:"):
