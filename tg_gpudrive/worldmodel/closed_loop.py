@@ -144,25 +144,45 @@ def corrective_target(sim) -> CorrectiveTarget:
     return tgt
 
 
+def visited_labels(sim, w: torch.Tensor, a: torch.Tensor, tgt: CorrectiveTarget, idm=None) -> torch.Tensor:
+    """The labels of rows (w, a) in `sim`'s current state: their corrective target `tgt` (from
+    corrective_target), or, given an agents.idm.IDMDriver `idm`, reactive log replay's action; grid
+    indices (R,) for a discrete action space, else (accel, curvature) (R, 2) in the action box."""
+    continuous = not sim.cfg.discrete
+    if idm is None:
+        return tgt.action[w, a] if continuous else tgt.index[w, a]
+    accel, kappa = idm.actions(sim, w, a)
+    accel = accel.clamp(-sim.cfg.max_accel, sim.cfg.max_accel)
+    kappa = kappa.clamp(-sim.cfg.max_curvature, sim.cfg.max_curvature)
+    return torch.stack([accel, kappa], -1) if continuous else nearest_index(accel, kappa, sim.cfg)
+
+
 @torch.no_grad()
 def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_partners: int, max_roads: int,
                         num_worlds: int = 16, device: str = "cpu", seed: int = 0,
-                        temperature: float = 1.0) -> tuple[dict, dict]:
+                        temperature: float = 1.0, labels: str = "log") -> tuple[dict, dict]:
     """Roll `model` out on `scenes` (every vehicle model-driven, from init_step, `horizon` steps;
     agents drive on through contacts and goals so every track lasts) and label each visited
-    state of an active vehicle with its corrective target.
+    state of an active vehicle with its corrective target (`labels` "log"), or with the action of
+    reactive log replay from that state (`labels` "idm", agents.idm.IDMDriver: the log tracked, and
+    braking for the agents across the path ahead), for the same states.
 
     Returns (samples, stats): samples as data.collect (obs, hist, target: grid index or
     (accel, curvature), layout); stats: mean distance (m) of the visited states from the log,
     and the share of vehicles that collided / went off-road during the roll-outs."""
     env = full_horizon_env(env)
-    continuous = not env.discrete
     kp, krr = min(env.partner_k, max_partners), min(env.road_k, max_roads)
     out = {"obs": [], "hist": [], "target": []}
     dev_sum = dev_n = 0.0
     n_veh = n_coll = n_off = 0
     was_training = model.training
     model.eval()
+    idm = None
+    if labels == "idm":
+        from tg_gpudrive.agents.idm import IDMDriver  # agents.idm snaps to the grid with this module's nearest_index
+        idm = IDMDriver(rows="controlled")
+    elif labels != "log":
+        raise ValueError(f"labels: expected log or idm, got {labels!r}")
     for b in range(0, len(scenes), num_worlds):
         batch = scenes[b:b + num_worlds]
         sim = Simulator(batch, sized_for(env, batch), device)  # every agent gets a slot: none is dropped
@@ -178,7 +198,7 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
             w, a = rows.nonzero(as_tuple=True)
             out["obs"].append(truncate_obs(sim.obs[w, a], env.partner_k, env.road_k, kp, krr).cpu())
             out["hist"].append(driver.history.features(sim)[w, a].cpu())
-            out["target"].append((tgt.action[w, a] if continuous else tgt.index[w, a]).cpu())
+            out["target"].append(visited_labels(sim, w, a, tgt, idm).cpu())
             lp = sim.log_at("log_pos", sim.world_step)
             on_log = rows & (sim.log_at("log_valid", sim.world_step) != 0)
             dev_sum += float(((sim.pos - lp).norm(dim=-1) * on_log).sum())

@@ -86,6 +86,9 @@ class WorldModelConfig:
     closed_loop_horizon: int = 80  # steps per roll-out from init_step (capped at the episode)
     closed_loop_lr: float = 5e-4
     closed_loop_temperature: float = 1.0  # sampling temperature of the roll-outs
+    # labels of the visited states: log (the corrective action back to the log) | idm (reactive log replay's
+    # action: the log tracked, and braking for the agents across the path ahead)
+    closed_loop_labels: str = "log"
     # bookkeeping
     log_every: int = 100
     checkpoint_every: int = 500
@@ -108,6 +111,8 @@ class WorldModelConfig:
             raise ConfigError("closed_loop_rounds and closed_loop_horizon must be >= 1")
         if self.closed_loop_steps and self.closed_loop_temperature <= 0:
             raise ConfigError("closed_loop_temperature must be > 0")
+        if self.closed_loop_labels not in ("log", "idm"):
+            raise ConfigError(f"closed_loop_labels: expected log or idm, got {self.closed_loop_labels!r}")
 
 
 # ---------------------------------------------------------------- training
@@ -296,7 +301,7 @@ def closed_loop_finetune(model: WorldModel, cfg: WorldModelConfig, data: dict, t
         new, roll = closed_loop_samples(
             model, train_scenes, cfg.env, horizon=cfg.closed_loop_horizon, history=cfg.history,
             max_partners=cfg.max_partners, max_roads=cfg.max_roads, num_worlds=cfg.num_worlds, device=device,
-            seed=cfg.seed + 1000 * (r + 1), temperature=cfg.closed_loop_temperature)
+            seed=cfg.seed + 1000 * (r + 1), temperature=cfg.closed_loop_temperature, labels=cfg.closed_loop_labels)
         visited_before = dataset_nll(model, new)["nll"]
         for k in agg:
             agg[k].append(new[k])
