@@ -189,21 +189,24 @@ def test_training_among_idm_vehicles_drives_the_left_out_ones_and_resumes_exactl
 
 
 @pytest.mark.parametrize("action_space", ["discrete", "continuous"])
-def test_world_model_labels_from_idm_brake_where_the_log_labels_drive_on(device, action_space):
+def test_world_model_labels_brake_where_the_log_drives_on(device, action_space):
     """The world model's closed-loop labels (worldmodel/closed_loop.py `visited_labels`): 3 s into the pair scene
     the leader stands 16 m (bumper to bumper) ahead of the follower, whose log goes on at 10 m/s through it. The
-    corrective label tracks that log (accel 0 on it); reactive log replay's label brakes as hard as the box
-    allows (IDM: 2 (1 - (s* / 16)^2) with s* = 2 + 10 + 10 x 10 / (2 sqrt 6) = 32.4 m, about -6.2 m/s^2)."""
+    corrective label tracks that log (accel 0 on it); with IDM's braking it brakes as hard as the box allows
+    (2 (1 - (s* / 16)^2) with s* = 2 + 10 + 10 x 10 / (2 sqrt 6) = 32.4 m, about -6.2 m/s^2) and steers as the
+    corrective label does. The leader, with nobody ahead, keeps its corrective label."""
     from tg_gpudrive.worldmodel.closed_loop import corrective_target, visited_labels
 
     _, _, sim = _drive(pair_scene(), device, None, action_space, steps=30)
-    w, a = torch.tensor([0], device=sim.pos.device), torch.tensor([1], device=sim.pos.device)
     assert abs(float(sim.pos[0, 0, 0] - sim.pos[0, 1, 0]) - 20.0) < 0.5  # the scene as described
-    tgt = corrective_target(sim)
-    log, idm = visited_labels(sim, w, a, tgt), visited_labels(sim, w, a, tgt, IDMDriver(rows="controlled"))
-    cfg = sim.cfg
+    tgt, drv, cfg = corrective_target(sim), IDMDriver(rows="controlled"), sim.cfg
+    w, a = torch.zeros(2, dtype=torch.long, device=sim.pos.device), torch.arange(2, device=sim.pos.device)
+    log, brake = visited_labels(sim, w, a, tgt), visited_labels(sim, w, a, tgt, drv)
+    assert torch.equal(log[0], brake[0])  # the leader
     if action_space == "discrete":
         zero = int(nearest_index(torch.zeros(1), torch.zeros(1), cfg)[0]) // cfg.curvature_bins
-        assert int(log[0]) // cfg.curvature_bins == zero and int(idm[0]) // cfg.curvature_bins == 0
+        assert int(log[1]) // cfg.curvature_bins == zero and int(brake[1]) // cfg.curvature_bins == 0
+        assert int(brake[1]) % cfg.curvature_bins == int(log[1]) % cfg.curvature_bins
     else:
-        assert abs(float(log[0, 0])) < 0.5 and float(idm[0, 0]) == -cfg.max_accel
+        assert abs(float(log[1, 0])) < 0.5 and float(brake[1, 0]) == -cfg.max_accel
+        assert float(brake[1, 1]) == float(log[1, 1])

@@ -209,6 +209,21 @@ class IDMDriver:
             speeds.append((vel[wc, o] * t_k[r, o]).sum(-1).clamp(min=0.0))
         return torch.cat(gaps), torch.cat(speeds)
 
+    def _braking(self, sim, w: Tensor, a: Tensor, s_cur: Tensor) -> Tensor:
+        """(R,) IDM's acceleration behind the nearest agent across the path ahead of rows (w, a) at arc lengths
+        `s_cur`; inf where the path is clear."""
+        v = sim.speed[w, a].float()
+        gap, v_lead = self._leaders(sim, w, a, s_cur)
+        return torch.where(torch.isfinite(gap), idm_accel(v, gap, v - v_lead, self.p), torch.full_like(v, math.inf))
+
+    def braking(self, sim, w: Tensor, a: Tensor) -> Tensor:
+        """(R,) IDM's acceleration behind the nearest agent across the logged path ahead of rows (w, a); inf
+        where the path is clear."""
+        if self._model is not sim.model:
+            self._bind(sim)
+        s_cur = self._arc_at(self.path[w, a], self.arc[w, a], sim.pos[w, a].float(), self._progress(sim, w, a))
+        return self._braking(sim, w, a, s_cur)
+
     def actions(self, sim, w: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
         """(acceleration, curvature) of rows (w, a), (R,) each, before the action box."""
         if self._model is not sim.model:
@@ -226,9 +241,7 @@ class IDMDriver:
         v_target = (v_log + TRACK_GAIN_LONG * e_long / dt).clamp(min=0.0)
         v_target = torch.minimum(v_target, self.top_speed[w, a] + p.catch_up)
         a_track = (v_target - v) / dt
-        gap, v_lead = self._leaders(sim, w, a, s_cur)
-        a_idm = torch.where(torch.isfinite(gap), idm_accel(v, gap, v - v_lead, p), torch.full_like(v, math.inf))
-        accel = torch.minimum(a_track, a_idm)
+        accel = torch.minimum(a_track, self._braking(sim, w, a, s_cur))
         # pure pursuit of the path point `lookahead` ahead
         tgt, _ = self._along(path, arc, (s_cur + (p.lookahead * v).clamp(min=p.min_lookahead))[:, None])
         d = tgt[:, 0] - pos

@@ -31,7 +31,12 @@ at the logged position at t+2; that is right on the log but dead-beat off it
 back), and fine-tuning on its labels, or on dead-beat labels projected on the
 path, made the model's roll-outs collide far more (BENCHMARKS.md, "World
 model"). States whose log has no state at t or t+1, or fewer than two valid
-points, get no label. This module only collects samples; train.py aggregates
+points, get no label.
+
+The log drives through whoever the model has put in its way, so by default
+(`labels` "log_brake") a label's acceleration is also at most IDM's behind the
+nearest agent across the logged path ahead (agents/idm.py, the reactive log
+replay's leader search): the model learns to brake for what it sees ahead. This module only collects samples; train.py aggregates
 them with the teacher-forced set and fits.
 """
 
@@ -146,26 +151,26 @@ def corrective_target(sim) -> CorrectiveTarget:
 
 def visited_labels(sim, w: torch.Tensor, a: torch.Tensor, tgt: CorrectiveTarget, idm=None) -> torch.Tensor:
     """The labels of rows (w, a) in `sim`'s current state: their corrective target `tgt` (from
-    corrective_target), or, given an agents.idm.IDMDriver `idm`, reactive log replay's action; grid
-    indices (R,) for a discrete action space, else (accel, curvature) (R, 2) in the action box."""
+    corrective_target) or, given an agents.idm.IDMDriver `idm`, the same with IDM's braking for the nearest
+    agent across the logged path ahead where that is harder (the log drives through whoever stands in its
+    way). Grid indices (R,) for a discrete action space, else (accel, curvature) (R, 2) in the action box."""
     continuous = not sim.cfg.discrete
     if idm is None:
         return tgt.action[w, a] if continuous else tgt.index[w, a]
-    accel, kappa = idm.actions(sim, w, a)
-    accel = accel.clamp(-sim.cfg.max_accel, sim.cfg.max_accel)
-    kappa = kappa.clamp(-sim.cfg.max_curvature, sim.cfg.max_curvature)
+    accel = torch.minimum(tgt.action[w, a, 0], idm.braking(sim, w, a)).clamp(min=-sim.cfg.max_accel)
+    kappa = tgt.action[w, a, 1]
     return torch.stack([accel, kappa], -1) if continuous else nearest_index(accel, kappa, sim.cfg)
 
 
 @torch.no_grad()
 def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_partners: int, max_roads: int,
                         num_worlds: int = 16, device: str = "cpu", seed: int = 0,
-                        temperature: float = 1.0, labels: str = "log") -> tuple[dict, dict]:
+                        temperature: float = 1.0, labels: str = "log_brake") -> tuple[dict, dict]:
     """Roll `model` out on `scenes` (every vehicle model-driven, from init_step, `horizon` steps;
     agents drive on through contacts and goals so every track lasts) and label each visited
-    state of an active vehicle with its corrective target (`labels` "log"), or with the action of
-    reactive log replay from that state (`labels` "idm", agents.idm.IDMDriver: the log tracked, and
-    braking for the agents across the path ahead), for the same states.
+    state of an active vehicle with its corrective target (`labels` "log"), or with the same braking as
+    IDM for the nearest agent across the logged path ahead where that is harder ("log_brake",
+    `visited_labels`).
 
     Returns (samples, stats): samples as data.collect (obs, hist, target: grid index or
     (accel, curvature), layout); stats: mean distance (m) of the visited states from the log,
@@ -178,11 +183,11 @@ def closed_loop_samples(model, scenes, env, *, horizon: int, history: int, max_p
     was_training = model.training
     model.eval()
     idm = None
-    if labels == "idm":
+    if labels == "log_brake":
         from tg_gpudrive.agents.idm import IDMDriver  # agents.idm snaps to the grid with this module's nearest_index
         idm = IDMDriver(rows="controlled")
     elif labels != "log":
-        raise ValueError(f"labels: expected log or idm, got {labels!r}")
+        raise ValueError(f"labels: expected log or log_brake, got {labels!r}")
     for b in range(0, len(scenes), num_worlds):
         batch = scenes[b:b + num_worlds]
         sim = Simulator(batch, sized_for(env, batch), device)  # every agent gets a slot: none is dropped

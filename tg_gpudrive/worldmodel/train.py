@@ -86,9 +86,9 @@ class WorldModelConfig:
     closed_loop_horizon: int = 80  # steps per roll-out from init_step (capped at the episode)
     closed_loop_lr: float = 5e-4
     closed_loop_temperature: float = 1.0  # sampling temperature of the roll-outs
-    # labels of the visited states: log (the corrective action back to the log) | idm (reactive log replay's
-    # action: the log tracked, and braking for the agents across the path ahead)
-    closed_loop_labels: str = "log"
+    # labels of the visited states: log (the corrective action back to the log) | log_brake (the same, braking
+    # as IDM for the nearest agent across the logged path ahead where that is harder)
+    closed_loop_labels: str = "log_brake"
     # bookkeeping
     log_every: int = 100
     checkpoint_every: int = 500
@@ -111,8 +111,8 @@ class WorldModelConfig:
             raise ConfigError("closed_loop_rounds and closed_loop_horizon must be >= 1")
         if self.closed_loop_steps and self.closed_loop_temperature <= 0:
             raise ConfigError("closed_loop_temperature must be > 0")
-        if self.closed_loop_labels not in ("log", "idm"):
-            raise ConfigError(f"closed_loop_labels: expected log or idm, got {self.closed_loop_labels!r}")
+        if self.closed_loop_labels not in ("log", "log_brake"):
+            raise ConfigError(f"closed_loop_labels: expected log or log_brake, got {self.closed_loop_labels!r}")
 
 
 # ---------------------------------------------------------------- training
