@@ -28,6 +28,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.learn.rundir import LOCK, RunLock
 from tg_gpudrive.learn.train import Trainer
+from tg_gpudrive.worldmodel.train import WorldModelConfig
 
 SMALL = REPO_CONFIGS / "train" / "small_cpu.yaml"
 TINY = ["--config", str(SMALL), "--set", "num_worlds=2", "--set", "num_scenes=2", "--set", "rollout_steps=4",
@@ -314,3 +315,6 @@ def test_an_empty_set_value_clears_a_string_key():
             from_dict(TrainConfig, {key: None}, "x.yaml")
     with pytest.raises(ValueError, match="scene spec is empty"):
         resolve_scenes("  ")
+    for key in ("scenes", "out_dir"):  # the world model's trainer too
+        with pytest.raises(ConfigError, match=f"x.yaml: {key}: must not be empty"):
+            from_dict(WorldModelConfig, {key: None}, "x.yaml")

@@ -305,9 +305,7 @@ class TrainConfig:
 
     def __post_init__(self):
         _set_mode(self, "control", ControlMode, SELECT_CONTROL)
-        for key in ("scenes", "device", "out_dir"):  # an empty one would read or write the working directory
-            if not getattr(self, key).strip():
-                raise ConfigError(f"{key}: must not be empty")
+        require_nonempty(self, ("scenes", "device", "out_dir"))
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute"):
@@ -347,6 +345,14 @@ class TrainConfig:
         if self.target_heldout and (self.target_heldout_worlds < 1 or self.target_goal_rate <= 0):
             raise ConfigError("target_heldout: needs target_heldout_worlds >= 1 and a target_goal_rate > 0 "
                               "(the check runs when the training window meets that target)")
+
+
+def require_nonempty(cfg, keys: tuple[str, ...]) -> None:
+    """ConfigError naming the first of the string fields `keys` of `cfg` that is empty: an empty scene spec,
+    device or output folder would read or write the working directory."""
+    for key in keys:
+        if not getattr(cfg, key).strip():
+            raise ConfigError(f"{key}: must not be empty")
 
 
 def _coerce(tp: Any, value: Any, key: str, source: str) -> Any:

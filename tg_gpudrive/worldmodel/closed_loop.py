@@ -36,8 +36,10 @@ points, get no label.
 The log drives through whoever the model has put in its way, so by default
 (`labels` "log_brake") a label's acceleration is also at most IDM's behind the
 nearest agent across the logged path ahead (agents/idm.py, the reactive log
-replay's leader search): the model learns to brake for what it sees ahead. This module only collects samples; train.py aggregates
-them with the teacher-forced set and fits.
+replay's leader search): the model learns to brake for what it sees ahead.
+
+This module only collects samples; train.py aggregates them with the
+teacher-forced set and fits.
 """
 
 from __future__ import annotations

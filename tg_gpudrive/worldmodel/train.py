@@ -46,7 +46,7 @@ import torch
 from tqdm import tqdm
 
 from tg_gpudrive.checkpoint import WORLD_MODEL, load_checkpoint, save_atomic
-from tg_gpudrive.config import ConfigError, EngineConfig, to_dict
+from tg_gpudrive.config import ConfigError, EngineConfig, require_nonempty, to_dict
 from tg_gpudrive.engine.simulator import resolve_device
 from tg_gpudrive.worldmodel.closed_loop import closed_loop_samples, rounds_schedule
 from tg_gpudrive.worldmodel.data import collect, load_scene_split
@@ -95,6 +95,7 @@ class WorldModelConfig:
     out_dir: str = "runs/worldmodel"
 
     def __post_init__(self):
+        require_nonempty(self, ("scenes", "device", "out_dir"))
         try:
             require_bicycle(self.env)
         except NotImplementedError as e:
