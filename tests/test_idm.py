@@ -20,7 +20,7 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.worldmodel.closed_loop import nearest_index
-from tg_gpudrive.worldmodel.metrics import background_rates
+from tg_gpudrive.worldmodel.metrics import background_rates, drive_steps
 
 DATA = Path(__file__).parent / "data"
 CFG = dict(max_agents=4, partner_k=4, road_k=8, init_steps=0, replay_infeasible=False)
@@ -64,12 +64,7 @@ def _drive(scene, device, driver, action_space="discrete", steps=None):
     sim = Simulator([scene], cfg, device, controlled=[np.zeros(scene.num_agents, bool)], background=bg)
     sim.reset()
     track, hit = [], np.zeros(scene.num_agents, bool)
-    for _ in range(steps or sim.episode_length - 1):
-        if driver is None:
-            sim.use_expert_actions()
-        else:
-            driver(sim)
-        sim.step()
+    for _ in drive_steps(sim, driver, steps):
         track.append(sim.pos[0, :scene.num_agents].cpu().numpy().copy())
         hit |= sim.collided[0, :scene.num_agents].cpu().numpy() != 0
     return np.array(track), hit, sim

@@ -141,6 +141,18 @@ def sampled_displacement(policy_factory, scenes, env: EngineConfig, *, samples: 
             "agents": int(ok.sum()), "horizon_steps": horizon, "samples": S}
 
 
+def drive_steps(sim, driver, steps: int | None = None):
+    """Step `sim` `steps` times (default: to the episode's end), its background rows driven by `driver(sim)`
+    or, when driver is None, by the expert replay; yields after each step, for the caller to read the state."""
+    for _ in range(steps or sim.episode_length - 1):
+        if driver is None:
+            sim.use_expert_actions()
+        else:
+            driver(sim)
+        sim.step()
+        yield
+
+
 @torch.no_grad()
 def background_rates(driver, scenes, env: EngineConfig, *, steps: int | None = None, device: str = "cpu") -> dict:
     """Every eligible vehicle is a background vehicle driven by `driver(sim)` (or by the expert
@@ -152,12 +164,7 @@ def background_rates(driver, scenes, env: EngineConfig, *, steps: int | None = N
     rows = sim.background != 0
     coll = torch.zeros_like(rows)
     off = torch.zeros_like(rows)
-    for _ in range(steps or sim.episode_length - 1):
-        if driver is None:
-            sim.use_expert_actions()
-        else:
-            driver(sim)
-        sim.step()
+    for _ in drive_steps(sim, driver, steps):
         coll |= sim.collided != 0
         off |= sim.offroad != 0
     n = int(rows.sum())
