@@ -40,6 +40,7 @@ from tg_gpudrive.benchmark import main as benchmark_main
 from tg_gpudrive.checkpoint import check_resume_config
 from tg_gpudrive.cli_help import HelpFormatter
 from tg_gpudrive.config import (
+    BACKGROUNDS,
     REPO_CONFIGS,
     ConfigError,
     EngineConfig,
@@ -60,7 +61,7 @@ from tg_gpudrive.learn import distributed
 from tg_gpudrive.agents import BUILTIN, open_policy
 from tg_gpudrive.learn.rundir import RunLock, claim_run_dir
 from tg_gpudrive.learn.train import train_main
-from tg_gpudrive.agents.builtin import BACKGROUNDS, expert_policy
+from tg_gpudrive.agents.builtin import expert_policy
 from tg_gpudrive.rollout import run_rollout
 from tg_gpudrive.enums import CollisionMode, ControlMode
 from tg_gpudrive.worldmodel.cli import add_arguments as world_model_args

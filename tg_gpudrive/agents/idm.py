@@ -216,23 +216,25 @@ class IDMDriver:
         gap, v_lead = self._leaders(sim, w, a, s_cur)
         return torch.where(torch.isfinite(gap), idm_accel(v, gap, v - v_lead, self.p), torch.full_like(v, math.inf))
 
+    def _arc_now(self, sim, w: Tensor, a: Tensor) -> Tensor:
+        """(R,) the arc length along their logged paths where rows (w, a) are now (the paths cached for
+        `sim`'s scenes first)."""
+        if self._model is not sim.model:
+            self._bind(sim)
+        return self._arc_at(self.path[w, a], self.arc[w, a], sim.pos[w, a].float(), self._progress(sim, w, a))
+
     def braking(self, sim, w: Tensor, a: Tensor) -> Tensor:
         """(R,) IDM's acceleration behind the nearest agent across the logged path ahead of rows (w, a); inf
         where the path is clear."""
-        if self._model is not sim.model:
-            self._bind(sim)
-        s_cur = self._arc_at(self.path[w, a], self.arc[w, a], sim.pos[w, a].float(), self._progress(sim, w, a))
-        return self._braking(sim, w, a, s_cur)
+        return self._braking(sim, w, a, self._arc_now(sim, w, a))
 
     def actions(self, sim, w: Tensor, a: Tensor) -> tuple[Tensor, Tensor]:
         """(acceleration, curvature) of rows (w, a), (R,) each, before the action box."""
-        if self._model is not sim.model:
-            self._bind(sim)
+        s_cur = self._arc_now(sim, w, a)
         p, dt = self.p, float(sim.model.dt)
         T = self.arc.shape[-1]
         path, arc = self.path[w, a], self.arc[w, a]
         pos, v = sim.pos[w, a].float(), sim.speed[w, a].float()
-        s_cur = self._arc_at(path, arc, pos, self._progress(sim, w, a))
         # tracking: the speed that reaches the log's next-step arc position
         nxt = (sim.world_step.long()[w] + 1).clamp(max=T - 1)
         r = torch.arange(len(w), device=w.device)
