@@ -47,26 +47,41 @@ def grads_of(trainer, idx) -> list[torch.Tensor]:
     return [p.grad.clone() for p in trainer.params]
 
 
-def _ddp_worker(rank, world, port, out, result):
+def fixed_shape_grads_of(trainer, idx) -> list[torch.Tensor]:
+    """The gradients of a step of learn/graphs.py: the dense loss on the modules themselves (not their DDP
+    wrappers), then the ranks' average of one flat buffer."""
+    from tg_gpudrive.learn import distributed
+    from tg_gpudrive.learn.update import Groups, minibatch_loss
+
+    trainer.opt.zero_grad()
+    loss, _ = minibatch_loss(trainer.cfg, Groups.of(synthetic_batch(trainer)), idx, torch.full((4,), 0.3),
+                             trainer.graphs.raw, trainer.prior, dense=True)
+    loss.backward()
+    distributed.average_gradients_(trainer.params)
+    return [p.grad.clone() for p in trainer.params]
+
+
+def _ddp_worker(rank, world, port, out, result, fixed_shape):
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import Trainer
 
     with distributed.process_group(rank, world, port, "cpu"):
-        tr = Trainer(tiny_cfg(out / "ddp"), progress=False)
+        tr = Trainer(dataclasses.replace(tiny_cfg(out / "ddp"), cuda_graphs=fixed_shape), progress=False)
         half = torch.arange(rank * G // 2, (rank + 1) * G // 2)
-        gr = grads_of(tr, half)
+        gr = (fixed_shape_grads_of if fixed_shape else grads_of)(tr, half)
         if rank == 0:
             result.put([x.numpy() for x in gr])
 
 
 @pytest.mark.slow
-def test_ddp_gradients_equal_single_process_union(tmp_path):
+@pytest.mark.parametrize("fixed_shape", [False, True], ids=["ddp", "fixed-shape steps"])
+def test_ddp_gradients_equal_single_process_union(tmp_path, fixed_shape):
     from tg_gpudrive.learn.distributed import free_port
     from tg_gpudrive.learn.train import Trainer
 
     ctx = mp.get_context("spawn")
     q = ctx.SimpleQueue()
-    mp.spawn(_ddp_worker, args=(2, free_port(), tmp_path, q), nprocs=2)
+    mp.spawn(_ddp_worker, args=(2, free_port(), tmp_path, q, fixed_shape), nprocs=2)
     ddp = q.get()
     single = grads_of(Trainer(tiny_cfg(tmp_path / "one"), progress=False), torch.arange(G))
     assert len(ddp) == len(single)

@@ -24,23 +24,24 @@ from test_train import tiny
 CASES = {"discrete": dict(), "continuous+history": dict(prior="expert", actor_history=3)}
 
 
-def _setup(tmp_path, case: str):
-    """A 2-world CPU simulator, the networks, optimiser and multipliers of a tiny run, and its collector."""
-    cfg = tiny(tmp_path, **CASES[case])
+def _setup(tmp_path, case: str, device: str = "cpu", **kw):
+    """A 2-world simulator, the networks, optimiser and multipliers of a tiny run (`kw` on its config), and
+    its collector."""
+    cfg = tiny(tmp_path, **CASES[case], **kw)
     if case.startswith("continuous"):
         cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, action_space="continuous"))
     torch.manual_seed(0)
     src = resolve_scenes(cfg.scenes, n=cfg.num_worlds, seed=cfg.seed)
-    sim = Simulator([src.get(i) for i in range(cfg.num_worlds)], cfg.env, "cpu")
-    actor, critic = build_models(cfg, sim, "cpu")
+    sim = Simulator([src.get(i) for i in range(cfg.num_worlds)], cfg.env, device)
+    actor, critic = build_models(cfg, sim, device)
     nets = Networks(actor, critic, PolicyHead(cfg.env.discrete))
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device=device).manual_seed(0)
     hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
     prior = make_prior(cfg, sim)
     sim.reset()
-    collector = RolloutCollector(cfg, sim, nets, prior, gen, "cpu", hist)
+    collector = RolloutCollector(cfg, sim, nets, prior, gen, device, hist)
     opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
-    lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, (cfg.env.max_agents,))
+    lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, (cfg.env.max_agents,)).to(device)
     return cfg, sim, nets, collector, opt, lagrange, gen, prior
 
 

@@ -112,9 +112,10 @@ class Networks:
         self.actor_fwd = self.actor_fwd or self.actor
         self.critic_fwd = self.critic_fwd or self.critic
 
-    def autocast(self):
-        """bf16 autocast around the networks' forward passes when `amp`, else nothing."""
-        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp)
+    def autocast(self, cache: bool = True):
+        """bf16 autocast around the networks' forward passes when `amp`, else nothing. `cache`: keep the
+        bf16 copies of the weights for the forward's duration (not inside a CUDA graph's capture)."""
+        return torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.amp, cache_enabled=cache)
 
     def float_out(self, out):
         """The actor's output in float32: logits, or (mean, log_std)."""

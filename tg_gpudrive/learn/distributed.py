@@ -52,6 +52,18 @@ def all_reduce_sum_(tensors: dict) -> None:
             dist.all_reduce(t, op=dist.ReduceOp.SUM)
 
 
+def average_gradients_(params) -> None:
+    """The gradients of `params` averaged over the ranks in place, in one all-reduce of a flat copy: what
+    DDP's hooks do in the backward pass, for steps that run the modules themselves (graphs.StepGraphs)."""
+    if not is_dist():
+        return
+    grads = [p.grad for p in params if p.grad is not None]
+    flat = torch._utils._flatten_dense_tensors(grads)
+    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
+    flat /= dist.get_world_size()
+    torch._foreach_copy_(grads, torch._utils._unflatten_dense_tensors(flat, grads))
+
+
 def gather_floats(values: list[float], device) -> list[list[float]]:
     """Every rank's `values`, in rank order, on every rank (one row when not distributed)."""
     if not is_dist():

@@ -46,6 +46,7 @@ from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
+from tg_gpudrive.learn.graphs import StepGraphs
 from tg_gpudrive.learn.update import Groups, minibatch_loss, ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
@@ -215,6 +216,7 @@ class Trainer:
         self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
         self.params = [*actor.parameters(), *critic.parameters()]
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
+        self.graphs = StepGraphs(cfg, self.nets, self.opt) if cfg.cuda_graphs else None
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         if cfg.lambda_per_vehicle:  # a row per scene of the whole source (every rank's shard in it)
             shape = (len(getattr(self.source, "source", self.source)), cfg.env.max_agents)
@@ -311,7 +313,8 @@ class Trainer:
         """One CCE-MAPPO update on `batch` (update.ppo_update): the update's row of metrics."""
         try:
             return ppo_update(self.cfg, Rollout.of(batch), self.nets, self.opt, self.lagrange, self.budget,
-                              self.gen, self.prior, self.world_keys() if self.cfg.lambda_per_vehicle else None)
+                              self.gen, self.prior, self.world_keys() if self.cfg.lambda_per_vehicle else None,
+                              self.graphs)
         except NonFinite as e:
             raise self._spoilt(f"{e.what} in update {self.update} ({e.detail})") from None
 

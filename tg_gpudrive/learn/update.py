@@ -19,6 +19,7 @@ live agents are the only other host syncs).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch.profiler import record_function as phase  # named ranges for scripts/profile_train.py
@@ -28,6 +29,9 @@ from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.collector import ByName, Networks, NonFinite, Rollout
+
+if TYPE_CHECKING:
+    from tg_gpudrive.learn.graphs import StepGraphs
 
 Tensor = torch.Tensor
 MAX_TARGET_SAMPLES = 16  # target quantiles per row in the quantile loss (its N x M term is the update's largest)
@@ -137,49 +141,75 @@ def flatten(batch: Rollout, tg: Targets, discrete: bool) -> Groups:
                   prior_weight=flat(batch.prior_weight))
 
 
+def live_only(x: Tensor, w: Tensor) -> Tensor:
+    """`x` (R, ...) with the rows where `w` (R,) is 0 set to 0: dead rows read finite, valid values (action 0,
+    zero observations), so their zero weight cannot meet a non-finite filler in the backward pass."""
+    keep = (w > 0).reshape(-1, *(1,) * (x.dim() - 1))
+    return torch.where(keep, x, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
-                   prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, dict]:
+                   prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None,
+                   dense: bool = False) -> tuple[Tensor, dict]:
     """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups
     (attention over each group's slots) with their heads on the live rows only. `live`: the live rows as
-    (position in idx, slot), in row-major order, when the caller has them (else found here, a host sync)."""
+    (position in idx, slot), in row-major order, when the caller has them (else found here, a host sync).
+    `dense`: every slot of every group instead, the dead ones weighted 0 in every mean (the same losses and
+    gradients): shapes that depend on the minibatch's size alone, as a CUDA graph needs (graphs.StepGraphs)."""
     mi = b.mask[idx]
-    # the actor is per agent: run it on the live rows only (often under half of W x C)
-    g, c = mi.nonzero(as_tuple=True) if live is None else live
-    weight = 1.0
-    if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
-        g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
-            1, dtype=torch.long, device=idx.device), 0.0
+    weight, w = 1.0, None
+    if dense:
+        n, C = mi.shape
+        g = torch.arange(n, device=idx.device).repeat_interleave(C)
+        c = torch.arange(C, device=idx.device).repeat(n)
+        w = mi.reshape(-1).float()
+    else:
+        # the actor is per agent: run it on the live rows only (often under half of W x C)
+        g, c = mi.nonzero(as_tuple=True) if live is None else live
+        if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
+            g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
+                1, dtype=torch.long, device=idx.device), 0.0
     rows = idx[g]
+
+    def pick(x):  # the rows' entries of a (groups, C, ...) tensor
+        return x[rows, c] if w is None else live_only(x[rows, c], w)
+
     if lam.dim() == 2:  # per vehicle: (W, C) of the rollout's worlds; group t * W + w is world w at step t
         lam_rows = lam[rows % lam.shape[0], c]
     else:
         lam_rows = lam[c] if cfg.per_agent_lambda else lam
-    with nets.autocast():
-        out = nets.actor_fwd(b.obs[rows, c], c, None if b.hist is None else b.hist[rows, c])
-        flat = g * mi.shape[1] + c
-        v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
+    obs = pick(b.obs)
+    flat = g * mi.shape[1] + c
+    with nets.autocast(cache=not dense):
+        out = nets.actor_fwd(obs, c, None if b.hist is None else pick(b.hist))
+        if dense:  # every slot encoded, the dead ones as zeros: only the live keys are attended to
+            group_obs = b.obs[idx]
+            group_obs = live_only(group_obs.reshape(n * C, -1), w).reshape(group_obs.shape)
+            v, q = nets.critic_fwd(group_obs, mi, flat, head_rows=flat)
+        else:
+            v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
     out, v, q = nets.float_out(out), v.float(), q.float()
     head = nets.head
     d = head.dist(out)
-    logp = d.log_prob(b.act[rows, c])
-    old_out = b.old[rows, c] if head.discrete else (b.old[0][rows, c], b.old[1][rows, c])
+    logp = d.log_prob(pick(b.act))
+    old_out = pick(b.old) if head.discrete else (pick(b.old[0]), pick(b.old[1]))
     if cfg.eta1 <= 0:  # plain MAPPO: no magnet to evaluate
         kl_prior = torch.zeros_like(logp)
     else:  # the discrete magnet's logits are stored; the continuous one is rebuilt from its context
-        prior_out = b.prior[rows, c] if head.discrete else prior.distribution(b.prior[rows, c], b.obs[rows, c].float())
+        prior_out = pick(b.prior) if head.discrete else prior.distribution(pick(b.prior), obs.float())
         kl_prior = head.kl(out, prior_out)
         if b.prior_weight is not None:  # the magnet of a share of the rows (magnet_fraction)
-            kl_prior = kl_prior * b.prior_weight[rows, c]
+            kl_prior = kl_prior * pick(b.prior_weight)
     loss_pi, st = L.cce_mappo_actor_loss(
-        logp, b.logp[rows, c], b.adv_r[rows, c], b.adv_c[rows, c], lam_rows,
+        logp, pick(b.logp), pick(b.adv_r), pick(b.adv_c), lam_rows,
         d.entropy(), kl_prior, head.kl(out, old_out), clip_eps=cfg.clip, entropy_coef=cfg.entropy_coef,
-        eta1=cfg.eta1, eta2=cfg.eta2, normalize_advantages=cfg.normalize_advantages)
-    loss_v = (v - b.ret_r[rows, c]).pow(2).mean()
+        eta1=cfg.eta1, eta2=cfg.eta2, normalize_advantages=cfg.normalize_advantages, mask=w)
+    loss_v = L.masked_mean((v - pick(b.ret_r)).pow(2), w)
     # quantile loss on live rows, against at most MAX_TARGET_SAMPLES evenly spaced target samples
-    tq = b.q_target[rows, c]
+    tq = pick(b.q_target)
     if tq.shape[-1] > MAX_TARGET_SAMPLES:
         tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, MAX_TARGET_SAMPLES, device=tq.device).round().long()]
-    loss_q = L.quantile_huber_loss(q, tq, kappa=1.0)
+    loss_q = L.quantile_huber_loss(q, tq, kappa=1.0, mask=w)
     loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
     parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
              "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
@@ -196,10 +226,18 @@ def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
     return list(zip((g % mb).split(counts), c.split(counts)))
 
 
-def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
-             gen: torch.Generator, prior: BehaviourPrior) -> dict:
-    """`epochs` passes of shuffled minibatches, one optimiser step each; the mean loss parts. Raises
-    NonFinite (after the steps: the weights are spoilt then) when a loss was not finite."""
+def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) -> None:
+    """The optimiser step on the gradients in place. Actor and critic are clipped apart: one joint norm lets
+    the critic's large early regression gradients scale the policy's step down to nothing."""
+    torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
+    torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
+    opt.step()
+
+
+def eager_steps(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
+                gen: torch.Generator, prior: BehaviourPrior) -> tuple[dict[str, Tensor], Tensor, int]:
+    """`epochs` passes of shuffled minibatches, one optimiser step each, on the live rows alone: (the loss
+    parts summed over the minibatches, whether a loss was not finite, the number of minibatches)."""
     n_groups = b.mask.shape[0]
     mb = max(1, n_groups // cfg.minibatches)
     acc: dict[str, Tensor] = {}
@@ -217,14 +255,22 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
                 opt.zero_grad(set_to_none=True)
                 loss.backward()  # under DDP the gradients are averaged over the ranks here
             with phase("update/optimizer"):
-                # actor and critic clipped apart: one joint norm lets the critic's large early
-                # regression gradients scale the policy's step down to nothing
-                torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
-                torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
-                opt.step()
+                clip_and_step(cfg, nets, opt)
             for k, val in parts.items():
                 acc[k] = acc.get(k, 0.0) + val.detach()
             n_mb += 1
+    return acc, bad, n_mb
+
+
+def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
+             gen: torch.Generator, prior: BehaviourPrior, graphs: StepGraphs | None = None) -> dict:
+    """`epochs` passes of shuffled minibatches, one optimiser step each (replayed from CUDA graphs when
+    `graphs` is given: graphs.StepGraphs); the mean loss parts. Raises NonFinite (after the steps: the
+    weights are spoilt then) when a loss was not finite."""
+    if graphs is not None:
+        acc, bad, n_mb = graphs.run(b, lam, gen, prior)
+    else:
+        acc, bad, n_mb = eager_steps(cfg, b, lam, nets, opt, gen, prior)
     mean = {k: float(v) / max(n_mb, 1) for k, v in acc.items()}
     if bool(bad):
         raise NonFinite("non-finite loss", f"mean policy {mean['loss/policy']:.4g}, value {mean['loss/value']:.4g}, "
@@ -234,10 +280,10 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
 
 def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.optim.Optimizer,
                lagrange: L.LagrangeMultiplier, budget: Tensor, gen: torch.Generator,
-               prior: BehaviourPrior, world_keys: Tensor | None = None) -> dict:
+               prior: BehaviourPrior, world_keys: Tensor | None = None, graphs: StepGraphs | None = None) -> dict:
     """Learn from one rollout (steps 1-3 of the module docstring): the update's row of metrics (the mean
     loss parts, CVaR, lambda and the budget). `gen` shuffles the minibatches; `prior` rebuilds a
-    continuous magnet from its stored context."""
+    continuous magnet from its stored context; `graphs` replays the optimiser steps from CUDA graphs."""
     with phase("update/advantages"):
         tg = advantages(cfg, batch)
     with phase("update/lagrange"):
@@ -245,7 +291,7 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
             lam, seen = vehicle_lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, world_keys)
         else:
             lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget)
-    out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior)
+    out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior, graphs)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value

@@ -1,0 +1,125 @@
+"""The update's fixed-shape steps (learn/graphs.py). The loss over every slot of a minibatch's groups, dead
+slots weighted 0, equals the loss over the live rows, gradients included, whatever the dead slots hold. An
+update through StepGraphs moves the weights as the eager update does: on the CPU without graphs, on CUDA
+replayed from its captured graph (several updates, so replays, short last minibatches and new rollouts
+follow a capture)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from tg_gpudrive.learn.graphs import StepGraphs
+from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
+
+from test_learn_collector_update import CASES, _setup
+
+
+def _grads(loss, nets):
+    params = [*nets.actor.parameters(), *nets.critic.parameters()]
+    return torch.autograd.grad(loss, params, allow_unused=True)
+
+
+def _junk(groups):
+    """The groups with every dead slot's entries replaced by non-finite values (actions out of range)."""
+    dead = ~groups.mask
+    out = {}
+    for name in groups.keys():
+        x = getattr(groups, name)
+        if name == "mask":
+            out[name] = x
+        elif isinstance(x, tuple):
+            out[name] = tuple(_spoil(t, dead) for t in x)
+        else:
+            out[name] = _spoil(x, dead)
+    return dataclasses.replace(groups, **out)
+
+
+def _spoil(x, dead):
+    d = dead.reshape(*dead.shape, *(1,) * (x.dim() - dead.dim()))
+    bad = torch.full_like(x, 10**6) if not x.is_floating_point() else torch.full_like(x, float("nan"))
+    return torch.where(d, bad, x)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_dense_loss_is_the_live_rows_loss_whatever_the_dead_slots_hold(tmp_path, case):
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, case)
+    batch = collector.collect()
+    groups = flatten(batch, advantages(cfg, batch), nets.head.discrete)
+    # a third of the slots dead (the tiny rollout's agents all live through it)
+    dead = torch.rand(groups.mask.shape, generator=torch.Generator().manual_seed(5)) < 0.35
+    groups = dataclasses.replace(groups, mask=groups.mask & ~dead)
+    idx = torch.randperm(groups.mask.shape[0], generator=torch.Generator().manual_seed(3))[:11]
+    lam = torch.linspace(0.1, 0.9, groups.mask.shape[1])
+    loss, parts = minibatch_loss(cfg, groups, idx, lam, nets, prior)
+    dense, dparts = minibatch_loss(cfg, _junk(groups), idx, lam, nets, prior, dense=True)
+    torch.testing.assert_close(dense, loss, rtol=1e-5, atol=1e-6)
+    for k in parts:
+        torch.testing.assert_close(dparts[k], parts[k], rtol=1e-5, atol=1e-6)
+    for a, b in zip(_grads(dense, nets), _grads(loss, nets)):
+        if b is None:
+            assert a is None or not bool(a.any())
+            continue
+        assert bool(torch.isfinite(a).all())
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def _updates(tmp_path, device, graphs: bool, capture: bool = True, n: int = 3):
+    """`n` rollouts and updates of a tiny run whose updates have short last minibatches; the weights and
+    multipliers after them, and the StepGraphs (or None)."""
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete", device, epochs=2,
+                                                                  minibatches=5)
+    steps = StepGraphs(cfg, nets, opt) if graphs else None
+    if steps is not None:
+        steps.capturable = capture
+    ugen = torch.Generator(device=device).manual_seed(1)
+    budget = torch.tensor(0.0, device=device)
+    for _ in range(n):
+        batch = collector.collect()
+        ppo_update(cfg, batch, nets, opt, lagrange, budget, ugen, prior, graphs=steps)
+    weights = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    return weights, lagrange.value.detach().clone(), steps
+
+
+def test_an_update_through_step_graphs_moves_the_weights_as_the_eager_one_on_the_cpu(tmp_path):
+    eager, lam_e, _ = _updates(tmp_path / "e", "cpu", graphs=False)
+    fixed, lam_f, steps = _updates(tmp_path / "f", "cpu", graphs=True)
+    assert not steps.graphed and steps.warm > 0  # the CPU runs the fixed-shape steps without graphs
+    for a, b in zip(fixed, eager):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=2e-5)
+    torch.testing.assert_close(lam_f, lam_e)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_replayed_steps_equal_eager_ones_on_cuda(tmp_path):
+    graphed, lam_g, steps = _updates(tmp_path / "g", "cuda", graphs=True)
+    assert steps.graphed and steps.captures >= 1
+    unreplayed, lam_u, plain = _updates(tmp_path / "u", "cuda", graphs=True, capture=False)
+    assert not plain.graphed
+    eager, lam_e, _ = _updates(tmp_path / "e", "cuda", graphs=False)
+    for g, u, e in zip(graphed, unreplayed, eager):
+        torch.testing.assert_close(g, u, rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(g, e, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(lam_g, lam_e)
+
+
+def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
+    """The config knob reaches the trainer; on the CPU its steps run without graphs, and a resumed run
+    continues bit for bit."""
+    from test_train import rows, tiny
+
+    from tg_gpudrive.learn.train import Trainer
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    Trainer(tiny(a, cuda_graphs=True, updates=3), a, progress=False).train()
+    tr = Trainer(tiny(b, cuda_graphs=True, updates=2), b, progress=False)
+    assert isinstance(tr.graphs, StepGraphs)
+    tr.train()
+    Trainer(tiny(b, cuda_graphs=True, updates=3), b, resume=b, progress=False).train()
+    ra, rb = rows(a), rows(b)
+    assert len(ra) == len(rb) == 3
+    for key in ("loss/policy", "loss/value", "entropy", "goal_rate"):
+        assert [r[key] for r in ra] == [r[key] for r in rb]
+    assert ra[-1]["update"] == "3"

@@ -1,0 +1,175 @@
+"""The update's optimiser steps replayed from a CUDA graph (TrainConfig `cuda_graphs`).
+
+At the learner's sizes a minibatch is a few dozen groups, and its step (the actor, the critic, the losses,
+their backward pass: several hundred small kernels) is bound by launching those kernels from Python, not by
+their arithmetic: halving the data a rank holds then leaves the update's time where it was, and more GPUs
+do not shorten training. Here a step's loss runs over every slot of its groups (update.minibatch_loss with
+`dense`: dead slots weigh 0, so the losses and gradients are those of the live rows), which fixes its shapes
+for a rollout's shape. Its forward and backward pass are captured once and replayed for every minibatch,
+which reads its groups through a fixed index buffer from fixed copies of the rollout. What follows a replay
+runs eagerly, a few kernels over all the weights at once: the ranks' gradient average (an all-reduce of one
+flat buffer, in place of DDP's hooks), clipping and Adam.
+
+On the CPU the same fixed-shape steps run without graphs. A capture that fails (an operation in the loss
+that cannot be captured) is logged once and the steps go on eagerly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import torch
+from torch.profiler import record_function as phase
+
+from tg_gpudrive.agents.policy import BehaviourPrior
+from tg_gpudrive.config import TrainConfig
+from tg_gpudrive.learn import distributed as dist_util
+from tg_gpudrive.learn.collector import Networks
+from tg_gpudrive.learn.update import Groups, clip_and_step, minibatch_loss
+
+log = logging.getLogger(__name__)
+Tensor = torch.Tensor
+
+
+def _static(x):
+    """A fixed copy of a Groups entry (None, a tensor or a tuple of tensors)."""
+    if x is None:
+        return None
+    return tuple(t.clone() for t in x) if isinstance(x, tuple) else x.clone()
+
+
+def _fill(dst, src) -> None:
+    if dst is None:
+        return
+    for d, s in zip(dst, src) if isinstance(dst, tuple) else [(dst, src)]:
+        d.copy_(s)
+
+
+def _signature(x):
+    if x is None:
+        return None
+    return tuple(_signature(t) for t in x) if isinstance(x, tuple) else (tuple(x.shape), x.dtype)
+
+
+class StepGraphs:
+    """The optimiser steps of every update, one captured forward and backward pass per rollout shape.
+    `run` is update.eager_steps's counterpart, with the same minibatch order."""
+
+    WARMUP = 3  # eager steps before a capture: autograd's and the libraries' lazy set-up stays outside it
+
+    def __init__(self, cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer):
+        self.cfg, self.opt = cfg, opt
+        # the modules themselves, not their DDP wrappers: the ranks' average follows each replay
+        self.raw = Networks(nets.actor, nets.critic, nets.head, nets.amp)
+        self.params = [p for group in opt.param_groups for p in group["params"]]
+        self.key = None
+        self.graph: torch.cuda.CUDAGraph | None = None
+        self.grads: list[Tensor | None] = []
+        self.capturable = True  # False once a capture failed
+        self.warm = 0
+        self.captures = 0
+
+    @property
+    def graphed(self) -> bool:
+        return self.graph is not None
+
+    def run(self, b: Groups, lam: Tensor, gen: torch.Generator,
+            prior: BehaviourPrior) -> tuple[dict[str, Tensor], Tensor, int]:
+        """`epochs` passes of shuffled minibatches, one optimiser step each: (the loss parts summed over the
+        minibatches, whether a loss was not finite, the number of minibatches). A new magnet `prior` (a
+        continuous one is evaluated inside the step) gets a new capture."""
+        n_groups = b.mask.shape[0]
+        mb = max(1, n_groups // self.cfg.minibatches)
+        self.prior = prior
+        self._load(b, lam, mb, id(prior))
+        for v in self.acc.values():
+            v.zero_()
+        self.bad.zero_()
+        n_mb = 0
+        for _ in range(self.cfg.epochs):
+            perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
+            for s in range(0, n_groups, mb):
+                chunk = perm[s:s + mb]
+                if len(chunk) == mb:
+                    self.idx.copy_(chunk)
+                    self._step()
+                else:  # the epoch's short last minibatch: its own shapes, so not replayed
+                    self._eager(chunk)
+                n_mb += 1
+        return self.acc, self.bad, n_mb
+
+    # ------------------------------------------------------------------ internals
+    def _load(self, b: Groups, lam: Tensor, mb: int, prior_id: int) -> None:
+        """The rollout into the fixed buffers; new buffers (and a new capture) when its shapes changed."""
+        key = (mb, prior_id, _signature(lam), tuple(_signature(getattr(b, f.name)) for f in dataclasses.fields(b)))
+        if key != self.key:
+            self.key, self.graph, self.grads, self.warm = key, None, [], 0
+            self.b = Groups(**{f.name: _static(getattr(b, f.name)) for f in dataclasses.fields(b)})
+            self.lam = lam.clone()
+            self.idx = torch.zeros(mb, dtype=torch.long, device=b.mask.device)
+            self.bad = torch.zeros((), dtype=torch.bool, device=b.mask.device)
+            self.acc: dict[str, Tensor] = {}
+        else:
+            for f in dataclasses.fields(b):
+                _fill(getattr(self.b, f.name), getattr(b, f.name))
+            self.lam.copy_(lam)
+
+    def _forward_backward(self, idx: Tensor) -> None:
+        loss, parts = minibatch_loss(self.cfg, self.b, idx, self.lam, self.raw, self.prior, dense=True)
+        self.bad |= ~torch.isfinite(loss)
+        for k, v in parts.items():
+            if k not in self.acc:
+                self.acc[k] = torch.zeros((), device=self.bad.device)
+            self.acc[k].add_(v.detach())
+        loss.backward()
+
+    def _after_backward(self) -> None:
+        with phase("update/optimizer"):
+            dist_util.average_gradients_(self.params)
+            clip_and_step(self.cfg, self.raw, self.opt)
+
+    def _eager(self, idx: Tensor) -> None:
+        with phase("update/forward"):
+            self.opt.zero_grad(set_to_none=True)
+            self._forward_backward(idx)
+        self._after_backward()
+
+    def _step(self) -> None:
+        cuda = self.idx.is_cuda
+        if self.graph is None and cuda and self.capturable and self.warm >= self.WARMUP:
+            self._capture()
+        if self.graph is not None:
+            with phase("update/forward"):
+                self.graph.replay()
+            for p, g in zip(self.params, self.grads):  # an eager step in between set its own
+                p.grad = g
+            self._after_backward()
+            return
+        if cuda:  # warm-up steps on a side stream, as a capture wants
+            side = torch.cuda.Stream(self.idx.device)
+            side.wait_stream(torch.cuda.current_stream(self.idx.device))
+            with torch.cuda.stream(side):
+                self.opt.zero_grad(set_to_none=True)
+                self._forward_backward(self.idx)
+            torch.cuda.current_stream(self.idx.device).wait_stream(side)
+            self._after_backward()
+        else:
+            self._eager(self.idx)
+        self.warm += 1
+
+    def _capture(self) -> None:
+        """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
+        self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
+        graph = torch.cuda.CUDAGraph()
+        try:
+            with torch.cuda.graph(graph):
+                self._forward_backward(self.idx)
+        except RuntimeError as e:
+            self.capturable = False
+            self.opt.zero_grad(set_to_none=True)
+            log.warning("the update's step could not be captured as a CUDA graph (%s); its steps run eagerly", e)
+            return
+        self.graph = graph
+        self.grads = [p.grad for p in self.params]
+        self.captures += 1
