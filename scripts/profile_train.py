@@ -9,7 +9,8 @@ rollout `magnet.context` (the magnet's history window), `live_rows` (which agent
 values of every step) and `magnet.forward` (the world model's logits);
 in the update `advantages`, `lagrange`, per epoch `live_rows` (every minibatch's live rows: its host
 sync), and per minibatch `forward` (actor, critic, quantiles, the KL terms), `backward` and `optimizer`
-(clipping and Adam). After `--warmup` plain iterations it times
+(clipping and Adam); with `--set cuda_graphs=true` a minibatch's `forward` is the replay of its captured
+forward and backward pass. After `--warmup` plain iterations it times
 `--iters` more without the profiler (the wall clock of rollout and update, synchronised), then
 profiles as many: per range the host time and the device time of the kernels launched inside it, per
 iteration, then the `--rows` operators that took the most device (or, on the CPU, host) time. `--trace`
