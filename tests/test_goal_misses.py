@@ -1,5 +1,5 @@
 """scripts/goal_misses.py: its summary against hand-made outcomes, and a run on the two real WOMD test scenes
-whose rates match `evaluate`'s and whose clean misses all end outside the goal radius."""
+whose rates (timeouts included) match `evaluate`'s and whose clean misses all end outside the goal radius."""
 
 from __future__ import annotations
 
@@ -51,6 +51,7 @@ def test_outcomes_on_real_scenes_match_evaluate_and_misses_end_outside_the_goal_
         assert s["episodes"] == ref["agent_episodes"]
         for k, rk in (("goal", "goal_rate"), ("collision", "collision_rate"), ("offroad", "offroad_rate")):
             assert s[k] == pytest.approx(ref[rk])
+        assert s["clean_miss"] == pytest.approx(ref["timeout_rate"])  # evaluate's name for a clean miss
         radius = opened.sim.cfg.goal_radius
         misses = [r for r in rows if not (r["goal"] or r["collided"] or r["offroad"])]
         assert all(r["left"] > radius for r in misses)

@@ -428,7 +428,7 @@ def _print_rates(out: dict) -> None:
         groups["(expert replay)"] = out["expert_replay"]
     for name, r in groups.items():
         print(f"{name:>22}: goal {r['goal_rate']:.3f}  collision {r['collision_rate']:.3f}  "
-              f"offroad {r['offroad_rate']:.3f}  ({r['episodes']} agent episodes)")
+              f"offroad {r['offroad_rate']:.3f}  timeout {r['timeout_rate']:.3f}  ({r['episodes']} agent episodes)")
 
 
 def cmd_benchmark(args) -> int:
@@ -531,7 +531,7 @@ def cmd_evaluate(args) -> int:
         ref = run_rollout(sim, expert_policy, rounds * sim.episode_length, background=background,
                           episodes_per_world=rounds, seed=args.seed)
         out["expert_replay"] = {k: ref[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate",
-                                                     "score_rate")}
+                                                     "score_rate", "timeout_rate")}
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, opened)})

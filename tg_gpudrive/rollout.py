@@ -22,7 +22,7 @@ class EpisodeStats:
     kerb stops (procedural `kerb_stops`: vehicles whose goal lies at the kerb, off the lane centre),
     also over those agents alone (`summary()["kerb_stops"]`)."""
 
-    KEYS = ("episodes", "goal", "collided", "offroad", "cost", "min_dist", "return", "steps", "score")
+    KEYS = ("episodes", "goal", "collided", "offroad", "cost", "min_dist", "return", "steps", "score", "timeout")
     SLOT_KEYS = ("episodes", "goal", "collided", "offroad", "score")  # also kept per (world, slot)
 
     def __init__(self, sim: Simulator, episodes_per_world: int | None = None):
@@ -54,9 +54,10 @@ class EpisodeStats:
         wt = self.world_type[:, None].expand_as(rows)[rows]
         kerb = None if self.kerb is None else self.kerb & rows
         score = (goal != 0) & (collided == 0) & (offroad == 0)  # a goal reached cleanly
+        timeout = (goal == 0) & (collided == 0) & (offroad == 0)  # not arrived, nothing else wrong
         for key, val in (("episodes", torch.ones_like(goal, dtype=torch.float64)), ("goal", goal),
                          ("collided", collided), ("offroad", offroad), ("cost", cost), ("min_dist", min_dist),
-                         ("return", ret), ("steps", steps), ("score", score)):
+                         ("return", ret), ("steps", steps), ("score", score), ("timeout", timeout)):
             v = val.to(torch.float64)
             self.sums[key].index_add_(0, wt, v[rows])
             if kerb is not None:
@@ -97,6 +98,8 @@ class EpisodeStats:
                 "score_rate": d["score"] / n,  # goals reached without a collision or leaving the road
                 "collision_rate": d["collided"] / n,
                 "offroad_rate": d["offroad"] / n,
+                # episodes that ended without a goal, a collision or leaving the road: the vehicle had not arrived
+                "timeout_rate": d["timeout"] / n,
                 "mean_cost": d["cost"] / max(d["steps"], 1.0),  # per controlled agent-step
                 "mean_min_distance": d["min_dist"] / n,  # m, of distances capped at Model.nearest_cap
                 "mean_return": d["return"] / n,
