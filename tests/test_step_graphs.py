@@ -1,8 +1,9 @@
-"""The update's fixed-shape steps (learn/graphs.py). The loss over every slot of a minibatch's groups, dead
-slots weighted 0, equals the loss over the live rows, gradients included, whatever the dead slots hold. An
-update through StepGraphs moves the weights as the eager update does: on the CPU without graphs, on CUDA
-replayed from its captured graph (several updates, so replays, short last minibatches and new rollouts
-follow a capture)."""
+"""The fixed-shape steps of learn/graphs.py, for the update and for the rollout. The loss over every slot of a
+minibatch's groups, dead slots weighted 0, equals the loss over the live rows, gradients included, whatever
+the dead slots hold. An update through StepGraphs moves the weights as the eager update does: on the CPU
+without graphs, on CUDA replayed from its captured graph (several updates, so replays, short last
+minibatches and new rollouts follow a capture). A rollout that acts on every slot (RolloutGraphs) fills the
+buffers the live-row rollout fills, on the CPU as it is and on CUDA from its captured steps."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import dataclasses
 import pytest
 import torch
 
-from tg_gpudrive.learn.graphs import StepGraphs
+from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
 
 from test_learn_collector_update import CASES, _setup
@@ -123,3 +124,45 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     for key in ("loss/policy", "loss/value", "entropy", "goal_rate"):
         assert [r[key] for r in ra] == [r[key] for r in rb]
     assert ra[-1]["update"] == "3"
+
+
+ROLLOUT = dict(num_worlds=3, rollout_steps=24, magnet_fraction=0.25)  # a world with fewer agents: dead slots
+
+
+def _rollouts(tmp_path, device, graphs: bool, n: int = 3):
+    """`n` rollouts of a tiny run (the magnet on a quarter of the rows), acting on every slot through
+    RolloutGraphs or on the live rows; the last rollout's buffers and counters, and the RolloutGraphs."""
+    cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", device, **ROLLOUT)
+    collector.graphs = RolloutGraphs(device) if graphs else None
+    for _ in range(n):
+        batch = collector.collect()
+    return batch, collector.graphs
+
+
+def _same_rollout(a, b, tol: dict) -> None:
+    m = a.mask
+    assert torch.equal(m, b.mask) and 0 < int(m.sum()) < m.numel()  # dead slots were there
+    assert torch.equal(a.act, b.act) and torch.equal(a.done, b.done)
+    for name in ("logp", "reward", "cost"):
+        torch.testing.assert_close(getattr(a, name)[m], getattr(b, name)[m], **tol)
+    torch.testing.assert_close(a.obs[m], b.obs[m], **tol)
+    torch.testing.assert_close(a.prior_ctx[m], b.prior_ctx[m], **tol)
+    torch.testing.assert_close(a.prior[a.prior_weight > 0], b.prior[b.prior_weight > 0], **tol)
+    assert torch.equal(a.prior_weight, b.prior_weight)
+    for k in a.stats:
+        torch.testing.assert_close(a.stats[k], b.stats[k], **tol)
+
+
+def test_a_rollout_on_every_slot_fills_the_buffers_of_the_live_row_one(tmp_path):
+    live, _ = _rollouts(tmp_path / "l", "cpu", graphs=False)
+    dense, graphs = _rollouts(tmp_path / "d", "cpu", graphs=True)
+    assert not graphs.graphed and graphs.seen  # the CPU runs the steps as they are
+    _same_rollout(dense, live, dict(rtol=1e-5, atol=1e-5))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_replayed_rollout_steps_fill_the_buffers_of_eager_ones_on_cuda(tmp_path):
+    graphed, graphs = _rollouts(tmp_path / "g", "cuda", graphs=True)
+    assert graphs.graphed and graphs.captures == 2 * ROLLOUT["rollout_steps"]
+    live, _ = _rollouts(tmp_path / "l", "cuda", graphs=False)
+    _same_rollout(graphed, live, dict(rtol=1e-4, atol=1e-4))

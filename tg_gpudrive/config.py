@@ -244,9 +244,9 @@ class TrainConfig:
     # many of the observation's partner rows, nearest first (<= env.partner_k; needs actor_history > 0)
     actor_history_partners: int = 0
     amp: bool = True  # bf16 autocast of the networks on GPU
-    # the update's optimiser steps replayed from a CUDA graph (learn/graphs.py): the loss over every slot of a
-    # minibatch's groups, dead ones weighted 0 (the same losses), so that its kernels launch once, not per
-    # step; on the CPU the same steps run without graphs
+    # the rollout's steps and the update's optimiser steps replayed from CUDA graphs (learn/graphs.py): both act
+    # on every slot, dead ones fed zeros and weighted 0 (the same actions and losses), so that their kernels
+    # launch once, not per step; on the CPU the same fixed-shape steps run without graphs
     cuda_graphs: bool = False
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint

@@ -71,6 +71,9 @@ class HistoryBuffer:
         self.raw: torch.Tensor | None = None
         self._model = None
         self._last: torch.Tensor | None = None
+        # sync without reading the host (inside a CUDA graph): the log's window is read every step and taken
+        # where a world jumped, instead of only when one did
+        self.fixed_shapes = False
 
     def _bind(self, sim) -> None:
         m = sim.model
@@ -96,7 +99,7 @@ class HistoryBuffer:
     def sync(self, sim) -> None:
         """Bring the window up to each world's current step: push the present state where a world
         moved one step on, refill from the log where it jumped (a reset); masked selects, so an
-        ordinary step needs one host sync (whether any world must refill)."""
+        ordinary step needs one host sync (whether any world must refill), none with `fixed_shapes`."""
         if self._model is not sim.model:
             self._bind(sim)
         step = sim.world_step.long()
@@ -105,10 +108,11 @@ class HistoryBuffer:
         cur = torch.cat([sim.pos, sim.yaw[..., None], sim.speed[..., None], sim.applied_action[..., :2],
                          (sim.present != 0).float()[..., None]], dim=-1)
         rolled = torch.cat([self.raw[:, :, 1:], cur[:, :, None]], dim=2)
-        self.raw = torch.where(push[:, None, None, None], rolled, self.raw)
-        if bool(refill.any()):
-            self.raw = torch.where(refill[:, None, None, None], self._from_log(sim), self.raw)
-        self._last = step
+        new = torch.where(push[:, None, None, None], rolled, self.raw)
+        if self.fixed_shapes or bool(refill.any()):
+            new = torch.where(refill[:, None, None, None], self._from_log(sim), new)
+        self.raw.copy_(new)  # in place: a captured graph keeps reading and writing the same window
+        self._last.copy_(step)
 
     def state_dict(self) -> dict:
         """The window and the step it was synced at (for an exact resume mid-episode)."""

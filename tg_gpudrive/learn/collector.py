@@ -1,8 +1,9 @@
 """Rollout collection for CCE-MAPPO: drive every world for `rollout_steps` steps under the current actor
 and keep what the update reads.
 
-Per step the actor runs on the live rows only (often under half of W x C) and samples with the trainer's
-own generator (so a resumed run replays the same actions); the magnet (the behaviour prior) keeps its
+Per step the actor runs on the live rows only (often under half of W x C; on every slot when the steps
+replay from CUDA graphs, graphs.RolloutGraphs) and samples from draws made with the trainer's own generator
+at the rollout's start (so a resumed run replays the same actions); the magnet (the behaviour prior) keeps its
 context; the engine steps; rewards, costs, ends and the episodes that ended go into the buffers and the
 rollout's counters, all on the device. Controlled agents sit in slots [0, C) of every world, so every
 buffer is a (T, W, C, ...) block. The buffers are allocated once per shape (several GB at 4,096 worlds)
@@ -16,7 +17,6 @@ small call per step (each such call paid its kernels' launch latency with nothin
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass, field
 
 import torch
@@ -122,6 +122,17 @@ class Networks:
         return out.float() if self.head.discrete else (out[0].float(), out[1].float())
 
 
+def ranked_pick(keys: Tensor, mask: Tensor, frac: float) -> Tensor:
+    """The ceil(frac x n) entries of `mask`'s n True ones with the smallest `keys` (a uniform draw per entry):
+    a random subset of a fixed share, found on the device without reading the host. A mask of `mask`'s shape."""
+    live = mask.reshape(-1)
+    k = torch.ceil(frac * live.sum().double())
+    order = torch.where(live, keys.reshape(-1), 2.0).argsort()
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=order.device)
+    return ((rank < k) & live).reshape(mask.shape)
+
+
 class RolloutCollector:
     """Fills a Rollout from the simulator under the current actor (see the module docstring). `prior` may
     be replaced between rollouts (the magnet is read at every step)."""
@@ -132,6 +143,8 @@ class RolloutCollector:
         self.actor_hist = actor_hist  # the actor's own motion window: kept in step with the engine
         self.background = None  # a driver of the background rows (agents.builtin.make_background_driver), or None
         self.prior_logits = nets.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
+        # a RolloutGraphs (graphs.py) replays the steps from CUDA graphs; the steps then act on every slot
+        self.graphs = None
         self._buf: Rollout | None = None
         self._buf_key = None
 
@@ -139,29 +152,49 @@ class RolloutCollector:
     def collect(self) -> Rollout:
         """Drive every world for `rollout_steps` steps; raises NonFinite if the policy's output was not
         finite (checked once per rollout)."""
-        sim, nets = self.sim, self.nets
+        sim = self.sim
         T, C = self.cfg.rollout_steps, max(sim.max_controlled, 1)
         buf = self._buffers(T, sim.num_worlds, C)
-        stats = {"terms": torch.zeros(len(sim.reward_term_names), device=self.device)}
-        stats.update({k: torch.zeros((), device=self.device) for k in STAT_KEYS})
-        bad = torch.zeros((), dtype=torch.bool, device=self.device)
+        for v in self._stats.values():
+            v.zero_()
+        self._bad.zero_()
+        # the rollout's random draws, made at once: the steps read their rows (fixed shapes, no generator inside)
+        if self.nets.head.discrete:
+            self._noise.uniform_(generator=self.gen)
+        else:
+            self._noise.normal_(generator=self.gen)
+        if self._keys is not None:
+            self._keys.uniform_(generator=self.gen)
+        graphs = self.graphs if self.background is None else None
+        dense = graphs is not None
+        for hist in (getattr(self.prior, "history", None), self.actor_hist):
+            if hist is not None:
+                hist.fixed_shapes = dense
+        owners = (sim.model, buf, self.prior, self.nets.actor)  # what the captured steps read
         for t in range(T):
-            bad |= self._act(buf, t, C)
+            self._run(graphs, owners, ("act", t), lambda: self._bad.logical_or_(self._act(buf, t, C, dense)))
             if self.background is not None:
                 with phase("rollout/background"):
                     self.background(sim)
             with phase("rollout/engine"):
                 sim.step()
-            with phase("rollout/buffers"):
-                self._record_step(buf, stats, t, C)
+            self._run(graphs, owners, ("record", t), lambda: self._record_step(buf, self._stats, t, C))
         with phase("rollout/critic"):
             self._values(buf, T, C)
         if self.prior_logits:
             with phase("rollout/magnet.forward"):
                 self._prior_logits(buf)
-        if bool(bad):
+        if bool(self._bad):
             raise NonFinite("non-finite policy output")
-        return dataclasses.replace(buf, stats=stats)
+        return dataclasses.replace(buf, stats={k: v.clone() for k, v in self._stats.items()})
+
+    @staticmethod
+    def _run(graphs, owners: tuple, name, fn) -> None:
+        """Step part `name`: through `graphs` (graphs.RolloutGraphs) when given, else as it is."""
+        if graphs is None:
+            fn()
+        else:
+            graphs.run(owners, name, fn)
 
     def _values(self, buf: Rollout, T: int, C: int) -> None:
         """The critic's values and cost quantiles of every step's stored observations, a few steps per call,
@@ -185,10 +218,13 @@ class RolloutCollector:
                 i = (t[s:s + MAGNET_ROWS], w[s:s + MAGNET_ROWS], c[s:s + MAGNET_ROWS])
                 buf.prior[i] = self.prior.distribution(buf.prior_ctx[i], buf.obs[i]).float()
 
-    def _act(self, buf: Rollout, t: int, C: int) -> Tensor:
+    def _act(self, buf: Rollout, t: int, C: int, dense: bool = False) -> Tensor:
         """Step t before the engine steps: sample the live agents' actions, store them with the rollout
         policy's output, the observations and the magnet's context (or, continuous, the prior's), and hand
-        the actions to the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here)."""
+        the actions to the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here).
+        `dense`: the actor runs on every slot, dead ones fed zeros and given the no-op, so that nothing
+        depends on how many act (a CUDA graph's fixed shapes, no host sync); the live rows get the same
+        actions either way (the same draws)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
         # the motion windows first: their reset checks read the host, and here that read waits only for the
         # engine's step, which the live rows' count waits for anyway, not for the networks queued after it
@@ -201,14 +237,18 @@ class RolloutCollector:
         with phase("rollout/live_rows"):  # the host sync of a step: how many rows act
             obs = sim.obs[:, :C]
             mask = sim.active[:, :C] != 0
-            # the other slots get the no-op action, which the engine ignores for agents that do not act
-            w_idx, c_idx = mask.nonzero(as_tuple=True)
+            if dense:
+                w_idx, c_idx = self._all_rows
+                rows_obs = obs.reshape(-1, obs.shape[-1]) * mask.reshape(-1, 1)
+            else:  # the other slots get the no-op action, which the engine ignores for agents that do not act
+                w_idx, c_idx = mask.nonzero(as_tuple=True)
+                rows_obs = obs[w_idx, c_idx]
         hist = None
         if self.actor_hist is not None:  # the actor's motion window
             buf.hist[t] = self.actor_hist.features(sim, slice(0, C), self.cfg.actor_history_partners)
             hist = buf.hist[t][w_idx, c_idx]
-        with phase("rollout/actor"), nets.autocast():
-            out = nets.float_out(nets.actor(obs[w_idx, c_idx], c_idx, hist))
+        with phase("rollout/actor"), nets.autocast(cache=not dense):
+            out = nets.float_out(nets.actor(rows_obs, c_idx, hist))
         with phase("rollout/sample"):
             if head.discrete:
                 bad = ~torch.isfinite(out).all()
@@ -217,11 +257,11 @@ class RolloutCollector:
                 bad = ~(torch.isfinite(out[0]).all() & torch.isfinite(out[1]).all())
                 out = (torch.nan_to_num(out[0]), torch.nan_to_num(out[1]))
             d = head.dist(out)
-            a = self._sample(out, len(w_idx))
+            a = self._sample(out, self._noise[t][w_idx, c_idx])
         with phase("rollout/buffers"):
-            self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out)
+            self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out, dense)
         with phase("rollout/magnet"):
-            self._magnet(buf, t, C, ctx, w_idx, c_idx)
+            self._magnet(buf, t, C, ctx, mask)
         act = buf.act[t]
         if head.discrete:
             sim.actions_index[:, :C] = act.to(torch.int32)
@@ -230,11 +270,17 @@ class RolloutCollector:
         return bad
 
     def _store(self, buf: Rollout, t: int, obs: Tensor, mask: Tensor, w_idx: Tensor, c_idx: Tensor, a: Tensor,
-               logp: Tensor, out) -> None:
+               logp: Tensor, out, dense: bool = False) -> None:
         """Step t's observations, live mask, actions (the no-op where not live), their log-probabilities and
-        the rollout policy's output into the buffers."""
+        the rollout policy's output into the buffers (`dense`: rows of every slot, the dead ones' actions
+        replaced by the no-op)."""
         act = buf.act[t]
-        act.fill_(self.cfg.env.noop_index if self.nets.head.discrete else 0.0)  # rows that do not act
+        noop = self.cfg.env.noop_index if self.nets.head.discrete else 0.0
+        if dense:
+            live = mask.reshape(-1) if a.dim() == 1 else mask.reshape(-1, 1)
+            a = torch.where(live, a, torch.full((), noop, dtype=a.dtype, device=a.device))
+        else:
+            act.fill_(noop)  # rows that do not act
         act[w_idx, c_idx] = a.to(act.dtype)
         buf.logp[t][w_idx, c_idx] = logp
         if self.nets.head.discrete:
@@ -244,24 +290,22 @@ class RolloutCollector:
         buf.obs[t].copy_(obs)
         buf.mask[t] = mask
 
-    def _sample(self, out, n: int) -> Tensor:
-        """Actions of the n live rows, drawn with the trainer's generator."""
+    def _sample(self, out, noise: Tensor) -> Tensor:
+        """Actions of the rows, from their draws `noise`: a uniform per row inverts the categorical's CDF
+        (discrete); a standard normal per dimension scales the Gaussian's std (continuous)."""
         if not self.nets.head.discrete:
-            return out[0] + out[1].exp() * torch.randn(out[0].shape, generator=self.gen, device=self.device)
-        if n == 0:
-            return torch.zeros(0, dtype=torch.long, device=self.device)
-        return torch.multinomial(torch.softmax(out, -1), 1, generator=self.gen)[:, 0]
+            return out[0] + out[1].exp() * noise
+        cdf = torch.softmax(out, -1).cumsum(-1)
+        return torch.searchsorted(cdf, noise[:, None].to(cdf.dtype)).squeeze(-1).clamp(max=out.shape[-1] - 1)
 
-    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, w_idx: Tensor, c_idx: Tensor) -> None:
+    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, mask: Tensor) -> None:
         """The magnet of step t: the discrete prior's context `ctx` (its logits follow after the rollout) and,
         with `magnet_fraction` < 1, which live rows take them; else the continuous prior's context."""
         if self.prior_logits:
             buf.prior_ctx[t] = ctx
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
                 frac = self.cfg.magnet_fraction
-                pick = torch.randperm(len(w_idx), generator=self.gen, device=self.device)[:math.ceil(frac * len(w_idx))]
-                buf.prior_weight[t].zero_()
-                buf.prior_weight[t][w_idx[pick], c_idx[pick]] = 1.0 / frac
+                buf.prior_weight[t] = ranked_pick(self._keys[t], mask, frac).float() / frac
         elif self.cfg.eta1 > 0:
             buf.prior[t] = self.prior.context(self.sim, C)
 
@@ -304,6 +348,14 @@ class RolloutCollector:
             hist=steps(cfg.actor_history, hist_dim(cfg.actor_history_partners)) if self.actor_hist is not None else None,
             prior_weight=steps() if self.prior_logits and cfg.magnet_fraction < 1 else None,
             prior_ctx=steps(self.prior.context_dim) if self.prior_logits else None)
+        # the rollout's random draws (a uniform per slot and step for the action, a second one for the magnet's
+        # pick; normals per action dimension when continuous), its counters and its non-finite flag
+        self._noise = torch.zeros(act, device=dev)
+        self._keys = steps() if self.prior_logits and cfg.magnet_fraction < 1 else None
+        self._stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev),
+                       **{k: torch.zeros((), device=dev) for k in STAT_KEYS}}
+        self._bad = torch.zeros((), dtype=torch.bool, device=dev)
+        self._all_rows = (torch.arange(W, device=dev).repeat_interleave(C), torch.arange(C, device=dev).repeat(W))
         self._buf_key = key
         return self._buf
 

@@ -1,4 +1,5 @@
-"""The update's optimiser steps replayed from a CUDA graph (TrainConfig `cuda_graphs`).
+"""The update's optimiser steps (StepGraphs) and the rollout's steps (RolloutGraphs) replayed from CUDA graphs
+(TrainConfig `cuda_graphs`).
 
 At the learner's sizes a minibatch is a few dozen groups, and its step (the actor, the critic, the losses,
 their backward pass: several hundred small kernels) is bound by launching those kernels from Python, not by
@@ -10,8 +11,11 @@ which reads its groups through a fixed index buffer from fixed copies of the rol
 runs eagerly, a few kernels over all the weights at once: the ranks' gradient average (an all-reduce of one
 flat buffer, in place of DDP's hooks), clipping and Adam.
 
-On the CPU the same fixed-shape steps run without graphs. A capture that fails (an operation in the loss
-that cannot be captured) is logged once and the steps go on eagerly.
+A rollout's step is bound the same way (a few hundred small operators around the engine's own Warp graph);
+RolloutGraphs captures what comes before and after the engine's step.
+
+On the CPU the same fixed-shape steps run without graphs. A capture that fails (an operation that cannot be
+captured) is logged once and the steps go on eagerly.
 """
 
 from __future__ import annotations
@@ -173,3 +177,57 @@ class StepGraphs:
         self.graph = graph
         self.grads = [p.grad for p in self.params]
         self.captures += 1
+
+
+class RolloutGraphs:
+    """A rollout's steps replayed from CUDA graphs (the collector's `graphs`): per step t, what comes before
+    the engine's step (the magnet's context, the actor, sampling, the buffers) and what comes after it
+    (rewards, ends and counters into the buffers), each its own graph; the engine's step between them is
+    already a Warp graph. The collector then acts on every slot (collector.RolloutCollector._act with
+    `dense`) and draws the rollout's random numbers before its steps, so a step's shapes and memory are
+    fixed for a batch of scenes. The first rollout on a batch runs its steps eagerly, the next captures
+    each part as it comes to it, the later ones replay them; a new batch of scenes, new buffers or a new
+    magnet get new captures. On the CPU the parts run as they are."""
+
+    def __init__(self, device):
+        self.cuda = torch.device(device).type == "cuda"
+        self.key: tuple | None = None
+        self._owners: tuple = ()
+        self.graphs: dict = {}
+        self.seen: set = set()
+        self.pool = None  # one memory pool for the parts: they replay in the order they were captured
+        self.capturable = True  # False once a capture failed
+        self.captures = 0
+
+    @property
+    def graphed(self) -> bool:
+        return bool(self.graphs)
+
+    def run(self, owners: tuple, name, fn) -> None:
+        """Part `name` of a step: replayed, captured and replayed, or run as it is. `owners`: what a capture
+        reads (the engine's model, the buffers, the magnet, the actor); others than last time start afresh
+        (they are held, so their ids stay theirs)."""
+        key = tuple(id(o) for o in owners)
+        if key != self.key:
+            self.key, self._owners, self.graphs, self.seen, self.pool = key, owners, {}, set(), None
+        graph = self.graphs.get(name)
+        if graph is not None:
+            graph.replay()
+            return
+        if name in self.seen and self.capturable and self.cuda:
+            graph = torch.cuda.CUDAGraph()
+            try:
+                with torch.cuda.graph(graph, pool=self.pool):
+                    fn()
+            except RuntimeError as e:
+                self.capturable = False
+                log.warning("a rollout step could not be captured as a CUDA graph (%s); the steps run eagerly", e)
+                fn()
+                return
+            self.pool = self.pool if self.pool is not None else graph.pool()
+            self.graphs[name] = graph
+            self.captures += 1
+            graph.replay()
+            return
+        fn()
+        self.seen.add(name)

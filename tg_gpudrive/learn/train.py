@@ -46,7 +46,7 @@ from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
-from tg_gpudrive.learn.graphs import StepGraphs
+from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import Groups, minibatch_loss, ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
@@ -224,6 +224,8 @@ class Trainer:
         self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
         self.collector = RolloutCollector(cfg, self.sim, self.nets, prior, self.gen, self.device, self.actor_hist)
+        if cfg.cuda_graphs:
+            self.collector.graphs = RolloutGraphs(self.device)
         # the vehicles the policy does not drive: None (they replay their logs) or a driver of their rows
         model = (cfg.prior_model or None) if cfg.background == "world_model" else None
         self.collector.background = make_background_driver(self.sim, cfg.background, model, cfg.seed + self.rank,
