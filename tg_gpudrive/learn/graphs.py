@@ -36,6 +36,21 @@ log = logging.getLogger(__name__)
 Tensor = torch.Tensor
 
 
+def capture(graph: torch.cuda.CUDAGraph, fn, pool=None, stream: torch.cuda.Stream | None = None) -> None:
+    """Record `fn`'s kernels into `graph` on a side stream (nothing runs). torch.cuda.graph does the same
+    after a device synchronisation, emptying the allocator's cache (and, in some versions, a garbage
+    collection): a cost per capture that the rollout's tens of captures per batch of scenes would pay."""
+    stream = stream or torch.cuda.Stream()
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        graph.capture_begin(pool=pool)
+        try:
+            fn()
+        finally:
+            graph.capture_end()
+    torch.cuda.current_stream().wait_stream(stream)
+
+
 def _static(x):
     """A fixed copy of a Groups entry (None, a tensor or a tuple of tensors)."""
     if x is None:
@@ -167,8 +182,7 @@ class StepGraphs:
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
         graph = torch.cuda.CUDAGraph()
         try:
-            with torch.cuda.graph(graph):
-                self._forward_backward(self.idx)
+            capture(graph, lambda: self._forward_backward(self.idx))
         except RuntimeError as e:
             self.capturable = False
             self.opt.zero_grad(set_to_none=True)
@@ -196,6 +210,7 @@ class RolloutGraphs:
         self.graphs: dict = {}
         self.seen: set = set()
         self.pool = None  # one memory pool for the parts: they replay in the order they were captured
+        self.stream = None  # the side stream the parts are captured on
         self.capturable = True  # False once a capture failed
         self.captures = 0
 
@@ -216,9 +231,9 @@ class RolloutGraphs:
             return
         if name in self.seen and self.capturable and self.cuda:
             graph = torch.cuda.CUDAGraph()
+            self.stream = self.stream or torch.cuda.Stream()
             try:
-                with torch.cuda.graph(graph, pool=self.pool):
-                    fn()
+                capture(graph, fn, self.pool, self.stream)
             except RuntimeError as e:
                 self.capturable = False
                 log.warning("a rollout step could not be captured as a CUDA graph (%s); the steps run eagerly", e)
