@@ -17,6 +17,7 @@ small call per step (each such call paid its kernels' launch latency with nothin
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -178,7 +179,8 @@ class RolloutCollector:
                     self.background(sim)
             with phase("rollout/engine"):
                 sim.step()
-            self._run(graphs, owners, ("record", t), lambda: self._record_step(buf, self._stats, t, C))
+            with phase("rollout/buffers"):
+                self._run(graphs, owners, ("record", t), lambda: self._record_step(buf, self._stats, t, C))
         with phase("rollout/critic"):
             self._values(buf, T, C)
         if self.prior_logits:
@@ -239,7 +241,7 @@ class RolloutCollector:
             mask = sim.active[:, :C] != 0
             if dense:
                 w_idx, c_idx = self._all_rows
-                rows_obs = obs.reshape(-1, obs.shape[-1]) * mask.reshape(-1, 1)
+                rows_obs = torch.where(mask.reshape(-1, 1), obs.reshape(-1, obs.shape[-1]), 0.0)
             else:  # the other slots get the no-op action, which the engine ignores for agents that do not act
                 w_idx, c_idx = mask.nonzero(as_tuple=True)
                 rows_obs = obs[w_idx, c_idx]
@@ -261,7 +263,7 @@ class RolloutCollector:
         with phase("rollout/buffers"):
             self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out, dense)
         with phase("rollout/magnet"):
-            self._magnet(buf, t, C, ctx, mask)
+            self._magnet(buf, t, C, ctx, mask, None if dense else (w_idx, c_idx))
         act = buf.act[t]
         if head.discrete:
             sim.actions_index[:, :C] = act.to(torch.int32)
@@ -298,14 +300,22 @@ class RolloutCollector:
         cdf = torch.softmax(out, -1).cumsum(-1)
         return torch.searchsorted(cdf, noise[:, None].to(cdf.dtype)).squeeze(-1).clamp(max=out.shape[-1] - 1)
 
-    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, mask: Tensor) -> None:
+    def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, mask: Tensor,
+                live: tuple[Tensor, Tensor] | None = None) -> None:
         """The magnet of step t: the discrete prior's context `ctx` (its logits follow after the rollout) and,
-        with `magnet_fraction` < 1, which live rows take them; else the continuous prior's context."""
+        with `magnet_fraction` < 1, which live rows take them (the share with the smallest draws: among the
+        `live` rows when given, else through ranked_pick over the mask); else the continuous prior's context."""
         if self.prior_logits:
             buf.prior_ctx[t] = ctx
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
                 frac = self.cfg.magnet_fraction
-                buf.prior_weight[t] = ranked_pick(self._keys[t], mask, frac).float() / frac
+                if live is None:
+                    buf.prior_weight[t] = ranked_pick(self._keys[t], mask, frac).float() / frac
+                else:
+                    w_idx, c_idx = live
+                    pick = self._keys[t][w_idx, c_idx].topk(math.ceil(frac * len(w_idx)), largest=False).indices
+                    buf.prior_weight[t].zero_()
+                    buf.prior_weight[t][w_idx[pick], c_idx[pick]] = 1.0 / frac
         elif self.cfg.eta1 > 0:
             buf.prior[t] = self.prior.context(self.sim, C)
 
