@@ -505,3 +505,21 @@ def test_the_final_line_reads_the_windowed_rates_never_nan(tmp_path, capsys, ste
     assert ("no episode ended yet" in line) != ended
     if ended:
         assert "(the last 10 updates' episodes)" in line
+
+
+def test_the_timeout_rate_counts_the_episodes_that_ended_without_goal_crash_or_off_road(tmp_path):
+    """metrics.csv's timeout_rate against the engine's own record of the episodes that ended
+    (Simulator.finished_episodes after every step): those without a goal, a collision or leaving the road."""
+    tr = Trainer(tiny(tmp_path, updates=3, rollout_steps=100, num_worlds=4), tmp_path, progress=False)
+    step, late = tr.sim.step, []
+
+    def counting_step(*a, **k):
+        step(*a, **k)
+        f = tr.sim.finished_episodes()
+        late.append(int(((f["goal"] == 0) & (f["collided"] == 0) & (f["offroad"] == 0)).sum()))
+
+    tr.sim.step = counting_step
+    tr.train()
+    got = [float(r["timeout_rate"]) * float(r["episodes"]) for r in rows(tmp_path) if float(r["episodes"]) > 0]
+    assert sum(late) > 0  # some episodes ran out of time
+    assert sum(got) == pytest.approx(sum(late))

@@ -29,7 +29,7 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer, hist_dim
 
 Tensor = torch.Tensor
-STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "min_dist", "speed")
+STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "timeout", "min_dist", "speed")
 # the batches of the computations after the rollout: agent slots per critic call, rows per magnet call
 # (a few hundred MB of activations each at gpu.yaml's sizes)
 CRITIC_SLOTS = 1 << 20
@@ -335,6 +335,9 @@ class RolloutCollector:
         stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
         stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
         stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
+        # ended without a goal, a collision or leaving the road: not arrived in time
+        stats["timeout"] += ((sim.final_goal[:, :C] == 0) & (sim.final_collided[:, :C] == 0)
+                             & (sim.final_offroad[:, :C] == 0) & ended).sum()
         stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
 
     def _buffers(self, T: int, W: int, C: int) -> Rollout:

@@ -420,7 +420,7 @@ class Trainer:
             "elapsed_s": self.elapsed, "agent_steps_per_s": steps / dt,
             "rollout_agent_steps_per_s": steps / max(t_roll, 1e-9),
             "episodes": n_ep, "goal_rate": per("goal"), "collision_rate": per("collided"),
-            "offroad_rate": per("offroad"), "mean_min_distance": per("min_dist"),
+            "offroad_rate": per("offroad"), "timeout_rate": per("timeout"), "mean_min_distance": per("min_dist"),
             "cost": float(batch.cost.sum() / max(int(batch.mask.sum()), 1)),
             "mean_speed": float(stats["speed"]) / max(steps, 1),
             "scenes_visited": self.sampler.visited,
