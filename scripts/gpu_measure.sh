@@ -10,6 +10,7 @@
 #   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
 #             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
+#   graphs    the CUDA-graph steps (cuda_graphs): CUDA tests, then the profile without and with them
 #   ttqside   variants of gpu.yaml side by side, one per GPU or GPU group, each to the held-out quality stop
 #             (goal >= 0.95, collision <= 0.05, off-road <= 0.02 on the window and on 256 held-out scenes);
 #             VARIANTS="name|gpus|nproc|--set k=v ...;name|..." e.g. "lr2|0|1|--set lr=0.002;two|1,2|2|"
@@ -118,6 +119,20 @@ quality)
     --modes ${QUALITY_MODES:-ignore} --num-scenes ${EVAL_N:-1024} --out "$RES/heldout.jsonl" 2>"$RES/heldout.err" | tail -30
   # QUALITY_TRANSFER=1: also urban and real-scene rates per collision mode, beside the shipped policy
   [ "${QUALITY_TRANSFER:-0}" = 1 ] && HELDOUT_CONTROL=vehicles transfer_eval $(ls -d "$RES"/*/)
+  ;;
+graphs)
+  # the CUDA-graph steps (cuda_graphs): their CUDA tests, then the iteration's profile without and with them at
+  # 1,024 worlds (gpu.yaml) and at 4,096 (one epoch of 8 minibatches), each in its own file
+  (cd "$R" && python3 -m pytest -q -p no:cacheprovider tests/test_step_graphs.py tests/test_learn_collector_update.py) \
+    > "$RES/pytest.txt" 2>&1; tail -3 "$RES/pytest.txt"
+  for size in "1024|" "4096|--set epochs=1 --set minibatches=8"; do
+    IFS='|' read -r worlds extra <<< "$size"
+    for g in false true; do
+      timeout ${PROFILE_SECONDS:-240} python3 "$R"/scripts/profile_train.py --config "$CFG" --set num_worlds=$worlds \
+        $extra --set cuda_graphs=$g --iters 3 --rows 25 "${SETS[@]}" > "$RES/profile_${worlds}_graphs_$g.txt" 2>&1
+      echo "== $worlds worlds, cuda_graphs=$g"; grep -iE "rollout|update|agent-steps" "$RES/profile_${worlds}_graphs_$g.txt" | head -4
+    done
+  done
   ;;
 ttq)
   timeout ${TTQ_SECONDS:-450} python3 -m tg_gpudrive.cli train --config "$CFG" --out "$RES/run" \
