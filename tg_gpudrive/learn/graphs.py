@@ -43,7 +43,8 @@ def capture(graph: torch.cuda.CUDAGraph, fn, pool=None, stream: torch.cuda.Strea
     stream = stream or torch.cuda.Stream()
     stream.wait_stream(torch.cuda.current_stream())
     with torch.cuda.stream(stream):
-        graph.capture_begin(pool=pool)
+        # only this thread is held to the capture's rules: NCCL's watchdog thread polls its events meanwhile
+        graph.capture_begin(pool=pool, capture_error_mode="thread_local")
         try:
             fn()
         finally:
