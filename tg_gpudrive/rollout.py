@@ -17,6 +17,12 @@ from tg_gpudrive.agents.builtin import Policy
 from tg_gpudrive.engine.simulator import Simulator
 
 
+def timed_out(goal, collided, offroad):
+    """Episodes that ended without a goal, a collision or leaving the road: the vehicle had not arrived
+    (elementwise over the engine's outcome flags)."""
+    return (goal == 0) & (collided == 0) & (offroad == 0)
+
+
 class EpisodeStats:
     """Sums of episode outcomes per scenario type, accumulated on the device; where the scenes mark
     kerb stops (procedural `kerb_stops`: vehicles whose goal lies at the kerb, off the lane centre),
@@ -54,7 +60,7 @@ class EpisodeStats:
         wt = self.world_type[:, None].expand_as(rows)[rows]
         kerb = None if self.kerb is None else self.kerb & rows
         score = (goal != 0) & (collided == 0) & (offroad == 0)  # a goal reached cleanly
-        timeout = (goal == 0) & (collided == 0) & (offroad == 0)  # not arrived, nothing else wrong
+        timeout = timed_out(goal, collided, offroad)
         for key, val in (("episodes", torch.ones_like(goal, dtype=torch.float64)), ("goal", goal),
                          ("collided", collided), ("offroad", offroad), ("cost", cost), ("min_dist", min_dist),
                          ("return", ret), ("steps", steps), ("score", score), ("timeout", timeout)):

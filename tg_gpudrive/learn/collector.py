@@ -27,6 +27,7 @@ from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer, hist_dim
+from tg_gpudrive.rollout import timed_out
 
 Tensor = torch.Tensor
 STAT_KEYS = ("alive", "episodes", "goal", "collided", "offroad", "timeout", "min_dist", "speed")
@@ -280,7 +281,7 @@ class RolloutCollector:
         noop = self.cfg.env.noop_index if self.nets.head.discrete else 0.0
         if dense:
             live = mask.reshape(-1) if a.dim() == 1 else mask.reshape(-1, 1)
-            a = torch.where(live, a, torch.full((), noop, dtype=a.dtype, device=a.device))
+            a = torch.where(live, a, noop)
         else:
             act.fill_(noop)  # rows that do not act
         act[w_idx, c_idx] = a.to(act.dtype)
@@ -335,9 +336,8 @@ class RolloutCollector:
         stats["goal"] += (sim.final_goal[:, :C] * ended).sum()
         stats["collided"] += (sim.final_collided[:, :C] * ended).sum()
         stats["offroad"] += (sim.final_offroad[:, :C] * ended).sum()
-        # ended without a goal, a collision or leaving the road: not arrived in time
-        stats["timeout"] += ((sim.final_goal[:, :C] == 0) & (sim.final_collided[:, :C] == 0)
-                             & (sim.final_offroad[:, :C] == 0) & ended).sum()
+        stats["timeout"] += (timed_out(sim.final_goal[:, :C], sim.final_collided[:, :C], sim.final_offroad[:, :C])
+                             & ended).sum()
         stats["min_dist"] += (sim.final_min_dist[:, :C] * ended).sum()
 
     def _buffers(self, T: int, W: int, C: int) -> Rollout:

@@ -36,20 +36,26 @@ log = logging.getLogger(__name__)
 Tensor = torch.Tensor
 
 
-def capture(graph: torch.cuda.CUDAGraph, fn, pool=None, stream: torch.cuda.Stream | None = None) -> None:
+def on_side_stream(fn, stream: torch.cuda.Stream) -> None:
+    """`fn` on `stream`, ordered after the work queued so far and before the work queued next."""
+    stream.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(stream):
+        fn()
+    torch.cuda.current_stream().wait_stream(stream)
+
+
+def capture(graph: torch.cuda.CUDAGraph, fn, stream: torch.cuda.Stream, pool=None) -> None:
     """Record `fn`'s kernels into `graph` on a side stream (nothing runs). torch.cuda.graph does the same
     after a device synchronisation, emptying the allocator's cache (and, in some versions, a garbage
     collection): a cost per capture that the rollout's tens of captures per batch of scenes would pay."""
-    stream = stream or torch.cuda.Stream()
-    stream.wait_stream(torch.cuda.current_stream())
-    with torch.cuda.stream(stream):
+    def record():
         # only this thread is held to the capture's rules: NCCL's watchdog thread polls its events meanwhile
         graph.capture_begin(pool=pool, capture_error_mode="thread_local")
         try:
             fn()
         finally:
             graph.capture_end()
-    torch.cuda.current_stream().wait_stream(stream)
+    on_side_stream(record, stream)
 
 
 def _static(x):
@@ -89,6 +95,7 @@ class StepGraphs:
         self.capturable = True  # False once a capture failed
         self.warm = 0
         self.captures = 0
+        self.stream = None  # the side stream of the warm-up steps and the capture
 
     @property
     def graphed(self) -> bool:
@@ -166,24 +173,24 @@ class StepGraphs:
                 p.grad = g
             self._after_backward()
             return
-        if cuda:  # warm-up steps on a side stream, as a capture wants
-            side = torch.cuda.Stream(self.idx.device)
-            side.wait_stream(torch.cuda.current_stream(self.idx.device))
-            with torch.cuda.stream(side):
-                self.opt.zero_grad(set_to_none=True)
-                self._forward_backward(self.idx)
-            torch.cuda.current_stream(self.idx.device).wait_stream(side)
+        if cuda:  # warm-up steps on the capture's side stream, as a capture wants
+            self.opt.zero_grad(set_to_none=True)
+            on_side_stream(lambda: self._forward_backward(self.idx), self._side())
             self._after_backward()
         else:
             self._eager(self.idx)
         self.warm += 1
+
+    def _side(self) -> torch.cuda.Stream:
+        self.stream = self.stream or torch.cuda.Stream(self.idx.device)
+        return self.stream
 
     def _capture(self) -> None:
         """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
         graph = torch.cuda.CUDAGraph()
         try:
-            capture(graph, lambda: self._forward_backward(self.idx))
+            capture(graph, lambda: self._forward_backward(self.idx), self._side())
         except RuntimeError as e:
             self.capturable = False
             self.opt.zero_grad(set_to_none=True)
@@ -234,7 +241,7 @@ class RolloutGraphs:
             graph = torch.cuda.CUDAGraph()
             self.stream = self.stream or torch.cuda.Stream()
             try:
-                capture(graph, fn, self.pool, self.stream)
+                capture(graph, fn, self.stream, self.pool)
             except RuntimeError as e:
                 self.capturable = False
                 log.warning("a rollout step could not be captured as a CUDA graph (%s); the steps run eagerly", e)

@@ -145,7 +145,7 @@ def live_only(x: Tensor, w: Tensor) -> Tensor:
     """`x` (R, ...) with the rows where `w` (R,) is 0 set to 0: dead rows read finite, valid values (action 0,
     zero observations), so their zero weight cannot meet a non-finite filler in the backward pass."""
     keep = (w > 0).reshape(-1, *(1,) * (x.dim() - 1))
-    return torch.where(keep, x, torch.zeros((), dtype=x.dtype, device=x.device))
+    return torch.where(keep, x, 0)
 
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
