@@ -7,7 +7,7 @@
 # PHASE all (the default) trains and evaluates in one go: a device machine keeps /tmp only while warm.
 # Training longer than one device call: PHASE=train TIME_LIMIT=480 first, then, back to back on the warm machine,
 # RESUME=1 PHASE=train TIME_LIMIT=900 (each run continues from its checkpoint in $RUNS to 900 s in all), then PHASE=eval.
-# TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
+# GPUS (e.g. "2 3", default every GPU) are the GPUs the runs take in turn; TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
 # evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2,long_vehicles=0.1") adds generator knobs to the
 # urban procedural part of every run. The plan (PLAN names a file of such lines; the default below is the
 # data-scaling curve): one run per line, "name real-store extra-settings [urban-extra]", where real-store is a store name under STORES
@@ -30,7 +30,7 @@ phase=${PHASE:-all}
 tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
 urban_knobs="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5${URBAN_EXTRA:-}"
-ngpu=$(nvidia-smi -L | wc -l)
+read -ra gpus <<< "${GPUS:-$(seq -s' ' 0 $(($(nvidia-smi -L | wc -l) - 1)))}"
 plan="real0 - -
 real5 womd_dev_train_5 -
 real15 womd_dev_train_15 -
@@ -107,15 +107,15 @@ evaluate() {  # gpu name
 
 k=0
 while read -r name store sets urban; do
-  gpu=$((k % ngpu))
+  gpu=${gpus[$((k % ${#gpus[@]}))]}
   ( [ "$phase" = eval ] || train $gpu "$name" "$store" "$sets" "$urban"
     [ "$phase" = train ] || evaluate $gpu "$name" ) &
   k=$((k + 1))
 done <<< "$plan"
 if [ "$phase" != train ]; then
   ( for mode in ignore stop remove; do
-      rates 0 "--policy expert" "$held" --episodes 17 --seed 0 --collision-mode $mode
-      rates 0 "--checkpoint shipped" "$held" --episodes 17 --seed 0 --collision-mode $mode
+      rates "${gpus[0]}" "--policy expert" "$held" --episodes 17 --seed 0 --collision-mode $mode
+      rates "${gpus[0]}" "--checkpoint shipped" "$held" --episodes 17 --seed 0 --collision-mode $mode
     done ) &
 fi
 wait
