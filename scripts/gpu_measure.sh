@@ -123,7 +123,8 @@ quality)
 graphs)
   # the CUDA-graph steps (cuda_graphs): their CUDA tests, then the iteration's profile without and with them at
   # 1,024 worlds (gpu.yaml) and at 4,096 (one epoch of 8 minibatches), each in its own file
-  (cd "$R" && python3 -m pytest -q -p no:cacheprovider tests/test_step_graphs.py tests/test_learn_collector_update.py) \
+  # from /tmp (cd above), so that the installed package, kernels included, is the one imported, not the checkout
+  python3 -m pytest -q -p no:cacheprovider "$R"/tests/test_step_graphs.py "$R"/tests/test_learn_collector_update.py \
     > "$RES/pytest.txt" 2>&1; tail -3 "$RES/pytest.txt"
   for size in "1024|" "4096|--set epochs=1 --set minibatches=8"; do
     IFS='|' read -r worlds extra <<< "$size"

@@ -35,7 +35,13 @@ class BehaviourPrior:
     distribution from it at update time: logits (..., num_actions) for discrete actions,
     (mean, log_std) for continuous. Implementations: agents.prior.ExpertPrior (the logged expert)
     and worldmodel.WorldModelPrior (the learned world model). The base class is also the
-    stateless prior of plain MAPPO, which is never asked."""
+    stateless prior of plain MAPPO, which is never asked.
+
+    `capturable`: whether `context` runs only torch operations on torch's current stream, so that a
+    torch CUDA graph captures it; a prior that launches engine kernels (on the engine's own stream)
+    is read outside the rollout's captured steps."""
+
+    capturable = True
 
     def context(self, sim: Simulator, num_controlled: int) -> torch.Tensor:
         """Per-step data for the first `num_controlled` slots of every world: (W, C, ctx)."""

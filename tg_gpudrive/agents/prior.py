@@ -45,6 +45,7 @@ class ExpertPrior(BehaviourPrior):
                  closed_loop: bool = True, floor: float = 0.05):
         cfg = sim.cfg
         self.closed_loop = closed_loop
+        self.capturable = not closed_loop  # the corrective expert is an engine kernel
         if not 0.0 <= floor < 1.0:
             raise ValueError(f"prior floor must lie in [0, 1), got {floor}")
         self.floor = floor

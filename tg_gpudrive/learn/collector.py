@@ -173,7 +173,13 @@ class RolloutCollector:
             if hist is not None:
                 hist.fixed_shapes = dense
         owners = (sim.model, buf, self.prior, self.nets.actor)  # what the captured steps read
+        # a prior whose context launches engine kernels is read before a step's captured part, into a buffer
+        # that part reads: a torch capture records neither the kernel nor its wait on the engine's stream
+        self._ctx_outside = dense and self._ctx is not None and not self.prior.capturable
         for t in range(T):
+            if self._ctx_outside:
+                with phase("rollout/magnet.context"):
+                    self._ctx.copy_(self.prior.context(sim, C))
             self._run(graphs, owners, ("act", t), lambda: self._bad.logical_or_(self._act(buf, t, C, dense)))
             if self.background is not None:
                 with phase("rollout/background"):
@@ -232,7 +238,9 @@ class RolloutCollector:
         # the motion windows first: their reset checks read the host, and here that read waits only for the
         # engine's step, which the live rows' count waits for anyway, not for the networks queued after it
         ctx = None
-        if self.prior_logits:
+        if self._ctx_outside:
+            ctx = self._ctx
+        elif self._ctx is not None:
             with phase("rollout/magnet.context"):
                 ctx = self.prior.context(sim, C)
         if self.actor_hist is not None:
@@ -303,9 +311,9 @@ class RolloutCollector:
 
     def _magnet(self, buf: Rollout, t: int, C: int, ctx: Tensor | None, mask: Tensor,
                 live: tuple[Tensor, Tensor] | None = None) -> None:
-        """The magnet of step t: the discrete prior's context `ctx` (its logits follow after the rollout) and,
+        """The magnet of step t: the prior's context `ctx` (discrete: its logits follow after the rollout) and,
         with `magnet_fraction` < 1, which live rows take them (the share with the smallest draws: among the
-        `live` rows when given, else through ranked_pick over the mask); else the continuous prior's context."""
+        `live` rows when given, else through ranked_pick over the mask)."""
         if self.prior_logits:
             buf.prior_ctx[t] = ctx
             if buf.prior_weight is not None:  # a random subset of the live rows, of a fixed share
@@ -317,8 +325,8 @@ class RolloutCollector:
                     pick = self._keys[t][w_idx, c_idx].topk(math.ceil(frac * len(w_idx)), largest=False).indices
                     buf.prior_weight[t].zero_()
                     buf.prior_weight[t][w_idx[pick], c_idx[pick]] = 1.0 / frac
-        elif self.cfg.eta1 > 0:
-            buf.prior[t] = self.prior.context(self.sim, C)
+        elif ctx is not None:
+            buf.prior[t] = ctx
 
     def _record_step(self, buf: Rollout, stats: dict, t: int, C: int) -> None:
         """After step t: its rewards, costs and ends into the buffers; its reward terms, speed and the
@@ -368,6 +376,8 @@ class RolloutCollector:
         self._stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev),
                        **{k: torch.zeros((), device=dev) for k in STAT_KEYS}}
         self._bad = torch.zeros((), dtype=torch.bool, device=dev)
+        # a step's magnet context (None: no magnet): read inside the step, or before it (see collect)
+        self._ctx = torch.zeros((W, C, self.prior.context_dim), device=dev) if cfg.eta1 > 0 else None
         self._all_rows = (torch.arange(W, device=dev).repeat_interleave(C), torch.arange(C, device=dev).repeat(W))
         self._buf_key = key
         return self._buf
