@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fine-tune the shipped policy on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml),
+# Train on real WOMD scenes mixed with urban procedural ones (configs/train/real_mix.yaml, the shipped policy's recipe),
 # one run per GPU of the machine, then evaluate every run on the held-out real scenes (every collision mode)
 # and on held-out procedural scenes (seed 90000, the procedural bar), beside the shipped policy and the
 # expert replay.

@@ -21,7 +21,7 @@ def test_pyproject_lists_every_package():
 
 def test_every_packaged_checkpoint_is_package_data():
     """A non-editable install ships only the package-data files: every .pt beside the code (the packaged
-    policies and world models that configs name, e.g. real_mix.yaml's `init_policy: shipped_v2`) is listed."""
+    policies and world models that configs name, e.g. grid.yaml's `init_policy: shipped_v1`) is listed."""
     data = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     for pt in (REPO / "tg_gpudrive").rglob("*.pt"):
         pkg = ".".join(pt.parent.relative_to(REPO).parts)
