@@ -12,6 +12,10 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).parent))  # tests/reference.py
 
 import tg_gpudrive  # noqa: F401  (sets Warp's log level)
+import tg_gpudrive.config as _config
+
+if not _config.REPO_CONFIGS.is_dir():  # the package installed apart from the checkout: the checkout's configs
+    _config.REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 wp.init()
 

@@ -12,6 +12,7 @@ import dataclasses
 import pytest
 import torch
 
+from tg_gpudrive.config import ConfigError
 from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
 
@@ -67,11 +68,12 @@ def test_the_dense_loss_is_the_live_rows_loss_whatever_the_dead_slots_hold(tmp_p
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
 
 
-def _updates(tmp_path, device, graphs: bool, capture: bool = True, n: int = 3):
+def _updates(tmp_path, device, graphs: bool, capture: bool = True, n: int = 3, compiled: bool = False):
     """`n` rollouts and updates of a tiny run whose updates have short last minibatches; the weights and
-    multipliers after them, and the StepGraphs (or None)."""
+    multipliers after them, and the StepGraphs (or None). `compiled`: the steps' loss through torch.compile."""
     cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete", device, epochs=2,
-                                                                  minibatches=5)
+                                                                  minibatches=5, cuda_graphs=graphs,
+                                                                  compile_update=compiled)
     steps = StepGraphs(cfg, nets, opt) if graphs else None
     if steps is not None:
         steps.capturable = capture
@@ -91,6 +93,39 @@ def test_an_update_through_step_graphs_moves_the_weights_as_the_eager_one_on_the
     for a, b in zip(fixed, eager):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=2e-5)
     torch.testing.assert_close(lam_f, lam_e)
+
+
+@pytest.mark.slow
+def test_the_compiled_loss_moves_the_weights_as_the_eager_one_on_the_cpu(tmp_path):
+    """compile_update: the fixed-shape steps' loss through torch.compile (inductor's fused kernels; a cold
+    compile takes about 20 s on a 2-core CPU) ends three updates on the eager update's weights."""
+    import torch._dynamo
+
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    eager, lam_e, _ = _updates(tmp_path / "e", "cpu", graphs=False)
+    fused, lam_c, steps = _updates(tmp_path / "c", "cpu", graphs=True, compiled=True)
+    assert steps.loss is not minibatch_loss and torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1
+    for a, b in zip(fused, eager):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(lam_c, lam_e)
+
+
+def test_compile_update_needs_the_fixed_shape_steps(tmp_path):
+    from test_train import tiny
+
+    with pytest.raises(ConfigError, match="compile_update: needs cuda_graphs=true"):
+        tiny(tmp_path, compile_update=True)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_replayed_compiled_steps_equal_eager_ones_on_cuda(tmp_path):
+    fused, lam_c, steps = _updates(tmp_path / "c", "cuda", graphs=True, compiled=True)
+    assert steps.graphed and steps.captures >= 1
+    eager, lam_e, _ = _updates(tmp_path / "e", "cuda", graphs=False)
+    for a, b in zip(fused, eager):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(lam_c, lam_e)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
