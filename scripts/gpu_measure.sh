@@ -10,8 +10,8 @@
 #   sweep     learning variants of gpu.yaml side by side on one GPU (goal rate per update; their
 #             wall-clock shares the GPU, so compare updates, not seconds)
 #   ttq       time to a 95 % goal rate on 1,000 procedural scenes (configs/train/gpu.yaml)
-#   graphs    the CUDA-graph steps (cuda_graphs): CUDA tests, then the profile without them, with them, and with
-#             their loss compiled (compile_update)
+#   graphs    the CUDA-graph steps (cuda_graphs) and the compiled loss (compile_update): CUDA tests, then the
+#             profile eager, with graphs, compiled, and both
 #   ttqside   variants of gpu.yaml side by side, one per GPU or GPU group, each to the held-out quality stop
 #             (goal >= 0.95, collision <= 0.05, off-road <= 0.02 on the window and on 256 held-out scenes);
 #             VARIANTS="name|gpus|nproc|--set k=v ...;name|..." e.g. "lr2|0|1|--set lr=0.002;two|1,2|2|"
@@ -129,8 +129,9 @@ graphs)
     > "$RES/pytest.txt" 2>&1; tail -3 "$RES/pytest.txt"
   for size in "1024|" "4096|--set epochs=1 --set minibatches=8"; do
     IFS='|' read -r worlds extra <<< "$size"
-    for g in eager graphs compiled; do
-      knobs="--set cuda_graphs=$([ $g = eager ] && echo false || echo true) --set compile_update=$([ $g = compiled ] && echo true || echo false)"
+    for v in eager:false:false graphs:true:false compiled:false:true graphs_compiled:true:true; do
+      IFS=: read -r g graphs compiled <<< "$v"
+      knobs="--set cuda_graphs=$graphs --set compile_update=$compiled"
       timeout ${PROFILE_SECONDS:-240} python3 "$R"/scripts/profile_train.py --config "$CFG" --set num_worlds=$worlds \
         $extra $knobs --iters 3 --rows 25 "${SETS[@]}" > "$RES/profile_${worlds}_$g.txt" 2>&1
       echo "== $worlds worlds, $g"; grep -iE "rollout|update|agent-steps" "$RES/profile_${worlds}_$g.txt" | head -4

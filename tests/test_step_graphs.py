@@ -12,8 +12,8 @@ import dataclasses
 import pytest
 import torch
 
-from tg_gpudrive.config import ConfigError
 from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
+from tg_gpudrive.learn import update as update_mod
 from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
 
 from test_learn_collector_update import CASES, _setup
@@ -111,11 +111,21 @@ def test_the_compiled_loss_moves_the_weights_as_the_eager_one_on_the_cpu(tmp_pat
     torch.testing.assert_close(lam_c, lam_e)
 
 
-def test_compile_update_needs_the_fixed_shape_steps(tmp_path):
-    from test_train import tiny
+@pytest.mark.slow
+def test_the_compiled_live_row_loss_moves_the_weights_as_the_eager_one_on_the_cpu(tmp_path):
+    """compile_update without the fixed-shape steps: the live rows' loss through torch.compile, their count a
+    dynamic size, compiled once for minibatches of every count (the first one's shape, then a symbolic one)."""
+    import torch._dynamo
 
-    with pytest.raises(ConfigError, match="compile_update: needs cuda_graphs=true"):
-        tiny(tmp_path, compile_update=True)
+    torch._dynamo.reset()
+    update_mod.compiled_live_loss.cache_clear()
+    torch._dynamo.utils.counters.clear()
+    eager, lam_e, _ = _updates(tmp_path / "e", "cpu", graphs=False)
+    fused, lam_c, _ = _updates(tmp_path / "c", "cpu", graphs=False, compiled=True)
+    assert 1 <= torch._dynamo.utils.counters["stats"]["unique_graphs"] <= 2  # compiled, not once per minibatch
+    for a, b in zip(fused, eager):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(lam_c, lam_e)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")

@@ -248,8 +248,8 @@ class TrainConfig:
     # on every slot, dead ones fed zeros and weighted 0 (the same actions and losses), so that their kernels
     # launch once, not per step; on the CPU the same fixed-shape steps run without graphs
     cuda_graphs: bool = False
-    # with cuda_graphs: the update's fixed-shape loss compiled by torch.compile (its forward and backward fused
-    # into fewer kernels, which a replay then launches); the first update pays the compilation, cached on disk
+    # the update's loss through torch.compile: its forward and backward fused into fewer kernels (with
+    # cuda_graphs, the fixed-shape loss its replays launch); the first update pays the compilation, cached on disk
     compile_update: bool = False
     normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
@@ -319,8 +319,6 @@ class TrainConfig:
             raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
         if self.lambda_per_vehicle and not self.per_agent_lambda:
             raise ConfigError("lambda_per_vehicle: needs per_agent_lambda (a multiplier per slot of each scene)")
-        if self.compile_update and not self.cuda_graphs:
-            raise ConfigError("compile_update: needs cuda_graphs=true (it compiles the fixed-shape loss those steps run)")
         if self.actor_history_partners and not self.actor_history:
             raise ConfigError("actor_history_partners: needs actor_history > 0 (the steps of the partners' window)")
         if self.actor_history_partners > self.env.partner_k:

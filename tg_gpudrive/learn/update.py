@@ -18,6 +18,7 @@ live agents are the only other host syncs).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -234,10 +235,18 @@ def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) 
     opt.step()
 
 
+@functools.cache
+def compiled_live_loss():
+    """minibatch_loss through torch.compile (compile_update), the live rows' count a dynamic size: compiled
+    on the first minibatch, then reused whatever the count (cached on disk across runs)."""
+    return torch.compile(minibatch_loss, dynamic=True)
+
+
 def eager_steps(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
                 gen: torch.Generator, prior: BehaviourPrior) -> tuple[dict[str, Tensor], Tensor, int]:
     """`epochs` passes of shuffled minibatches, one optimiser step each, on the live rows alone: (the loss
     parts summed over the minibatches, whether a loss was not finite, the number of minibatches)."""
+    loss_fn = compiled_live_loss() if cfg.compile_update else minibatch_loss
     n_groups = b.mask.shape[0]
     mb = max(1, n_groups // cfg.minibatches)
     acc: dict[str, Tensor] = {}
@@ -248,8 +257,11 @@ def eager_steps(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: t
         with phase("update/live_rows"):
             live = epoch_live_rows(b.mask[perm], mb)
         for s, rows in zip(range(0, n_groups, mb), live):
+            idx = perm[s:s + mb]
+            if cfg.compile_update:  # fresh tensors: the compiled loss guards on views' offsets, and would recompile
+                idx, rows = idx.clone(), (rows[0].clone(), rows[1].clone())
             with phase("update/forward"):
-                loss, parts = minibatch_loss(cfg, b, perm[s:s + mb], lam, nets, prior, rows)
+                loss, parts = loss_fn(cfg, b, idx, lam, nets, prior, rows)
                 bad |= ~torch.isfinite(loss)
             with phase("update/backward"):
                 opt.zero_grad(set_to_none=True)
