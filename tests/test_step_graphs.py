@@ -129,9 +129,10 @@ def test_the_compiled_live_row_loss_moves_the_weights_as_the_eager_one_on_the_cp
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
-def test_replayed_compiled_steps_equal_eager_ones_on_cuda(tmp_path):
-    fused, lam_c, steps = _updates(tmp_path / "c", "cuda", graphs=True, compiled=True)
-    assert steps.graphed and steps.captures >= 1
+@pytest.mark.parametrize("graphs", [True, False], ids=["replayed", "live_rows"])
+def test_compiled_steps_equal_eager_ones_on_cuda(tmp_path, graphs):
+    fused, lam_c, steps = _updates(tmp_path / "c", "cuda", graphs=graphs, compiled=True)
+    assert steps is None or (steps.graphed and steps.captures >= 1)
     eager, lam_e, _ = _updates(tmp_path / "e", "cuda", graphs=False)
     for a, b in zip(fused, eager):
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
