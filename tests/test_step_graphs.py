@@ -226,6 +226,27 @@ class _PartWatch(RolloutGraphs):
         super().run(owners, name, watched)
 
 
+def test_after_a_failed_capture_the_updates_and_rollouts_go_on_the_live_rows(tmp_path):
+    """A capture that fails (on a GPU: memory, an operation that cannot be captured) sends the updates to
+    update.eager_steps and the rollouts to the live rows: their weights and buffers are then those of a run
+    without graphs, bit for bit on the CPU."""
+    eager, lam_e, _ = _updates(tmp_path / "e", "cpu", graphs=False)
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / "f", "discrete", epochs=2,
+                                                                  minibatches=5)
+    steps = StepGraphs(cfg, nets, opt)
+    steps._fall_back()
+    collector.graphs = RolloutGraphs("cpu")
+    collector.graphs.capturable = False  # what a failed rollout capture leaves
+    ugen = torch.Generator().manual_seed(1)
+    for _ in range(3):
+        batch = collector.collect()
+        ppo_update(cfg, batch, nets, opt, lagrange, torch.tensor(0.0), ugen, prior, graphs=steps)
+    assert not collector.graphs.seen and steps.warm == 0  # neither ran a fixed-shape step
+    for a, b in zip((*nets.actor.parameters(), *nets.critic.parameters()), eager):
+        assert torch.equal(a.detach(), b)
+    assert torch.equal(lagrange.value.detach(), lam_e)
+
+
 def test_an_engine_kernel_prior_is_read_outside_the_captured_parts(tmp_path):
     """The closed-loop expert's context is an engine (Warp) kernel on the engine's stream, which a torch
     capture would not record: a replay would hand the magnet a stale context. It is read before each

@@ -167,7 +167,8 @@ class RolloutCollector:
             self._noise.normal_(generator=self.gen)
         if self._keys is not None:
             self._keys.uniform_(generator=self.gen)
-        graphs = self.graphs if self.background is None else None
+        # a failed capture sends the rollouts back to the live rows (graphs.RolloutGraphs.capturable)
+        graphs = self.graphs if self.background is None and self.graphs is not None and self.graphs.capturable else None
         dense = graphs is not None
         for hist in (getattr(self.prior, "history", None), self.actor_hist):
             if hist is not None:

@@ -15,7 +15,8 @@ A rollout's step is bound the same way (a few hundred small operators around the
 RolloutGraphs captures what comes before and after the engine's step.
 
 On the CPU the same fixed-shape steps run without graphs. A capture that fails (an operation that cannot be
-captured) is logged once and the steps go on eagerly.
+captured, or memory: the steps over every slot need more of it than the live rows) is logged once, its
+memory is given back, and training goes on as without graphs, on the live rows.
 
 A replay saves the host its launches, not the device its kernels: at these sizes each of a step's kernels costs
 a few microseconds of device time whatever its work. `compile_update` compiles the fixed-shape loss with
@@ -35,7 +36,7 @@ from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import Networks
-from tg_gpudrive.learn.update import Groups, clip_and_step, minibatch_loss
+from tg_gpudrive.learn.update import Groups, clip_and_step, eager_steps, minibatch_loss
 
 log = logging.getLogger(__name__)
 Tensor = torch.Tensor
@@ -61,6 +62,12 @@ def capture(graph: torch.cuda.CUDAGraph, fn, stream: torch.cuda.Stream, pool=Non
         finally:
             graph.capture_end()
     on_side_stream(record, stream)
+
+
+def release_cached_memory() -> None:
+    """Give the caching allocator's free blocks back to the device (after a failed capture's pool is dropped)."""
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
 
 
 def _static(x):
@@ -90,7 +97,7 @@ class StepGraphs:
     WARMUP = 3  # eager steps before a capture: autograd's and the libraries' lazy set-up stays outside it
 
     def __init__(self, cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer):
-        self.cfg, self.opt = cfg, opt
+        self.cfg, self.opt, self.nets = cfg, opt, nets
         # the modules themselves, not their DDP wrappers: the ranks' average follows each replay
         self.raw = Networks(nets.actor, nets.critic, nets.head, nets.amp)
         self.params = [p for group in opt.param_groups for p in group["params"]]
@@ -100,7 +107,8 @@ class StepGraphs:
         self.key = None
         self.graph: torch.cuda.CUDAGraph | None = None
         self.grads: list[Tensor | None] = []
-        self.capturable = True  # False once a capture failed
+        self.capturable = True  # whether to capture (False: the fixed-shape steps run eagerly)
+        self.fallen_back = False  # a capture failed: the updates run update.eager_steps
         self.warm = 0
         self.captures = 0
         self.stream = None  # the side stream of the warm-up steps and the capture
@@ -114,6 +122,9 @@ class StepGraphs:
         """`epochs` passes of shuffled minibatches, one optimiser step each: (the loss parts summed over the
         minibatches, whether a loss was not finite, the number of minibatches). A new magnet `prior` (a
         continuous one is evaluated inside the step) gets a new capture."""
+        if self.fallen_back:
+            self.b, self.key = None, None  # the fixed copies go
+            return eager_steps(self.cfg, b, lam, self.nets, self.opt, gen, prior)
         n_groups = b.mask.shape[0]
         mb = max(1, n_groups // self.cfg.minibatches)
         self.prior = prior
@@ -193,6 +204,15 @@ class StepGraphs:
         self.stream = self.stream or torch.cuda.Stream(self.idx.device)
         return self.stream
 
+    def _fall_back(self) -> None:
+        """After a failed capture: this update's remaining steps run eagerly over every slot, the next updates
+        on the live rows (eager_steps); the capture's memory is given back now, the fixed copies at the next
+        update."""
+        self.capturable, self.fallen_back = False, True
+        self.opt.zero_grad(set_to_none=True)
+        self.graph, self.grads = None, []
+        release_cached_memory()
+
     def _capture(self) -> None:
         """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
@@ -200,9 +220,9 @@ class StepGraphs:
         try:
             capture(graph, lambda: self._forward_backward(self.idx, self.loss), self._side())
         except RuntimeError as e:
-            self.capturable = False
-            self.opt.zero_grad(set_to_none=True)
-            log.warning("the update's step could not be captured as a CUDA graph (%s); its steps run eagerly", e)
+            log.warning("the update's step could not be captured as a CUDA graph (%s); the updates go on without "
+                        "graphs, on the live rows", e)
+            self._fall_back()
             return
         self.graph = graph
         self.grads = [p.grad for p in self.params]
@@ -251,8 +271,10 @@ class RolloutGraphs:
             try:
                 capture(graph, fn, self.stream, self.pool)
             except RuntimeError as e:
-                self.capturable = False
-                log.warning("a rollout step could not be captured as a CUDA graph (%s); the steps run eagerly", e)
+                log.warning("a rollout step could not be captured as a CUDA graph (%s); the rollouts go on "
+                            "without graphs, on the live rows", e)
+                self.capturable, self.graphs, self.pool = False, {}, None
+                release_cached_memory()
                 fn()
                 return
             self.pool = self.pool if self.pool is not None else graph.pool()
