@@ -162,3 +162,24 @@ def test_every_rank_state_reaches_the_lead(backend):
     mp.spawn(_gather_worker, args=(2, free_port(), backend, q), nprocs=2)
     ranks, states, made = q.get()
     assert ranks == [0, 1] and states == [[0, 1, 2], [1, 2, 3]] and made == (backend != "gloo")
+
+
+def _agree_worker(rank, world, port, result):
+    from tg_gpudrive.learn import distributed
+
+    with distributed.process_group(rank, world, port, "cpu"):
+        votes = [distributed.every_rank(ok, "cpu") for ok in (True, rank == 0, rank == 1, False)]
+        result.put((rank, votes))
+
+
+def test_every_rank_agrees_only_when_all_do():
+    """every_rank: a rank's failed capture makes every rank fall back (graphs.StepGraphs), so that their
+    collectives keep matching."""
+    from tg_gpudrive.learn.distributed import every_rank, free_port
+
+    assert every_rank(True, "cpu") and not every_rank(False, "cpu")  # one process: its own vote
+    ctx = mp.get_context("spawn")
+    q = ctx.SimpleQueue()
+    mp.spawn(_agree_worker, args=(2, free_port(), q), nprocs=2)
+    got = dict(q.get() for _ in range(2))
+    assert got == {0: [True, False, False, False], 1: [True, False, False, False]}

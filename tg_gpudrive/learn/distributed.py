@@ -46,6 +46,15 @@ def all_reduce_mean(x: torch.Tensor) -> torch.Tensor:
     return y / dist.get_world_size()
 
 
+def every_rank(ok: bool, device) -> bool:
+    """Whether `ok` holds on every rank (a collective: every rank calls it at the same point)."""
+    if not is_dist():
+        return ok
+    flag = torch.tensor(float(ok), device=device)
+    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    return bool(flag > 0)
+
+
 def all_reduce_sum_(tensors: dict) -> None:
     if is_dist():
         for t in tensors.values():

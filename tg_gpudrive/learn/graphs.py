@@ -217,11 +217,16 @@ class StepGraphs:
         """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
         graph = torch.cuda.CUDAGraph()
+        failed = None
         try:
             capture(graph, lambda: self._forward_backward(self.idx, self.loss), self._side())
         except RuntimeError as e:
+            failed = e
+        # the ranks fall back together: the live-row updates average their gradients in DDP's hooks, the
+        # replayed ones after each step, and the ranks' collectives must match
+        if not dist_util.every_rank(failed is None, self.idx.device):
             log.warning("the update's step could not be captured as a CUDA graph (%s); the updates go on without "
-                        "graphs, on the live rows", e)
+                        "graphs, on the live rows", failed or "on another rank")
             self._fall_back()
             return
         self.graph = graph
