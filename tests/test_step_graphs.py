@@ -12,8 +12,8 @@ import dataclasses
 import pytest
 import torch
 
-from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn import update as update_mod
+from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
 
 from test_learn_collector_update import CASES, _setup
