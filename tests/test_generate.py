@@ -11,7 +11,7 @@ import pytest
 from tg_gpudrive import cli
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.evaluation.generate import TABLE
+from tg_gpudrive.evaluation.generate import FINE_TUNE, TABLE
 
 
 @pytest.mark.parametrize("traffic", [[], ["--set", "control=nearest_conflict", "--set", "control_k=1",
@@ -24,6 +24,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
+    assert (run["lr"], run["entropy_coef"]) == (FINE_TUNE["lr"], FINE_TUNE["entropy_coef"])  # not the shipped run's
     assert run["background"] == ("idm" if traffic else "log")
     rows = list(csv.DictReader(open(out / "scenarios.csv")))
     assert tuple(rows[0]) == TABLE and 1 <= len(rows) == len(res["scenarios"]) <= 2
