@@ -147,6 +147,11 @@ class RolloutCollector:
         self.prior_logits = nets.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
         # a RolloutGraphs (graphs.py) replays the steps from CUDA graphs; the steps then act on every slot
         self.graphs = None
+        # a magnet whose context launches engine kernels is read before a step's captured part, into `_ctx`
+        # (allocated when first needed), which that part reads: a torch capture records neither the kernel nor
+        # its wait on the engine's stream
+        self._ctx_outside = False
+        self._ctx: Tensor | None = None
         self._buf: Rollout | None = None
         self._buf_key = None
 
@@ -174,9 +179,10 @@ class RolloutCollector:
             if hist is not None:
                 hist.fixed_shapes = dense
         owners = (sim.model, buf, self.prior, self.nets.actor)  # what the captured steps read
-        # a prior whose context launches engine kernels is read before a step's captured part, into a buffer
-        # that part reads: a torch capture records neither the kernel nor its wait on the engine's stream
-        self._ctx_outside = dense and self._ctx is not None and not self.prior.capturable
+        self._ctx_outside = dense and self.cfg.eta1 > 0 and not self.prior.capturable
+        shape = (sim.num_worlds, C, self.prior.context_dim) if self._ctx_outside else None
+        if shape is not None and (self._ctx is None or tuple(self._ctx.shape) != shape):
+            self._ctx = torch.zeros(shape, device=self.device)
         for t in range(T):
             if self._ctx_outside:
                 with phase("rollout/magnet.context"):
@@ -241,7 +247,7 @@ class RolloutCollector:
         ctx = None
         if self._ctx_outside:
             ctx = self._ctx
-        elif self._ctx is not None:
+        elif self.cfg.eta1 > 0:
             with phase("rollout/magnet.context"):
                 ctx = self.prior.context(sim, C)
         if self.actor_hist is not None:
@@ -377,8 +383,6 @@ class RolloutCollector:
         self._stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev),
                        **{k: torch.zeros((), device=dev) for k in STAT_KEYS}}
         self._bad = torch.zeros((), dtype=torch.bool, device=dev)
-        # a step's magnet context (None: no magnet): read inside the step, or before it (see collect)
-        self._ctx = torch.zeros((W, C, self.prior.context_dim), device=dev) if cfg.eta1 > 0 else None
         self._all_rows = (torch.arange(W, device=dev).repeat_interleave(C), torch.arange(C, device=dev).repeat(W))
         self._buf_key = key
         return self._buf
