@@ -1,5 +1,6 @@
-"""Distributed CCE-MAPPO on CPU with gloo and 2 processes: DDP gradients equal a single-process
-run over the union of the batches; a 2-rank run trains, checkpoints, and resumes with 1 rank."""
+"""Distributed CCE-MAPPO on CPU with gloo and 2 processes: the ranks' averaged gradients equal a
+single-process run over the union of the batches, the ranks keep the same weights, and a 2-rank run trains,
+checkpoints, and resumes with 1 rank."""
 
 from __future__ import annotations
 
@@ -39,55 +40,81 @@ def synthetic_batch(trainer) -> dict:
             "old": torch.randn(G, C, A, generator=g)}
 
 
-def grads_of(trainer, idx) -> list[torch.Tensor]:
-    b = synthetic_batch(trainer)
-    trainer.opt.zero_grad()
-    loss, _ = trainer.minibatch_loss(b, idx, torch.full((4,), 0.3))  # one multiplier per slot
-    loss.backward()
-    return [p.grad.clone() for p in trainer.params]
-
-
-def fixed_shape_grads_of(trainer, idx) -> list[torch.Tensor]:
-    """The gradients of a step of learn/graphs.py: the dense loss on the modules themselves (not their DDP
-    wrappers), then the ranks' average of one flat buffer."""
+def grads_of(trainer, idx, dense: bool = False) -> list[torch.Tensor]:
+    """The gradients of one optimiser step on the groups `idx` of the synthetic batch, averaged over the
+    ranks as every step averages them (update.clip_and_step). `dense`: the fixed-shape loss over every
+    slot, as a step of learn/graphs.py runs it."""
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.update import Groups, minibatch_loss
 
     trainer.opt.zero_grad()
     loss, _ = minibatch_loss(trainer.cfg, Groups.of(synthetic_batch(trainer)), idx, torch.full((4,), 0.3),
-                             trainer.graphs.raw, trainer.prior, dense=True)
+                             trainer.nets, trainer.prior, dense=dense)  # one multiplier per slot
     loss.backward()
     distributed.average_gradients_(trainer.params)
     return [p.grad.clone() for p in trainer.params]
 
 
-def _ddp_worker(rank, world, port, out, result, fixed_shape):
+def _grads_worker(rank, world, port, out, result, fixed_shape):
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import Trainer
 
     with distributed.process_group(rank, world, port, "cpu"):
-        tr = Trainer(dataclasses.replace(tiny_cfg(out / "ddp"), cuda_graphs=fixed_shape), progress=False)
+        tr = Trainer(dataclasses.replace(tiny_cfg(out / "two"), cuda_graphs=fixed_shape), progress=False)
         half = torch.arange(rank * G // 2, (rank + 1) * G // 2)
-        gr = (fixed_shape_grads_of if fixed_shape else grads_of)(tr, half)
+        gr = grads_of(tr, half, dense=fixed_shape)
         if rank == 0:
             result.put([x.numpy() for x in gr])
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fixed_shape", [False, True], ids=["ddp", "fixed-shape steps"])
-def test_ddp_gradients_equal_single_process_union(tmp_path, fixed_shape):
+@pytest.mark.parametrize("fixed_shape", [False, True], ids=["live rows", "fixed-shape steps"])
+def test_averaged_gradients_equal_single_process_union(tmp_path, fixed_shape):
     from tg_gpudrive.learn.distributed import free_port
     from tg_gpudrive.learn.train import Trainer
 
     ctx = mp.get_context("spawn")
     q = ctx.SimpleQueue()
-    mp.spawn(_ddp_worker, args=(2, free_port(), tmp_path, q, fixed_shape), nprocs=2)
-    ddp = q.get()
+    mp.spawn(_grads_worker, args=(2, free_port(), tmp_path, q, fixed_shape), nprocs=2)
+    two = q.get()
     single = grads_of(Trainer(tiny_cfg(tmp_path / "one"), progress=False), torch.arange(G))
-    assert len(ddp) == len(single)
-    for a, b in zip(ddp, single):
+    assert len(two) == len(single)
+    for a, b in zip(two, single):
         torch.testing.assert_close(torch.as_tensor(a), b, atol=1e-5, rtol=1e-4)
     assert any(float(b.abs().sum()) > 0 for b in single)
+
+
+def _weights_worker(rank, world, port, out, result):
+    from tg_gpudrive.learn import distributed
+    from tg_gpudrive.learn.train import Trainer
+
+    def every_ranks(x):
+        out = [torch.empty_like(x) for _ in range(world)]
+        distributed.dist.all_gather(out, x)
+        return out
+
+    with distributed.process_group(rank, world, port, "cpu"):
+        cfg = dataclasses.replace(tiny_cfg(out), updates=2, minibatches=2)
+        tr = Trainer(cfg, progress=False)  # each rank seeds its own draws (seed + rank), its weights too
+        first = torch.cat([p.detach().flatten() for p in tr.params])
+        tr.train()
+        last = torch.cat([p.detach().flatten() for p in tr.params])
+        firsts, lasts = every_ranks(first), every_ranks(last)
+        if rank == 0:  # a few booleans: a large message would fill the queue's pipe before the parent reads it
+            result.put((torch.equal(*firsts), torch.equal(*lasts), float((last - first).abs().max())))
+
+
+@pytest.mark.slow
+def test_the_ranks_start_from_rank_0s_weights_and_keep_them_equal(tmp_path):
+    """The ranks draw different rollouts but take the same steps: they start from rank 0's weights and every
+    step applies the same averaged gradients, so their weights stay equal, and training moved them."""
+    from tg_gpudrive.learn.distributed import free_port
+
+    ctx = mp.get_context("spawn")
+    q = ctx.SimpleQueue()
+    mp.spawn(_weights_worker, args=(2, free_port(), tmp_path, q), nprocs=2)
+    same_start, same_end, moved = q.get()
+    assert same_start and same_end and moved > 0
 
 
 @pytest.mark.slow

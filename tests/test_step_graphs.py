@@ -170,6 +170,8 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     for key in ("loss/policy", "loss/value", "entropy", "goal_rate"):
         assert [r[key] for r in ra] == [r[key] for r in rb]
     assert ra[-1]["update"] == "3"
+    # metrics.csv says whether the knob took: on the CPU nothing is captured, and nothing fell back
+    assert [r["graphs/update_captures"] for r in ra] == ["0"] * 3 and ra[-1]["graphs/update_fell_back"] == "0"
 
 
 ROLLOUT = {  # a world with fewer agents than the others: dead slots

@@ -251,7 +251,7 @@ class TrainConfig:
     # the update's loss through torch.compile: its forward and backward fused into fewer kernels (with
     # cuda_graphs, the fixed-shape loss its replays launch); the first update pays the compilation, cached on disk
     compile_update: bool = False
-    normalize_advantages: bool = True  # per minibatch (and per rank under DDP)
+    normalize_advantages: bool = True  # per minibatch (and per rank when distributed)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint
     eta1: float = 0.05
     # discrete magnet: the share of the live rows, picked at each rollout step (a random subset, the same

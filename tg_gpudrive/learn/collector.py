@@ -99,20 +99,13 @@ class Rollout(ByName):
 
 @dataclass
 class Networks:
-    """The learner's networks: actor and critic, the views the update runs them through (DDP-wrapped on
-    several ranks, else the modules themselves), the head that turns the actor's output into a
+    """The learner's networks: actor and critic, the head that turns the actor's output into a
     distribution, and whether they run under bf16 autocast (GPU with `amp`; losses stay float32)."""
 
     actor: torch.nn.Module
     critic: torch.nn.Module
     head: PolicyHead
     amp: bool = False
-    actor_fwd: torch.nn.Module | None = None
-    critic_fwd: torch.nn.Module | None = None
-
-    def __post_init__(self):
-        self.actor_fwd = self.actor_fwd or self.actor
-        self.critic_fwd = self.critic_fwd or self.critic
 
     def autocast(self, cache: bool = True):
         """bf16 autocast around the networks' forward passes when `amp`, else nothing. `cache`: keep the

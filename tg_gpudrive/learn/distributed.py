@@ -1,8 +1,12 @@
 """Multi-process CCE-MAPPO with torch.distributed: one process per GPU (or CPU process with gloo).
 
 Each rank owns its engine on its own device and its own shard of the scene
-source (scene i belongs to rank i % world); actor and critic are wrapped in
-DistributedDataParallel, so gradients are averaged over ranks in backward();
+source (scene i belongs to rank i % world); the ranks start from rank 0's weights, and every optimiser step
+averages their gradients in one all-reduce of a flat buffer (average_gradients_), the same for the live rows'
+steps and for steps replayed from CUDA graphs. DistributedDataParallel is not used: it keeps each parameter's
+gradient accumulator from its construction, on the stream of that moment, and a backward pass captured on
+another stream then invalidated the capture; its overlap of the all-reduce with the backward pass buys
+nothing at these networks' size (about a megabyte of gradients);
 the constraint estimate behind the Lagrange multiplier and the logged
 statistics are all-reduced, so lambda stays identical everywhere; rank 0 alone
 logs and writes checkpoints, holding every rank's own state (engine, sampler, random streams), so a
@@ -62,15 +66,27 @@ def all_reduce_sum_(tensors: dict) -> None:
 
 
 def average_gradients_(params) -> None:
-    """The gradients of `params` averaged over the ranks in place, in one all-reduce of a flat copy: what
-    DDP's hooks do in the backward pass, for steps that run the modules themselves (graphs.StepGraphs)."""
+    """The gradients of `params` averaged over the ranks in place, in one all-reduce of a flat copy. A
+    parameter without a gradient on this rank counts as a zero one, so every rank's buffer has the same
+    layout."""
     if not is_dist():
         return
-    grads = [p.grad for p in params if p.grad is not None]
+    for p in params:
+        if p.grad is None:
+            p.grad = torch.zeros_like(p)
+    grads = [p.grad for p in params]
     flat = torch._utils._flatten_dense_tensors(grads)
     dist.all_reduce(flat, op=dist.ReduceOp.SUM)
     flat /= dist.get_world_size()
     torch._foreach_copy_(grads, torch._utils._unflatten_dense_tensors(flat, grads))
+
+
+def broadcast_from_lead_(modules) -> None:
+    """The parameters and buffers of `modules` set to rank 0's on every rank."""
+    if is_dist():
+        for m in modules:
+            for t in (*m.parameters(), *m.buffers()):
+                dist.broadcast(t.data, src=0)
 
 
 def gather_floats(values: list[float], device) -> list[list[float]]:
@@ -174,8 +190,8 @@ class ShardSource:
 
 
 def cleanup(together: bool = True) -> None:
-    """Tear the group down together: every rank waits at a barrier first, and the trainer's DDP
-    wrappers (which hold the group) are collected before it goes. A rank that destroyed its gloo
+    """Tear the group down together: every rank waits at a barrier first, and what still holds the group
+    is collected before it goes. A rank that destroyed its gloo
     group while rank 0 was still writing the final checkpoint could abort at exit (seen once in CI
     as SIGABRT, "terminate called without an active exception"). A rank leaving on an error
     passes together=False: its peers may never reach the barrier."""

@@ -9,7 +9,7 @@ do not shorten training. Here a step's loss runs over every slot of its groups (
 for a rollout's shape. Its forward and backward pass are captured once and replayed for every minibatch,
 which reads its groups through a fixed index buffer from fixed copies of the rollout. What follows a replay
 runs eagerly, a few kernels over all the weights at once: the ranks' gradient average (an all-reduce of one
-flat buffer, in place of DDP's hooks), clipping and Adam.
+flat buffer, as after a live-row step), clipping and Adam.
 
 A rollout's step is bound the same way (a few hundred small operators around the engine's own Warp graph);
 RolloutGraphs captures what comes before and after the engine's step.
@@ -98,8 +98,6 @@ class StepGraphs:
 
     def __init__(self, cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer):
         self.cfg, self.opt, self.nets = cfg, opt, nets
-        # the modules themselves, not their DDP wrappers: the ranks' average follows each replay
-        self.raw = Networks(nets.actor, nets.critic, nets.head, nets.amp)
         self.params = [p for group in opt.param_groups for p in group["params"]]
         # the full minibatches' loss (compiled with compile_update); an epoch's short last one runs it as it is,
         # not to compile a second shape
@@ -162,7 +160,7 @@ class StepGraphs:
             self.lam.copy_(lam)
 
     def _forward_backward(self, idx: Tensor, loss_fn) -> None:
-        loss, parts = loss_fn(self.cfg, self.b, idx, self.lam, self.raw, self.prior, dense=True)
+        loss, parts = loss_fn(self.cfg, self.b, idx, self.lam, self.nets, self.prior, dense=True)
         self.bad |= ~torch.isfinite(loss)
         for k, v in parts.items():
             if k not in self.acc:
@@ -172,8 +170,7 @@ class StepGraphs:
 
     def _after_backward(self) -> None:
         with phase("update/optimizer"):
-            dist_util.average_gradients_(self.params)
-            clip_and_step(self.cfg, self.raw, self.opt)
+            clip_and_step(self.cfg, self.nets, self.opt)
 
     def _eager(self, idx: Tensor, loss_fn=minibatch_loss) -> None:
         with phase("update/forward"):
@@ -222,8 +219,7 @@ class StepGraphs:
             capture(graph, lambda: self._forward_backward(self.idx, self.loss), self._side())
         except RuntimeError as e:
             failed = e
-        # the ranks fall back together: the live-row updates average their gradients in DDP's hooks, the
-        # replayed ones after each step, and the ranks' collectives must match
+        # the ranks fall back together, so that they go on taking the same steps
         if not dist_util.every_rank(failed is None, self.idx.device):
             log.warning("the update's step could not be captured as a CUDA graph (%s); the updates go on without "
                         "graphs, on the live rows", failed or "on another rank")

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torch.nn.parallel import DistributedDataParallel as DDP
 from tqdm import tqdm
 
 from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, POOLED_KEYS, checkpoint_path, load_checkpoint,
@@ -47,7 +46,7 @@ from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
 from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
-from tg_gpudrive.learn.update import Groups, minibatch_loss, ppo_update
+from tg_gpudrive.learn.update import ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
@@ -144,7 +143,7 @@ class Trainer:
         self.progress = progress and self.lead
         self.device = dist_util.local_device(cfg.device)
         if self.world > 1 and self.device.startswith("cuda"):
-            torch.cuda.set_device(self.device)  # this rank's NCCL collectives and DDP buckets live on it
+            torch.cuda.set_device(self.device)  # this rank's NCCL collectives live on it
         per_mb = cfg.num_worlds * cfg.rollout_steps // cfg.minibatches
         if self.lead and cfg.minibatches > 1 and per_mb < SMALL_MINIBATCH:
             log.warning("minibatches=%d: each minibatch holds %d world-steps (of %d worlds x %d steps), so an update "
@@ -202,15 +201,12 @@ class Trainer:
         cfg = self.cfg
         actor, critic = build_models(cfg, self.sim, self.device)
         self.nets = Networks(actor, critic, PolicyHead(cfg.env.discrete), amp=self.sim.is_cuda and cfg.amp)
-        if ck is not None:  # before DDP wraps them, so every rank starts from the checkpoint
+        if ck is not None:
             actor.load_state_dict(ck["actor"])
             critic.load_state_dict(ck["critic"])
         elif cfg.init_policy:
             self._init_weights(cfg.init_policy)
-        if self.world > 1:
-            ids = [torch.device(self.device).index] if self.device.startswith("cuda") else None
-            self.nets.actor_fwd = DDP(actor, device_ids=ids)
-            self.nets.critic_fwd = DDP(critic, device_ids=ids)
+        dist_util.broadcast_from_lead_((actor, critic))  # every rank starts from the same weights
         prior = make_prior(cfg, self.sim)
         # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
         self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
@@ -320,10 +316,6 @@ class Trainer:
         except NonFinite as e:
             raise self._spoilt(f"{e.what} in update {self.update} ({e.detail})") from None
 
-    def minibatch_loss(self, b: Groups | dict, idx: torch.Tensor, lam) -> tuple[torch.Tensor, dict]:
-        """The loss of the flattened groups `idx` of `b` (update.minibatch_loss)."""
-        return minibatch_loss(self.cfg, Groups.of(b), idx, lam, self.nets, self.prior)
-
     def _spoilt(self, what: str) -> TrainingError:
         # the weights in memory are spoilt, nothing is saved: the checkpoint on disk stays the last good one
         return TrainingError(f"{what}; stopped without saving, the last good checkpoint is "
@@ -431,6 +423,12 @@ class Trainer:
             row[f"reward/{name}"] = v
         row["reward"] = float(batch.reward.sum() / max(int(batch.mask.sum()), 1))
         row["ranks"] = self.world
+        if self.graphs is not None:  # whether the speed knobs took: captures so far, and a fall-back to the live rows
+            row["graphs/update_captures"] = self.graphs.captures
+            row["graphs/update_fell_back"] = int(self.graphs.fallen_back)
+            row["graphs/rollout_captures"] = self.collector.graphs.captures
+        if self.cfg.compile_update:  # compilations so far: more than one or two per shape means recompiling
+            row["compile/graphs"] = torch._dynamo.utils.counters["stats"]["unique_graphs"]
         if self.sim.is_cuda:
             row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
         return row

@@ -167,7 +167,7 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     else:
         # the actor is per agent: run it on the live rows only (often under half of W x C)
         g, c = mi.nonzero(as_tuple=True) if live is None else live
-        if len(g) == 0:  # keep every rank's backward in step under DDP: a zero-weight dummy row
+        if len(g) == 0:  # a zero-weight dummy row: the step's backward pass still reaches every weight
             g, c, weight = torch.zeros(1, dtype=torch.long, device=idx.device), torch.zeros(
                 1, dtype=torch.long, device=idx.device), 0.0
     rows = idx[g]
@@ -182,13 +182,13 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     obs = pick(b.obs)
     flat = g * mi.shape[1] + c
     with nets.autocast(cache=not dense):
-        out = nets.actor_fwd(obs, c, None if b.hist is None else pick(b.hist))
+        out = nets.actor(obs, c, None if b.hist is None else pick(b.hist))
         if dense:  # every slot encoded, the dead ones as zeros: only the live keys are attended to
             group_obs = b.obs[idx]
             group_obs = live_only(group_obs.reshape(n * C, -1), w).reshape(group_obs.shape)
-            v, q = nets.critic_fwd(group_obs, mi, flat, head_rows=flat)
+            v, q = nets.critic(group_obs, mi, flat, head_rows=flat)
         else:
-            v, q = nets.critic_fwd(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
+            v, q = nets.critic(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
     out, v, q = nets.float_out(out), v.float(), q.float()
     head = nets.head
     d = head.dist(out)
@@ -228,8 +228,10 @@ def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
 
 
 def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) -> None:
-    """The optimiser step on the gradients in place. Actor and critic are clipped apart: one joint norm lets
-    the critic's large early regression gradients scale the policy's step down to nothing."""
+    """The optimiser step on the gradients in place, after their average over the ranks (one all-reduce). Actor
+    and critic are clipped apart: one joint norm lets the critic's large early regression gradients scale the
+    policy's step down to nothing."""
+    dist_util.average_gradients_([p for group in opt.param_groups for p in group["params"]])
     torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
     torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
     opt.step()
@@ -265,7 +267,7 @@ def eager_steps(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: t
                 bad |= ~torch.isfinite(loss)
             with phase("update/backward"):
                 opt.zero_grad(set_to_none=True)
-                loss.backward()  # under DDP the gradients are averaged over the ranks here
+                loss.backward()
             with phase("update/optimizer"):
                 clip_and_step(cfg, nets, opt)
             for k, val in parts.items():
