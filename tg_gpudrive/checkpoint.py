@@ -3,7 +3,7 @@
 `save_atomic` writes beside the target and renames, so a run killed mid-write
 leaves the previous checkpoint whole; `load_checkpoint` accepts a file, a run
 directory (its checkpoint.pt) or the name "shipped" (the policy packaged at
-tg_gpudrive/policies/shipped.pt; "shipped_v3", "shipped_v2" and "shipped_v1" the ones shipped before it, kept for
+tg_gpudrive/policies/shipped.pt; "shipped_v4" to "shipped_v1" the ones shipped before it, kept for
 comparison: SHIPPED_EARLIER) and
 names the command-line option in its error.
 `policy_engine_config` gives a policy checkpoint's engine config with slots for
@@ -33,7 +33,7 @@ SHIPPED = "shipped"  # the name that stands for the packaged policy
 SHIPPED_POLICY = Path(__file__).resolve().parent / "policies" / "shipped.pt"
 # earlier shipped policies by name: a run that fine-tuned from "shipped" before the policy changed names
 # its start this way (its config.json), so a report's CCE-gap over training starts from the right policy
-SHIPPED_EARLIER = {name: SHIPPED_POLICY.with_name(f"{name}.pt") for name in ("shipped_v1", "shipped_v2", "shipped_v3")}  # named as their files, like worldmodel.prior.PACKAGED
+SHIPPED_EARLIER = {name: SHIPPED_POLICY.with_name(f"{name}.pt") for name in ("shipped_v1", "shipped_v2", "shipped_v3", "shipped_v4")}  # named as their files, like worldmodel.prior.PACKAGED
 
 
 class CheckpointError(ValueError):

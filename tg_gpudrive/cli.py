@@ -202,7 +202,7 @@ def _evaluate_parser(sub) -> None:
     p = sub.add_parser("evaluate", help="goal/collision/off-road rates of a checkpoint or built-in policy")
     who = p.add_mutually_exclusive_group(required=True)
     who.add_argument("--checkpoint", help="a training checkpoint (checkpoint.pt or its run directory), or shipped "
-                                          "(the policy packaged with tg_gpudrive; shipped_v3, shipped_v2, shipped_v1: the ones before it); this or --policy is required")
+                                          "(the policy packaged with tg_gpudrive; shipped_v4 to shipped_v1: the ones before it); this or --policy is required")
     who.add_argument("--policy", choices=BUILTIN,
                      help="a built-in policy instead: " + POLICY_HELP + "; this or --checkpoint is required")
     _scene_args(p)
@@ -225,7 +225,7 @@ def _render_parser(sub) -> None:
     _scene_args(p)
     _engine_args(p)
     p.add_argument("--policy", default="expert",
-                   help="expert | random | constant | shipped (the packaged policy; shipped_v3, shipped_v2, shipped_v1: the ones before) | a training checkpoint "
+                   help="expert | random | constant | shipped (the packaged policy; shipped_v4 to shipped_v1: the ones before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
     _background_args(p)

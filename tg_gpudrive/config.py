@@ -286,7 +286,7 @@ class TrainConfig:
     prior_floor: float = 0.05  # expert prior (discrete): uniform share mixed in, bounds log p and keeps entropy
     prior_closed_loop: bool = True  # expert prior: the tracking action from the current state (else the logged one)
     # start the actor and critic from a trained run's weights (a checkpoint file, run directory or
-    # packaged name: "shipped", "shipped_v3", "shipped_v2", "shipped_v1"): fine-tuning, as TrafficGamer starts from a pretrained driver; the optimiser, the
+    # packaged name: "shipped", "shipped_v4" to "shipped_v1"): fine-tuning, as TrafficGamer starts from a pretrained driver; the optimiser, the
     # multipliers and the update count start fresh. "" = random init; a --resume ignores it
     init_policy: str = ""
     # bookkeeping
