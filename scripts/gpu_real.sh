@@ -8,13 +8,13 @@
 # Training longer than one device call: PHASE=train TIME_LIMIT=480 first, then, back to back on the warm machine,
 # RESUME=1 PHASE=train TIME_LIMIT=900 (each run continues from its checkpoint in $RUNS to 900 s in all), then PHASE=eval.
 # GPUS (e.g. "2 3", default every GPU) are the GPUs the runs take in turn; TIME_LIMIT (s, default 470) bounds each training; EVAL_SEEDS (default 0) the sampling seeds of the held-out
-# evaluation in ignore mode; URBAN_EXTRA (e.g. ",crossings=2,long_vehicles=0.1") adds generator knobs to the
+# evaluation in ignore mode; URBAN_EXTRA (e.g. ",long_vehicles=0.1") adds generator knobs to the
 # urban procedural part of every run. The plan (PLAN names a file of such lines; the default below is the
 # data-scaling curve): one run per line, "name real-store extra-settings [urban-extra]", where real-store is a store name under STORES
 # (womd_dev_train, womd_dev_train_5, ...; womd_dev_train+fast20 gives 20 % of the worlds to procedural scenes at
 # real speeds, taken from the urban half) or - for procedural scenes alone,
 # extra-settings a comma-separated list of --set KEY=VALUE (or -), and urban-extra generator knobs added to
-# this run's urban part after URBAN_EXTRA's (e.g. ",crossings=2"). A run whose name starts with "wm"
+# this run's urban part after URBAN_EXTRA's (e.g. ",long_vehicles=0.1"). A run whose name starts with "wm"
 # first fine-tunes the shipped world model on the same real scenes and the procedural mix, on roads
 # simplified as real_mix.yaml's (teacher
 # forcing, then one closed-loop round) and trains with it as the magnet; its traffic rates on the held-out
@@ -29,7 +29,7 @@ runs=${RUNS:-/tmp/runs}
 phase=${PHASE:-all}
 tg="python3 -m tg_gpudrive.cli"
 held=$stores/womd_dev_heldout
-urban_knobs="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5${URBAN_EXTRA:-}"
+urban_knobs="procedural:all[parking=0.8,stop_lines=0.5,kerb_stops=0.5,lane_offset=0.4,park_reach=1.5,pedestrians=2,lane_changes=0.5,crossings=2${URBAN_EXTRA:-}"
 read -ra gpus <<< "${GPUS:-$(seq -s' ' 0 $(($(nvidia-smi -L | wc -l) - 1)))}"
 plan="real0 - -
 real5 womd_dev_train_5 -

@@ -1,4 +1,4 @@
-"""The Python scripts scripts/gpu_measure.sh calls: each answers --help and runs on small files made
+"""The scripts of the GPU jobs (scripts/gpu_measure.sh, scripts/gpu_real.sh): each Python one answers --help and runs on
 here (metrics.csv / timing.csv / checkpoints written by hand, so no simulator is built)."""
 
 from __future__ import annotations
@@ -178,3 +178,19 @@ def test_budget_by_knob_prints_the_logs_and_the_policys_risk_per_knob():
     assert r.returncode == 0, r.stderr[-2000:]
     hinge = json.loads(r.stdout.strip().splitlines()[0])
     assert 0 < hinge["logs_cvar"] < rows[2]["logs_cvar"]
+
+
+def test_the_real_scene_job_trains_the_shipped_recipe(tmp_path):
+    """scripts/gpu_real.sh builds each run's scene mix itself (shares, generator knobs, the real store); for a plan
+    line on `womd_dev_train+fast20` with no extra generator knobs it is the mix of configs/train/real_mix.yaml, the
+    shipped policy's recipe, with the stores' folder in place of the default cache."""
+    import yaml
+
+    job = (SCRIPTS / "gpu_real.sh").read_text().splitlines()
+    knobs = next(line for line in job if line.startswith("urban_knobs="))
+    start = job.index(next(line for line in job if line.startswith("mix()")))
+    body = job[start:job.index("}", start) + 1]
+    script = "\n".join([f"stores={tmp_path}", knobs, *body, "mix womd_dev_train+fast20"])
+    got = subprocess.run(["bash", "-c", script], capture_output=True, text=True, timeout=60, check=True).stdout.strip()
+    recipe = yaml.safe_load((SCRIPTS.parent / "configs" / "train" / "real_mix.yaml").read_text())["scenes"]
+    assert got == recipe.replace("~/.cache/tg_gpudrive", str(tmp_path))
