@@ -1,5 +1,6 @@
-"""The scripts of the GPU jobs (scripts/gpu_measure.sh, scripts/gpu_real.sh): each Python one answers --help and runs on
-here (metrics.csv / timing.csv / checkpoints written by hand, so no simulator is built)."""
+"""The scripts of the GPU jobs (scripts/gpu_measure.sh, scripts/gpu_real.sh): each Python one answers --help and
+runs on small files made here (metrics.csv / timing.csv / checkpoints written by hand, so no simulator is built),
+and the real-scene job trains the recipe it names."""
 
 from __future__ import annotations
 
