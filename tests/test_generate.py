@@ -9,9 +9,10 @@ import json
 import pytest
 
 from tg_gpudrive import cli
+from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.evaluation.generate import FINE_TUNE, TABLE
+from tg_gpudrive.evaluation.generate import FINE_TUNE, KNOBS_ALONE, TABLE
 
 
 @pytest.mark.parametrize("traffic", [[], ["--set", "control=nearest_conflict", "--set", "control_k=1",
@@ -25,6 +26,8 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
     assert (run["lr"], run["entropy_coef"]) == (FINE_TUNE["lr"], FINE_TUNE["entropy_coef"])  # not the shipped run's
+    shipped = load_checkpoint("shipped", "shipped")["config"]["env"]["reward"]
+    assert shipped["ttc"] < 0 and run["env"]["reward"] == {**shipped, **KNOBS_ALONE}  # the knobs alone keep distance
     assert run["background"] == ("idm" if traffic else "log")
     rows = list(csv.DictReader(open(out / "scenarios.csv")))
     assert tuple(rows[0]) == TABLE and 1 <= len(rows) == len(res["scenarios"]) <= 2

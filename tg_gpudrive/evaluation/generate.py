@@ -68,13 +68,16 @@ class GenerateOptions:
 # the steps of a fine-tune, whatever the shipped policy was trained with: a trained driver moved with the
 # from-scratch recipe's learning rate and entropy bonus unlearns its driving within a hundred updates
 FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0}
+# reward terms that hold a driver back from its neighbours whatever the knobs (the shipped policy trains with a
+# time-to-collision charge): off in a fine-tune, so that beta and alpha alone decide how close the traffic presses
+KNOBS_ALONE = {"ttc": 0.0}
 
 
 def training_config(opts: GenerateOptions) -> TrainConfig:
     """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: fine-tuning's
-    steps (FINE_TUNE), no augmentation, no resampling, the time budget, one checkpoint at the end, then
-    `opts.overrides` (e.g. env.cost_horizon=1 keeps beta ahead of time, env.cost_shape=hinge). Every value is
-    checked as a config file's are (ConfigError naming the key)."""
+    steps (FINE_TUNE), no distance-keeping reward terms (KNOBS_ALONE), no augmentation, no resampling, the time
+    budget, one checkpoint at the end, then `opts.overrides` (e.g. env.cost_horizon=1 keeps beta ahead of time,
+    env.cost_shape=hinge). Every value is checked as a config file's are (ConfigError naming the key)."""
     base = to_dict(from_dict(TrainConfig, load_checkpoint("shipped", "shipped")["config"], "the shipped policy"))
     base["augment"] = to_dict(AugmentConfig())
     worlds = opts.num_worlds or (8 if opts.device == "cpu" else 256)
@@ -84,7 +87,7 @@ def training_config(opts: GenerateOptions) -> TrainConfig:
                 "checkpoint_every": opts.updates, "keep_policy_every": 0, "target_goal_rate": 0.0,
                 "target_heldout": "", "out_dir": str(Path(opts.out) / "policy"), **FINE_TUNE}
     base.update(settings)
-    base["env"] = {**base["env"], "beta": opts.beta}
+    base["env"] = {**base["env"], "beta": opts.beta, "reward": {**base["env"]["reward"], **KNOBS_ALONE}}
     return from_dict(TrainConfig, apply_overrides(base, list(opts.overrides)), "tg-gpudrive generate")
 
 
