@@ -66,11 +66,12 @@ def all_reduce_sum_(tensors: dict) -> None:
 
 
 def average_gradients_(params) -> None:
-    """The gradients of `params` averaged over the ranks in place, in one all-reduce of a flat copy. A
-    parameter without a gradient on this rank counts as a zero one, so every rank's buffer has the same
-    layout."""
+    """The gradients of `params` (any iterable, read only when distributed) averaged over the ranks in place, in
+    one all-reduce of a flat copy. A parameter without a gradient on this rank counts as a zero one, so every
+    rank's buffer has the same layout."""
     if not is_dist():
         return
+    params = list(params)
     for p in params:
         if p.grad is None:
             p.grad = torch.zeros_like(p)

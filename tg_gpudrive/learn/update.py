@@ -231,7 +231,7 @@ def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) 
     """The optimiser step on the gradients in place, after their average over the ranks (one all-reduce). Actor
     and critic are clipped apart: one joint norm lets the critic's large early regression gradients scale the
     policy's step down to nothing."""
-    dist_util.average_gradients_([p for group in opt.param_groups for p in group["params"]])
+    dist_util.average_gradients_(p for group in opt.param_groups for p in group["params"])
     torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
     torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
     opt.step()
