@@ -685,6 +685,26 @@ def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
         mod.main(["--config", str(exp), "--out", str(out), "--report-part", "2/2"])
 
 
+def test_run_experiments_leaves_the_distance_keeping_reward_to_the_knobs():
+    """real_mix.yaml charges closing in (env.reward.ttc); a grid over beta and alpha on it must not, unless it
+    says so, or the charge holds the drivers apart whatever the knobs ask."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    base = REPO_CONFIGS / "train" / "real_mix.yaml"
+    assert load_config(TrainConfig, base).env.reward.ttc < 0  # the premise: the base charges it
+    exp = {"base": "real_mix.yaml", "beta": [2.0, 6.0], "alpha": [0.5], "baselines": {"mappo": {"eta1": 0.0}}}
+    for name, sets in mod.plan(exp, []):
+        assert load_config(TrainConfig, base, overrides=sets).env.reward.ttc == 0.0, name
+    exp["overrides"] = {"env.reward.ttc": -0.1}  # named by the grid: kept
+    assert {load_config(TrainConfig, base, overrides=sets).env.reward.ttc for _, sets in mod.plan(exp, [])} == {-0.1}
+    # the repository's real-scene grid, resolved as run_experiments resolves it
+    exp = yaml.safe_load((REPO_CONFIGS / "experiments" / "grid_horizon_real.yaml").read_text())
+    assert all(load_config(TrainConfig, base, overrides=sets).env.reward.ttc == 0.0 for _, sets in mod.plan(exp, []))
+
+
 def test_flexibility_table_averages_the_last_updates(tmp_path):
     import importlib.util
 
