@@ -591,16 +591,22 @@ def test_the_report_says_whether_its_scenes_are_held_out():
     assert eval_scenes_text(files, ReportOptions(eval_scenes="womd/validation")) == "womd/validation"
 
 
+def _script(name: str):
+    """scripts/<name>.py as a module (scripts/ is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, capsys):
     """scripts/heldout_eval.py evaluates a run trained on the 2 vehicles nearest each conflict point
     with those 2 only (the rest replay their logs), and a built-in policy after it likewise."""
-    import importlib.util
-
     from tg_gpudrive.learn.train import Trainer
 
-    spec = importlib.util.spec_from_file_location("heldout_eval", REPO / "scripts" / "heldout_eval.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("heldout_eval")
     base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
     cfg = dataclasses.replace(base, num_worlds=2, num_scenes=2, rollout_steps=8, epochs=1, minibatches=1, hidden=16,
                               quantiles=4, updates=1, checkpoint_every=1, control="nearest_conflict", control_k=2,
@@ -622,11 +628,7 @@ def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, c
 
 
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("run_experiments")
     exp = tmp_path / "grid.yaml"
     exp.write_text("base: small_cpu.yaml\nbeta: [2.0, 4.0]\nalpha: [0.5]\nbaselines:\n  mappo: {eta1: 0.0}\nbatch: 3\n")
     assert mod.main(["--config", str(exp), "--out", str(tmp_path / "g"), "--gpus", "0,1", "--dry-run"]) == 0
@@ -652,13 +654,9 @@ def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
 
 
 def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
-    import importlib.util
-
     from tg_gpudrive.learn.train import Trainer
 
-    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("run_experiments")
     exp = tmp_path / "grid.yaml"
     exp.write_text("base: small_cpu.yaml\noverrides: {updates: 2}\nbeta: [2.0]\nalpha: [0.25, 0.75]\n"
                    "report: {scenes: 2, seeds: [0, 1], br_iters: 1, br_window: 1, br_patience: 1, br_min_iters: 1, "
@@ -688,11 +686,7 @@ def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
 def test_run_experiments_leaves_the_distance_keeping_reward_to_the_knobs():
     """real_mix.yaml charges closing in (env.reward.ttc); a grid over beta and alpha on it must not, unless it
     says so, or the charge holds the drivers apart whatever the knobs ask."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("run_experiments")
     base = REPO_CONFIGS / "train" / "real_mix.yaml"
     assert load_config(TrainConfig, base).env.reward.ttc < 0  # the premise: the base charges it
     exp = {"base": "real_mix.yaml", "beta": [2.0, 6.0], "alpha": [0.5], "baselines": {"mappo": {"eta1": 0.0}}}
@@ -706,11 +700,7 @@ def test_run_experiments_leaves_the_distance_keeping_reward_to_the_knobs():
 
 
 def test_flexibility_table_averages_the_last_updates(tmp_path):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("run_experiments", REPO / "scripts" / "run_experiments.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("run_experiments")
     run = tmp_path / "beta2.0_alpha0.5"
     run.mkdir()
     cols = ["update", *mod.FLEX_COLUMNS]
