@@ -189,7 +189,8 @@ def _train_parser(sub) -> None:
                    help="continue the run in --out exactly if it has a checkpoint, else start it there: the flag "
                         "for torchrun --max-restarts, whose restarts rerun the same command (default: off)")
     p.add_argument("--nproc", type=int, default=1,
-                   help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too")
+                   help="processes (one per GPU with device cuda; gloo processes on cpu); torchrun works too. "
+                        "num_worlds is per process: --set num_worlds=W/N keeps one process's batch")
     p.add_argument("--json", action="store_true", help="print the last update's metrics as JSON")
 
 

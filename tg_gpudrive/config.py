@@ -214,7 +214,7 @@ class TrainConfig:
     scenes: str = "procedural:all"  # scene spec (tg_gpudrive.data.sources)
     augment: AugmentConfig = AugmentConfig()  # augmentation of the drawn scenes (tg_gpudrive.data.augment)
     num_scenes: int = 1000  # distinct scenes drawn from the source
-    num_worlds: int = 64
+    num_worlds: int = 64  # worlds per process (per GPU): N processes step N x num_worlds
     resample_every: int = 0  # updates between scene resamples (0: never)
     control: ControlMode = ControlMode.VEHICLES  # vehicles | nearest_conflict | ids (engine.control)
     control_k: int = 5  # nearest_conflict: how many
