@@ -69,7 +69,8 @@ class GenerateOptions:
 # from-scratch recipe's learning rate and entropy bonus unlearns its driving within a hundred updates
 FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0}
 # reward terms that hold a driver back from its neighbours whatever the knobs (the shipped policy trains with a
-# time-to-collision charge): off in a fine-tune, so that beta and alpha alone decide how close the traffic presses
+# time-to-collision charge): off in a fine-tune and in every run of a knob grid (scripts/run_experiments.py), so
+# that beta and alpha alone decide how close the traffic presses
 KNOBS_ALONE = {"ttc": 0.0}
 
 
