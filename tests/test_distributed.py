@@ -40,16 +40,21 @@ def synthetic_batch(trainer) -> dict:
             "old": torch.randn(G, C, A, generator=g)}
 
 
-def grads_of(trainer, idx, dense: bool = False) -> list[torch.Tensor]:
+def grads_of(trainer, idx, fixed_rows: bool = False) -> list[torch.Tensor]:
     """The gradients of one optimiser step on the groups `idx` of the synthetic batch, averaged over the
-    ranks as every step averages them (update.clip_and_step). `dense`: the fixed-shape loss over every
-    slot, as a step of learn/graphs.py runs it."""
+    ranks as every step averages them (update.clip_and_step). `fixed_rows`: the loss over the live rows padded
+    with zero-weight fillers, as a step of learn/graphs.py runs it."""
     from tg_gpudrive.learn import distributed
-    from tg_gpudrive.learn.update import Groups, minibatch_loss
+    from tg_gpudrive.learn.update import Groups, minibatch_loss, padded_rows
 
     trainer.opt.zero_grad()
-    loss, _ = minibatch_loss(trainer.cfg, Groups.of(synthetic_batch(trainer)), idx, torch.full((4,), 0.3),
-                             trainer.nets, trainer.prior, dense=dense)  # one multiplier per slot
+    groups = Groups.of(synthetic_batch(trainer))
+    mi = groups.mask[idx]
+    rows, weight = None, None
+    if fixed_rows:
+        *rows, weight = padded_rows(mi.nonzero(as_tuple=True), mi.numel())
+    loss, _ = minibatch_loss(trainer.cfg, groups, idx, torch.full((4,), 0.3),
+                             trainer.nets, trainer.prior, rows, row_weight=weight)  # one multiplier per slot
     loss.backward()
     distributed.average_gradients_(trainer.params)
     return [p.grad.clone() for p in trainer.params]
@@ -62,7 +67,7 @@ def _grads_worker(rank, world, port, out, result, fixed_shape):
     with distributed.process_group(rank, world, port, "cpu"):
         tr = Trainer(dataclasses.replace(tiny_cfg(out / "two"), cuda_graphs=fixed_shape), progress=False)
         half = torch.arange(rank * G // 2, (rank + 1) * G // 2)
-        gr = grads_of(tr, half, dense=fixed_shape)
+        gr = grads_of(tr, half, fixed_rows=fixed_shape)
         if rank == 0:
             result.put([x.numpy() for x in gr])
 
@@ -84,32 +89,37 @@ def test_averaged_gradients_equal_single_process_union(tmp_path, fixed_shape):
     assert any(float(b.abs().sum()) > 0 for b in single)
 
 
-def _weights_worker(rank, world, port, out, result):
+def _weights_worker(rank, world, port, out, result, fixed_rows):
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import Trainer
 
     with distributed.process_group(rank, world, port, "cpu"):
-        cfg = dataclasses.replace(tiny_cfg(out), updates=2, minibatches=2)
+        cfg = dataclasses.replace(tiny_cfg(out), updates=2, minibatches=2, cuda_graphs=fixed_rows)
         tr = Trainer(cfg, progress=False)  # each rank seeds its own draws (seed + rank), its weights too
         first = torch.cat([p.detach().flatten() for p in tr.params])
         tr.train()
         last = torch.cat([p.detach().flatten() for p in tr.params])
         firsts, lasts = (distributed.gather_floats(x.tolist(), "cpu") for x in (first, last))
+        caps = distributed.gather_floats([float(tr.graphs.cap) if tr.graphs else 0.0], "cpu")
         if rank == 0:  # a few booleans: a large message would fill the queue's pipe before the parent reads it
-            result.put((firsts[0] == firsts[1], lasts[0] == lasts[1], float((last - first).abs().max())))
+            result.put((firsts[0] == firsts[1], lasts[0] == lasts[1], float((last - first).abs().max()),
+                        [c[0] for c in caps]))
 
 
 @pytest.mark.slow
-def test_the_ranks_start_from_rank_0s_weights_and_keep_them_equal(tmp_path):
+@pytest.mark.parametrize("fixed_rows", [False, True], ids=["live rows", "fixed-row steps"])
+def test_the_ranks_start_from_rank_0s_weights_and_keep_them_equal(tmp_path, fixed_rows):
     """The ranks draw different rollouts but take the same steps: they start from rank 0's weights and every
-    step applies the same averaged gradients, so their weights stay equal, and training moved them."""
+    step applies the same averaged gradients, so their weights stay equal, and training moved them. With the
+    fixed-row steps of learn/graphs.py the ranks hold one row capacity, so that they capture together."""
     from tg_gpudrive.learn.distributed import free_port
 
     ctx = mp.get_context("spawn")
     q = ctx.SimpleQueue()
-    mp.spawn(_weights_worker, args=(2, free_port(), tmp_path, q), nprocs=2)
-    same_start, same_end, moved = q.get()
+    mp.spawn(_weights_worker, args=(2, free_port(), tmp_path, q, fixed_rows), nprocs=2)
+    same_start, same_end, moved, caps = q.get()
     assert same_start and same_end and moved > 0
+    assert caps[0] == caps[1] and (caps[0] > 0) == fixed_rows
 
 
 @pytest.mark.slow

@@ -14,7 +14,7 @@ import torch
 
 from tg_gpudrive.learn import update as update_mod
 from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
-from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, ppo_update
+from tg_gpudrive.learn.update import advantages, flatten, minibatch_loss, padded_rows, ppo_update
 
 from test_learn_collector_update import CASES, _setup
 
@@ -45,8 +45,16 @@ def _spoil(x, dead):
     return torch.where(d, bad, x)
 
 
+def every_slot(mask):
+    """Rows of every slot of a minibatch's groups (mask (n, C)), the dead ones weighted 0: the fillers are the dead
+    slots themselves."""
+    n, C = mask.shape
+    return torch.arange(n).repeat_interleave(C), torch.arange(C).repeat(n), mask.reshape(-1).float()
+
+
+@pytest.mark.parametrize("fillers", ["padded", "every slot"])
 @pytest.mark.parametrize("case", CASES)
-def test_the_dense_loss_is_the_live_rows_loss_whatever_the_dead_slots_hold(tmp_path, case):
+def test_the_fixed_row_loss_is_the_live_rows_loss_whatever_the_fillers_read(tmp_path, case, fillers):
     cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, case)
     batch = collector.collect()
     groups = flatten(batch, advantages(cfg, batch), nets.head.discrete)
@@ -56,16 +64,45 @@ def test_the_dense_loss_is_the_live_rows_loss_whatever_the_dead_slots_hold(tmp_p
     idx = torch.randperm(groups.mask.shape[0], generator=torch.Generator().manual_seed(3))[:11]
     lam = torch.linspace(0.1, 0.9, groups.mask.shape[1])
     loss, parts = minibatch_loss(cfg, groups, idx, lam, nets, prior)
-    dense, dparts = minibatch_loss(cfg, _junk(groups), idx, lam, nets, prior, dense=True)
-    torch.testing.assert_close(dense, loss, rtol=1e-5, atol=1e-6)
+    first = int(groups.mask[idx, 0].float().argmax())  # a group whose slot 0 is live, first: the fillers repeat it
+    assert bool(groups.mask[idx[first], 0])
+    idx = torch.cat([idx[first:first + 1], idx[:first], idx[first + 1:]])
+    mi = groups.mask[idx]
+    if fillers == "padded":  # fillers at (0, 0), a live row read again with weight 0
+        g, c, w = padded_rows(mi.nonzero(as_tuple=True), int(mi.sum()) + 9)
+    else:
+        g, c, w = every_slot(mi)
+    fixed, fparts = minibatch_loss(cfg, _junk(groups), idx, lam, nets, prior, (g, c), row_weight=w)
+    torch.testing.assert_close(fixed, loss, rtol=1e-5, atol=1e-6)
     for k in parts:
-        torch.testing.assert_close(dparts[k], parts[k], rtol=1e-5, atol=1e-6)
-    for a, b in zip(_grads(dense, nets), _grads(loss, nets)):
+        torch.testing.assert_close(fparts[k], parts[k], rtol=1e-5, atol=1e-6)
+    for a, b in zip(_grads(fixed, nets), _grads(loss, nets)):
         if b is None:
             assert a is None or not bool(a.any())
             continue
         assert bool(torch.isfinite(a).all())
         torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_padded_rows_put_the_live_rows_first_and_weigh_the_fillers_zero():
+    g, c, w = padded_rows((torch.tensor([0, 2, 2]), torch.tensor([1, 0, 3])), 5)
+    assert g.tolist() == [0, 2, 2, 0, 0] and c.tolist() == [1, 0, 3, 0, 0] and w.tolist() == [1, 1, 1, 0, 0]
+    out = (torch.full((4,), 7), torch.full((4,), 7), torch.full((4,), 7.0))  # stale buffers are overwritten
+    assert padded_rows((torch.tensor([1]), torch.tensor([2])), 4, out) is out
+    assert out[0].tolist() == [1, 0, 0, 0] and out[1].tolist() == [2, 0, 0, 0] and out[2].tolist() == [1, 0, 0, 0]
+    with pytest.raises(ValueError, match="3 live rows do not fit in 2"):
+        padded_rows((torch.tensor([0, 1, 2]), torch.tensor([0, 0, 0])), 2)
+
+
+def test_the_step_capacity_rounds_up_to_a_sixteenth_and_never_shrinks_until_new_buffers(tmp_path):
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete")
+    steps = StepGraphs(cfg, nets, opt)
+    assert steps.capacity(100, 320) == 100  # sixteenths of 320 slots: 20
+    assert steps.capacity(101, 320) == 120
+    assert steps.capacity(0, 320) == 20  # at least one row
+    assert steps.capacity(400, 320) == 320  # never more than the slots
+    steps.cap = 120
+    assert steps.capacity(30, 320) == 120
 
 
 def _updates(tmp_path, device, graphs: bool, capture: bool = True, n: int = 3, compiled: bool = False):

@@ -137,11 +137,14 @@ class CentralCritic(nn.Module):
         self.cost_head = mlp([2 * hidden, hidden, quantiles], last_act=False)
 
     def forward(self, obs: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None,
-                head_rows: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                head_rows: torch.Tensor | None = None,
+                row_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`rows`: the flat indices of mask's True entries, when the caller has them already
         (finding them costs a host-device synchronisation). `head_rows`: flat slot indices at which
         to evaluate the heads alone (value (R,), quantiles (R, N)), as a learner that reads only
-        the live slots needs: the padded slots' heads are then never computed."""
+        the live slots needs: the padded slots' heads are then never computed. `row_weight` (R,): rows
+        of a fixed count, the live ones weighted 1 and fillers 0 (they may repeat an index and read
+        anything): the fillers are encoded as zero observations and add nothing."""
         lead = obs.shape[:-2]
         C = obs.shape[-2]
         m = mask.reshape(-1, C)
@@ -149,8 +152,16 @@ class CentralCritic(nn.Module):
         flat = obs.reshape(-1, obs.shape[-1])
         if rows is None:
             rows = m.reshape(-1).nonzero(as_tuple=True)[0]
-        enc = self.encoder(flat[rows])
-        h = enc.new_zeros(flat.shape[0], self.attn.embed_dim).index_copy(0, rows, enc).reshape(-1, C, self.attn.embed_dim)
+        x = flat[rows]
+        if row_weight is not None:
+            x = torch.where(row_weight[:, None] > 0, x, 0)
+        enc = self.encoder(x)
+        h = enc.new_zeros(flat.shape[0], self.attn.embed_dim)
+        if row_weight is None:
+            h = h.index_copy(0, rows, enc)
+        else:  # a sum, so that fillers repeating a live row's index add their zero to it
+            h = h.index_add(0, rows, enc * row_weight[:, None].to(enc.dtype))
+        h = h.reshape(-1, C, self.attn.embed_dim)
         # a world with no valid agent still needs one key to attend to
         key_pad = ~m & m.any(dim=1, keepdim=True)
         pooled, _ = self.attn(h, h, h, key_padding_mask=key_pad, need_weights=False)

@@ -59,6 +59,15 @@ def every_rank(ok: bool, device) -> bool:
     return bool(flag > 0)
 
 
+def max_over_ranks(values: list[int], device) -> list[int]:
+    """Each of `values`, the largest over the ranks (a collective: every rank calls it at the same point)."""
+    if not is_dist():
+        return list(values)
+    t = torch.tensor(values, dtype=torch.long, device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return t.tolist()
+
+
 def all_reduce_sum_(tensors: dict) -> None:
     if is_dist():
         for t in tensors.values():

@@ -4,10 +4,12 @@
 At the learner's sizes a minibatch is a few dozen groups, and its step (the actor, the critic, the losses,
 their backward pass: several hundred small kernels) is bound by launching those kernels from Python, not by
 their arithmetic: halving the data a rank holds then leaves the update's time where it was, and more GPUs
-do not shorten training. Here a step's loss runs over every slot of its groups (update.minibatch_loss with
-`dense`: dead slots weigh 0, so the losses and gradients are those of the live rows), which fixes its shapes
-for a rollout's shape. Its forward and backward pass are captured once and replayed for every minibatch,
-which reads its groups through a fixed index buffer from fixed copies of the rollout. What follows a replay
+do not shorten training. Here a step's loss runs over a fixed number of rows (update.minibatch_loss with
+`row_weight`): its live rows, padded with fillers of weight 0 up to a capacity a little above the most live rows
+of any minibatch (update.padded_rows, StepGraphs.capacity), so the losses and gradients are those of the live
+rows and the shapes are fixed while the capacity holds. Its forward and backward pass are captured once and
+replayed for every minibatch, which reads its groups and rows through fixed buffers from fixed copies of the
+rollout. Finding the live rows costs a host sync an epoch, before its first step. What follows a replay
 runs eagerly, a few kernels over all the weights at once: the ranks' gradient average (an all-reduce of one
 flat buffer, as after a live-row step), clipping and Adam.
 
@@ -15,7 +17,7 @@ A rollout's step is bound the same way (a few hundred small operators around the
 RolloutGraphs captures what comes before and after the engine's step.
 
 On the CPU the same fixed-shape steps run without graphs. A capture that fails (an operation that cannot be
-captured, or memory: the steps over every slot need more of it than the live rows) is logged once, its
+captured, or memory: the padded rows and a graph's own pool need more of it than the live rows) is logged once, its
 memory is given back, and training goes on as without graphs, on the live rows.
 
 A replay saves the host its launches, not the device its kernels: at these sizes each of a step's kernels costs
@@ -36,7 +38,7 @@ from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import Networks
-from tg_gpudrive.learn.update import Groups, clip_and_step, eager_steps, minibatch_loss
+from tg_gpudrive.learn.update import Groups, clip_and_step, eager_steps, epoch_live_rows, minibatch_loss, padded_rows
 
 log = logging.getLogger(__name__)
 Tensor = torch.Tensor
@@ -108,6 +110,8 @@ class StepGraphs:
         self.capturable = True  # whether to capture (False: the fixed-shape steps run eagerly)
         self.fallen_back = False  # a capture failed: the updates run update.eager_steps
         self.warm = 0
+        self.cap = 0  # rows a step holds (capacity)
+        self.rows: tuple[Tensor, Tensor, Tensor] = ()  # the step's rows: positions, slots, weights (padded_rows)
         self.captures = 0
         self.stream = None  # the side stream of the warm-up steps and the capture
 
@@ -126,41 +130,66 @@ class StepGraphs:
         n_groups = b.mask.shape[0]
         mb = max(1, n_groups // self.cfg.minibatches)
         self.prior = prior
-        self._load(b, lam, mb, id(prior))
+        # every epoch's order and its minibatches' live rows, found before the first step (a host sync an epoch)
+        perms = [torch.randperm(n_groups, generator=gen, device=b.mask.device) for _ in range(self.cfg.epochs)]
+        lives = [epoch_live_rows(b.mask[perm], mb) for perm in perms]
+        need = max((len(g) for live in lives for g, _ in live[:n_groups // mb]), default=0)
+        key = (mb, id(prior), _signature(lam), tuple(_signature(getattr(b, f.name)) for f in dataclasses.fields(b)))
+        # the ranks capture together (_capture agrees across them): one capacity on every rank, and new buffers
+        # on every rank when one rank's rollout changed shape (their rollouts may hold different slots)
+        need, slots, new = dist_util.max_over_ranks([need, mb * b.mask.shape[1], int(key != self.key)], b.mask.device)
+        self._load(b, lam, mb, key, bool(new), self.capacity(need, slots))
         for v in self.acc.values():
             v.zero_()
         self.bad.zero_()
         n_mb = 0
-        for _ in range(self.cfg.epochs):
-            perm = torch.randperm(n_groups, generator=gen, device=b.mask.device)
-            for s in range(0, n_groups, mb):
+        for perm, live in zip(perms, lives):
+            for s, rows in zip(range(0, n_groups, mb), live):
                 chunk = perm[s:s + mb]
                 if len(chunk) == mb:
                     self.idx.copy_(chunk)
+                    padded_rows(rows, self.cap, self.rows)
                     self._step()
                 else:  # the epoch's short last minibatch: its own shapes, so not replayed
-                    self._eager(chunk)
+                    self._eager(chunk, rows)
                 n_mb += 1
         return self.acc, self.bad, n_mb
 
     # ------------------------------------------------------------------ internals
-    def _load(self, b: Groups, lam: Tensor, mb: int, prior_id: int) -> None:
-        """The rollout into the fixed buffers; new buffers (and a new capture) when its shapes changed."""
-        key = (mb, prior_id, _signature(lam), tuple(_signature(getattr(b, f.name)) for f in dataclasses.fields(b)))
-        if key != self.key:
-            self.key, self.graph, self.grads, self.warm = key, None, [], 0
+    def capacity(self, need: int, slots: int) -> int:
+        """Rows a step holds: `need` (the most live rows of a minibatch) rounded up to a sixteenth of the
+        minibatch's `slots`, never fewer than it held before, so that a rollout with a few more live rows than
+        the last rarely asks for a new capture."""
+        q = max(1, -(-slots // 16))
+        return min(slots, max(self.cap, -(-max(need, 1) // q) * q))
+
+    def _load(self, b: Groups, lam: Tensor, mb: int, key: tuple, new: bool, cap: int) -> None:
+        """The rollout into the fixed buffers; new buffers (and a new capture) when its shapes (`key`) changed
+        here or on another rank (`new`), or the rows a step holds (`cap`, from capacity) did."""
+        dev = b.mask.device
+        if new:
+            self.key, self.graph, self.grads, self.warm, self.cap = key, None, [], 0, 0
             self.b = Groups(**{f.name: _static(getattr(b, f.name)) for f in dataclasses.fields(b)})
             self.lam = lam.clone()
-            self.idx = torch.zeros(mb, dtype=torch.long, device=b.mask.device)
-            self.bad = torch.zeros((), dtype=torch.bool, device=b.mask.device)
+            self.idx = torch.zeros(mb, dtype=torch.long, device=dev)
+            self.bad = torch.zeros((), dtype=torch.bool, device=dev)
             self.acc: dict[str, Tensor] = {}
         else:
             for f in dataclasses.fields(b):
                 _fill(getattr(self.b, f.name), getattr(b, f.name))
             self.lam.copy_(lam)
+        if cap != self.cap:  # new row buffers: the capture reads them
+            self.cap, self.graph, self.grads, self.warm = cap, None, [], 0
+            self.rows = (torch.zeros(cap, dtype=torch.long, device=dev), torch.zeros(cap, dtype=torch.long, device=dev),
+                         torch.zeros(cap, device=dev))
 
-    def _forward_backward(self, idx: Tensor, loss_fn) -> None:
-        loss, parts = loss_fn(self.cfg, self.b, idx, self.lam, self.nets, self.prior, dense=True)
+    def _forward_backward(self, idx: Tensor, loss_fn, rows: tuple[Tensor, Tensor] | None = None) -> None:
+        """A step's loss and backward pass: over the fixed row buffers, or over the live `rows` given."""
+        if rows is None:
+            g, c, w = self.rows
+            loss, parts = loss_fn(self.cfg, self.b, idx, self.lam, self.nets, self.prior, (g, c), row_weight=w)
+        else:
+            loss, parts = loss_fn(self.cfg, self.b, idx, self.lam, self.nets, self.prior, rows)
         self.bad |= ~torch.isfinite(loss)
         for k, v in parts.items():
             if k not in self.acc:
@@ -172,10 +201,10 @@ class StepGraphs:
         with phase("update/optimizer"):
             clip_and_step(self.cfg, self.nets, self.opt)
 
-    def _eager(self, idx: Tensor, loss_fn=minibatch_loss) -> None:
+    def _eager(self, idx: Tensor, rows: tuple[Tensor, Tensor] | None = None, loss_fn=minibatch_loss) -> None:
         with phase("update/forward"):
             self.opt.zero_grad(set_to_none=True)
-            self._forward_backward(idx, loss_fn)
+            self._forward_backward(idx, loss_fn, rows)
         self._after_backward()
 
     def _step(self) -> None:
@@ -194,7 +223,7 @@ class StepGraphs:
             on_side_stream(lambda: self._forward_backward(self.idx, self.loss), self._side())
             self._after_backward()
         else:
-            self._eager(self.idx, self.loss)
+            self._eager(self.idx, loss_fn=self.loss)
         self.warm += 1
 
     def _side(self) -> torch.cuda.Stream:
@@ -202,7 +231,7 @@ class StepGraphs:
         return self.stream
 
     def _fall_back(self) -> None:
-        """After a failed capture: this update's remaining steps run eagerly over every slot, the next updates
+        """After a failed capture: this update's remaining steps run eagerly over the padded rows, the next updates
         on the live rows (eager_steps); the capture's memory is given back now, the fixed copies at the next
         update."""
         self.capturable, self.fallen_back = False, True

@@ -151,19 +151,17 @@ def live_only(x: Tensor, w: Tensor) -> Tensor:
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
                    prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None,
-                   dense: bool = False) -> tuple[Tensor, dict]:
+                   row_weight: Tensor | None = None) -> tuple[Tensor, dict]:
     """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups
     (attention over each group's slots) with their heads on the live rows only. `live`: the live rows as
     (position in idx, slot), in row-major order, when the caller has them (else found here, a host sync).
-    `dense`: every slot of every group instead, the dead ones weighted 0 in every mean (the same losses and
-    gradients): shapes that depend on the minibatch's size alone, as a CUDA graph needs (graphs.StepGraphs)."""
+    `row_weight`: `live` is then rows of a fixed count (padded_rows), the live ones weighted 1 and fillers 0
+    in every mean (the same losses and gradients, whatever the fillers read): shapes that do not depend on
+    the minibatch's live rows, as a CUDA graph needs (graphs.StepGraphs)."""
     mi = b.mask[idx]
-    weight, w = 1.0, None
-    if dense:
-        n, C = mi.shape
-        g = torch.arange(n, device=idx.device).repeat_interleave(C)
-        c = torch.arange(C, device=idx.device).repeat(n)
-        w = mi.reshape(-1).float()
+    weight, w = 1.0, row_weight
+    if w is not None:
+        g, c = live
     else:
         # the actor is per agent: run it on the live rows only (often under half of W x C)
         g, c = mi.nonzero(as_tuple=True) if live is None else live
@@ -181,14 +179,9 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         lam_rows = lam[c] if cfg.per_agent_lambda else lam
     obs = pick(b.obs)
     flat = g * mi.shape[1] + c
-    with nets.autocast(cache=not dense):
+    with nets.autocast(cache=w is None):
         out = nets.actor(obs, c, None if b.hist is None else pick(b.hist))
-        if dense:  # every slot encoded, the dead ones as zeros: only the live keys are attended to
-            group_obs = b.obs[idx]
-            group_obs = live_only(group_obs.reshape(n * C, -1), w).reshape(group_obs.shape)
-            v, q = nets.critic(group_obs, mi, flat, head_rows=flat)
-        else:
-            v, q = nets.critic(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat)
+        v, q = nets.critic(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat, row_weight=w)
     out, v, q = nets.float_out(out), v.float(), q.float()
     head = nets.head
     d = head.dist(out)
@@ -216,6 +209,26 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
              "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
              "clip_frac": st["clip_frac"]}
     return loss, parts
+
+
+def padded_rows(live: tuple[Tensor, Tensor], cap: int,
+                out: tuple[Tensor, Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """The live rows (position, slot) of a minibatch as `cap` rows for minibatch_loss's `row_weight`:
+    (positions, slots, weights), the live rows first with weight 1, then fillers at (0, 0) with weight 0.
+    `out`: three tensors of `cap` entries to write them into (a CUDA graph's fixed buffers)."""
+    g, c = live
+    n = len(g)
+    if n > cap:
+        raise ValueError(f"{n} live rows do not fit in {cap}")
+    if out is None:
+        out = (torch.empty(cap, dtype=torch.long, device=g.device), torch.empty(cap, dtype=torch.long, device=g.device),
+               torch.empty(cap, device=g.device))
+    for dst, src in zip(out[:2], (g, c)):
+        dst[:n].copy_(src)
+        dst[n:].zero_()
+    out[2][:n].fill_(1.0)
+    out[2][n:].zero_()
+    return out
 
 
 def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
