@@ -841,3 +841,20 @@ def test_best_response_to_the_world_model_starts_at_its_distribution():
     # the driver's logits are the model's, tempered, on the rows it drove (the policy agents) only
     pa = sim.policy_agents
     assert bool((driver.last_out[~pa].abs().sum(-1) == 0).all()) and bool((driver.last_out[pa].abs().sum(-1) > 0).any())
+
+
+def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
+    """scripts/advantage_balance.py on the shipped policy: at the run's own alpha the weighted cost advantage is
+    the run's own (correlation 1, the same std); one alpha against itself flips no sign; a different alpha
+    reads the same rows with another tail of the cost critic."""
+    mod = _script("advantage_balance")
+    own = mod.run_config("shipped", None, 4, "cpu")[0].alpha
+    same = mod.balance("shipped", "procedural:all", [own, own], num_worlds=4, rollouts=1, device="cpu")
+    assert same["live_rows"] > 0 and same["std_a_r"] > 0
+    assert same["sign_flips"] == 0.0 and same["mean_abs_change_over_std"] == 0.0
+    assert same["per_alpha"][str(own)]["std_lambda_a_c"] == pytest.approx(same["std_lambda_a_c"])
+    other = 0.95 if own < 0.5 else 0.05
+    moved = mod.balance("shipped", "procedural:all", [own, other], num_worlds=4, rollouts=1, device="cpu")
+    assert moved["live_rows"] == same["live_rows"]  # the same seed drives the same rollout
+    assert moved["per_alpha"][str(own)]["corr_with_own"] == pytest.approx(1.0)
+    assert moved["per_alpha"][str(other)]["std_lambda_a_c"] != pytest.approx(same["std_lambda_a_c"])

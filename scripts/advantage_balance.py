@@ -1,0 +1,110 @@
+"""How much of the actor's advantage the distance cost carries, and how much the risk level alpha moves it.
+
+    python scripts/advantage_balance.py --runs RUN [RUN ...] --scenes STORE [--alphas 0.125 0.875] \\
+        [--num-worlds 32] [--rollouts 2] [--device cpu] [--json]
+
+The actor of CCE-MAPPO ascends A = A_r - lambda A_c (update.minibatch_loss, losses.cce_mappo_actor_loss), where
+A_c is the CVaR_alpha-GAE advantage of the cost read from the run's quantile critic. alpha can move a policy only
+through A_c, so two things bound what it can do: how large lambda A_c is beside A_r, and how different A_c is at
+two alphas. Per run, its own networks and last multipliers drive its own training scenes (`--scenes` replaces a
+store path that no longer exists here) for `--rollouts` rollouts of `--num-worlds` worlds, and over the live rows:
+- std of A_r and of lambda A_c at the run's alpha (and their ratio);
+- per alpha in `--alphas`, the std of lambda A_c and its correlation with the run's own;
+- the share of live rows whose combined advantage changes sign between the first and the last alpha, and the mean
+  |change| of A against the std of A (the normalised step the actor sees).
+Numbers only; it never fails on them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import torch
+
+from tg_gpudrive.checkpoint import load_checkpoint
+from tg_gpudrive.config import TrainConfig, apply_overrides, from_dict
+from tg_gpudrive.learn import losses as L
+from tg_gpudrive.learn.train import Trainer
+
+
+def run_config(run: str, scenes: str | None, num_worlds: int, device: str) -> tuple[TrainConfig, dict]:
+    ck = load_checkpoint(run, "--runs")
+    sets = [f"init_policy={Path(run) / 'checkpoint.pt' if Path(run).is_dir() else run}", f"num_worlds={num_worlds}",
+            f"device={device}", "cuda_graphs=false", "compile_update=false", "resample_every=0"]
+    if scenes:
+        sets.append(f"scenes={scenes}")
+    return from_dict(TrainConfig, apply_overrides(ck["config"], sets), run), ck
+
+
+def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, rollouts: int, device: str) -> dict:
+    cfg, ck = run_config(run, scenes, num_worlds, device)
+    with tempfile.TemporaryDirectory() as out:
+        tr = Trainer(cfg, out, progress=False)
+        lam = ck["lagrange"]["lam"].to(tr.device) if "lagrange" in ck else torch.zeros((), device=tr.device)
+        rows = {"a_r": [], **{a: [] for a in alphas}, "own": []}
+        lam_used = []
+        for _ in range(rollouts):
+            b = tr.collector.collect()
+            adv_r, _ = L.gae(b.reward, b.value, b.done, cfg.gamma, cfg.gae_lambda)
+            quant = b.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+            C = b.mask.shape[-1]
+            lam_c = lam[:C] if lam.dim() == 1 else lam.mean()  # per slot; one for all (0-d) or per vehicle (their mean)
+            live = b.mask
+            lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
+            rows["a_r"].append(adv_r[live])
+            for a in {*alphas, cfg.alpha}:
+                adv_c, _ = L.cvar_gae(b.cost, quant, b.done, a, cfg.gamma, cfg.gae_lambda)
+                weighted = (lam_c * adv_c)[live]
+                if a in rows:
+                    rows[a].append(weighted)
+                if a == cfg.alpha:
+                    rows["own"].append(weighted)
+    cat = {k: torch.cat(v).float() for k, v in rows.items()}
+    a_r, own = cat["a_r"], cat["own"]
+    first, last = cat[alphas[0]], cat[alphas[-1]]
+    comb_first, comb_last = a_r - first, a_r - last
+    corr = lambda x, y: float(torch.corrcoef(torch.stack([x, y]))[0, 1]) if x.std() > 0 and y.std() > 0 else 0.0  # noqa: E731
+    return {
+        "run": run, "alpha": cfg.alpha, "beta": cfg.env.beta, "live_rows": int(a_r.numel()),
+        "lambda_mean": float(torch.cat(lam_used).mean()),  # over the slots that held agents
+        "std_a_r": float(a_r.std()), "std_lambda_a_c": float(own.std()),
+        "cost_share": float(own.std() / a_r.std().clamp(min=1e-12)),
+        "per_alpha": {str(a): {"std_lambda_a_c": float(cat[a].std()), "corr_with_own": corr(cat[a], own)}
+                      for a in alphas},
+        "sign_flips": float(((comb_first > 0) != (comb_last > 0)).float().mean()),
+        "mean_abs_change_over_std": float((comb_first - comb_last).abs().mean() / comb_first.std().clamp(min=1e-12)),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", nargs="+", required=True, help="run directories or policy checkpoints")
+    p.add_argument("--scenes", default=None, help="the runs' training scenes here (default: as their configs say)")
+    p.add_argument("--alphas", type=float, nargs="+", default=[0.125, 0.875])
+    p.add_argument("--num-worlds", type=int, default=32)
+    p.add_argument("--rollouts", type=int, default=2)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--json", action="store_true", help="one JSON line per run instead of the table")
+    args = p.parse_args(argv)
+    if not args.json:
+        print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
+              + " | ".join(f"std at alpha {a} (corr)" for a in args.alphas)
+              + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A |")
+        print("|" + "---|" * (10 + len(args.alphas)))
+    for run in args.runs:
+        r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device)
+        if args.json:
+            print(json.dumps(r), flush=True)
+            continue
+        per = " | ".join(f"{v['std_lambda_a_c']:.4f} ({v['corr_with_own']:.2f})" for v in r["per_alpha"].values())
+        print(f"| {Path(run).name} | {r['beta']} | {r['alpha']} | {r['live_rows']} | {r['lambda_mean']:.2f} | "
+              f"{r['std_a_r']:.4f} | {r['std_lambda_a_c']:.4f} | {r['cost_share']:.3f} | {per} | "
+              f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
