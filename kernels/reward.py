@@ -26,7 +26,8 @@ that look-ahead at constant velocity), shaped by `cost_shape`:
            costs nearly 1 and a pass just inside beta nearly 0
 The distance is capped at
 the world's `nearest_cap` (kernels/collision.py); the cost is exact only because
-the Model builder keeps that cap >= beta.
+the Model builder keeps that cap >= beta. A step in contact with another agent (`collided`) costs at least
+`cost_collision` (0 by default): the cost's top, whatever beta.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ def reward_kernel(
     goal_radius: float,
     beta: float,
     cost_hinge: int,  # 0: step, 1: hinge (config.COST_SHAPES)
+    cost_collision: float,  # the least cost of a step in contact
     speed_limit: float,
     lane_cap: float,
     ttc_on: int,
@@ -103,12 +105,14 @@ def reward_kernel(
         c = 1.0
         if cost_hinge == 1:
             c = (beta - cost_dist[i]) / beta
+    if collided[i] != 0:
+        c = wp.max(c, cost_collision)
     cost_out[i] = c
 
 
 def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.speed_limit, model.lane_cap,
+              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.cost_collision, model.speed_limit, model.lane_cap,
                       model.ttc_on, model.ttc_horizon, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
                       state.cost_dist, state.ttc, state.ep_goal, state.ep_offroad, state.goal_dist],

@@ -13,7 +13,7 @@ import pytest
 import reference as ref
 import torch
 
-from tg_gpudrive.config import EngineConfig, RewardConfig
+from tg_gpudrive.config import ConfigError, EngineConfig, RewardConfig
 from tg_gpudrive.data.procedural.dense import dense_scene
 from tg_gpudrive.data.simplify import simplify_scene
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
@@ -410,6 +410,35 @@ def test_cost_horizon_keeps_beta_ahead_of_time(device):
     np.testing.assert_allclose(got[0.0], [0.0, 0.0, 0.0], atol=1e-5)
     np.testing.assert_allclose(got[1.0], [(8 - 5.0) / 8, (8 - 5.0) / 8, 0.0], atol=1e-4)
     np.testing.assert_allclose(got[2.0], [(8 - 3.0) / 8, (8 - 3.0) / 8, 0.0], atol=1e-4)
+
+
+def test_cost_collision_puts_a_contact_at_the_top_of_the_cost(device):
+    """Cars 0 and 1 drive 4 m apart, nose to tail (boxes 4.5 m long: in contact); car 2 drives 30 m ahead. Under
+    beta 2 the distance cost of the contact is 0 (the centres are 4 m apart); with cost_collision c the contact
+    costs max(0, c), and under the hinge at beta 8 max((8 - 4) / 8, c). Car 2, in contact with no one, costs
+    nothing either way."""
+    pos = np.zeros((3, T, 2))
+    for a, x in enumerate([0.0, 4.0, 34.0]):
+        pos[a, :, 0] = x + np.arange(T) * 1.0
+    pos[:, -1, 0] += 200  # far goals
+    vel = np.zeros((3, T, 2))
+    vel[:, :, 0] = 10.0
+    sc = make_scene(pos, np.zeros((3, T)), log_vel=vel, length=np.full(3, 4.5))
+    got = {}
+    for beta, coll in ((2.0, 0.0), (2.0, 1.0), (2.0, 0.3), (8.0, 0.3), (8.0, 0.9)):
+        c = cfg(action_space="continuous", control="all_agents", beta=beta, cost_shape="hinge", cost_collision=coll)
+        sim = Simulator([sc], c, device)
+        sim.reset()
+        sim.step(torch.zeros((1, 32, 2), device=device))
+        assert sim.collided[0, :3].tolist() == [1, 1, 0]
+        got[beta, coll] = sim.cost[0, :3].cpu().numpy()
+    np.testing.assert_allclose(got[2.0, 0.0], [0.0, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(got[2.0, 1.0], [1.0, 1.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(got[2.0, 0.3], [0.3, 0.3, 0.0], atol=1e-5)
+    np.testing.assert_allclose(got[8.0, 0.3], [0.5, 0.5, 0.0], atol=1e-4)  # the hinge is above it
+    np.testing.assert_allclose(got[8.0, 0.9], [0.9, 0.9, 0.0], atol=1e-5)
+    with pytest.raises(ConfigError, match="cost_collision"):
+        cfg(cost_collision=1.5)
 
 
 def test_goal_reached_term(device):

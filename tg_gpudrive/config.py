@@ -122,6 +122,10 @@ class EngineConfig:
     # s: the cost's distance is the least one over the next cost_horizon seconds at constant velocity
     # (0: the distance now, TrafficGamer's), so a car closing fast pays before beta is crossed
     cost_horizon: float = 0.0
+    # the cost of a step in contact with another agent: the step costs max(distance cost, cost_collision), so a
+    # collision is the top of the cost's distribution whatever beta (a rear-end contact at 4.5 m costs nothing
+    # under beta 2 otherwise) and the risk level alpha's tail reads it (0: the distance cost alone, TrafficGamer's)
+    cost_collision: float = 0.0
     partner_k: int = 16
     partner_radius: float = 50.0
     road_k: int = 128
@@ -158,7 +162,7 @@ class EngineConfig:
         check_ranges(self, {
             "max_agents": "[1, 1024]", "view_angle": "(0, 360]", "accel_bins": "[3, 1001]", "curvature_bins": "[3, 1001]", "max_accel": "(0, 100]",
             "max_curvature": "(0, 10]", "delta_max": "(0, 100]", "init_steps": "[0, 10000]", "goal_radius": "(0, 1000]",
-            "beta": "[0, 1000]", "cost_horizon": "[0, 60]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
+            "beta": "[0, 1000]", "cost_horizon": "[0, 60]", "cost_collision": "[0, 1]", "partner_k": "[1, 1024]", "partner_radius": "(0, 1000]", "road_k": "[1, 4096]",
             "road_radius": "(0, 1000]", "road_query_radius": "(0, 100]", "road_simplify": "[0, 10]", "max_segment_length": "[0.5, 1000]",
             "road_cell_size": "[1, 1000]", "collision_cells": "[1, 1048576]"}, odd=("accel_bins", "curvature_bins"))
 

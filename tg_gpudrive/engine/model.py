@@ -49,7 +49,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_behaviour      GoalBehaviour value
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
-    goal_radius, beta, cost_hinge, cost_players, speed_limit, lane_cap  reward and cost parameters
+    goal_radius, beta, cost_hinge, cost_players, cost_collision, speed_limit, lane_cap  reward and cost parameters
     cost_horizon        s, the cost's distance is the least over this look-ahead (0: now)
     ttc_on, ttc_horizon 1: the reward weights the ttc term, so ttc_kernel runs; its horizon (s)
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
@@ -355,7 +355,7 @@ class Model:
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
         self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
         self.cost_players = COST_PARTNERS.index(cfg.cost_partners)
-        self.cost_horizon = float(cfg.cost_horizon)
+        self.cost_horizon, self.cost_collision = float(cfg.cost_horizon), float(cfg.cost_collision)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
         self.ttc_on, self.ttc_horizon = int(cfg.reward.ttc != 0.0), float(cfg.reward.ttc_horizon)
         self.partner_k, self.partner_radius = int(cfg.partner_k), float(cfg.partner_radius)
