@@ -105,6 +105,34 @@ def test_the_step_capacity_rounds_up_to_a_sixteenth_and_never_shrinks_until_new_
     assert steps.capacity(30, 320) == 120
 
 
+def test_more_live_rows_grow_the_step_capacity_and_the_steps_stay_the_eager_ones(tmp_path):
+    """A rollout with a third of its slots live, then the whole rollout: the second needs more rows than the first
+    capacity holds, so the steps take new row buffers; both updates move the weights as the eager steps do."""
+    from tg_gpudrive.learn.update import eager_steps
+
+    weights, caps = {}, []
+    for mode in ("eager", "fixed rows"):
+        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / mode, "discrete", epochs=2,
+                                                                      minibatches=3, cuda_graphs=True)
+        batch = collector.collect()
+        full = flatten(batch, advantages(cfg, batch), nets.head.discrete)
+        few = dataclasses.replace(full, mask=full.mask & (torch.rand(full.mask.shape,
+                                                                     generator=torch.Generator().manual_seed(2)) < 0.3))
+        lam = torch.linspace(0.1, 0.9, full.mask.shape[1])
+        steps = StepGraphs(cfg, nets, opt)
+        for groups in (few, full):
+            ugen = torch.Generator().manual_seed(4)
+            if mode == "eager":
+                eager_steps(cfg, groups, lam, nets, opt, ugen, prior)
+            else:
+                steps.run(groups, lam, ugen, prior)
+                caps.append(steps.cap)
+        weights[mode] = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    assert caps[0] < caps[1]
+    for a, b in zip(weights["fixed rows"], weights["eager"]):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=2e-5)
+
+
 def _updates(tmp_path, device, graphs: bool, capture: bool = True, n: int = 3, compiled: bool = False):
     """`n` rollouts and updates of a tiny run whose updates have short last minibatches; the weights and
     multipliers after them, and the StepGraphs (or None). `compiled`: the steps' loss through torch.compile."""
