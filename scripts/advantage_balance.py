@@ -18,6 +18,7 @@ Numbers only; it never fails on them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import tempfile
 from pathlib import Path
@@ -26,8 +27,8 @@ import torch
 
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.config import TrainConfig, apply_overrides, from_dict
-from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.train import Trainer
+from tg_gpudrive.learn.update import advantages
 
 
 def run_config(run: str, scenes: str | None, num_worlds: int, device: str) -> tuple[TrainConfig, dict]:
@@ -48,20 +49,18 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         lam_used = []
         for _ in range(rollouts):
             b = tr.collector.collect()
-            adv_r, _ = L.gae(b.reward, b.value, b.done, cfg.gamma, cfg.gae_lambda)
-            quant = b.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
             C = b.mask.shape[-1]
             lam_c = lam[:C] if lam.dim() == 1 else lam.mean()  # per slot; one for all (0-d) or per vehicle (their mean)
             live = b.mask
             lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
-            rows["a_r"].append(adv_r[live])
-            for a in {*alphas, cfg.alpha}:
-                adv_c, _ = L.cvar_gae(b.cost, quant, b.done, a, cfg.gamma, cfg.gae_lambda)
-                weighted = (lam_c * adv_c)[live]
+            for a in {*alphas, cfg.alpha}:  # the update's own targets (update.advantages) at each risk level
+                tg = advantages(dataclasses.replace(cfg, alpha=a), b)
+                weighted = (lam_c * tg.adv_c)[live]
                 if a in rows:
                     rows[a].append(weighted)
                 if a == cfg.alpha:
                     rows["own"].append(weighted)
+                    rows["a_r"].append(tg.adv_r[live])
     cat = {k: torch.cat(v).float() for k, v in rows.items()}
     a_r, own = cat["a_r"], cat["own"]
     first, last = cat[alphas[0]], cat[alphas[-1]]
