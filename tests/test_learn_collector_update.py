@@ -165,6 +165,11 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
         value, quant = nets.critic(obs, mask)
         torch.testing.assert_close(batch.value[t][mask], value[mask], rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(batch.quant[t][mask], quant[mask], rtol=1e-5, atol=1e-5)
+        # the heads run on the live rows alone: the others hold 0, which no target reads, since a live row
+        # that does not end its episode is live at the next step (what the bootstrap reads)
+        assert not batch.value[t][~mask].any() and not batch.quant[t][~mask].any()
+        if t > 0:
+            assert not (batch.mask[t - 1] & (batch.done[t - 1] == 0) & ~mask).any()
         if t == T:
             break
         assert torch.equal(batch.mask[t], mask)

@@ -279,6 +279,19 @@ def test_a_rollout_on_every_slot_fills_the_buffers_of_the_live_row_one(tmp_path,
     _same_rollout(dense, live, dict(rtol=1e-5, atol=1e-5))
 
 
+def test_a_fixed_shape_rollout_acts_on_the_integrated_slots_alone(tmp_path):
+    """The fixed-shape steps feed the actor the controlled slots the engine integrates, not all W x C: the
+    worlds with fewer agents than slots give it fewer rows."""
+    cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", **ROLLOUT["discrete"])
+    collector.graphs = RolloutGraphs("cpu")
+    forward, rows = nets.actor.forward, []
+    nets.actor.forward = lambda obs, *a, **k: rows.append(len(obs)) or forward(obs, *a, **k)
+    batch = collector.collect()
+    C = batch.mask.shape[-1]
+    integrated = int((sim.integrated[:, :C] != 0).sum())
+    assert rows == [integrated] * cfg.rollout_steps and int(batch.mask.sum(-1).max()) <= integrated < sim.num_worlds * C
+
+
 class _PartWatch(RolloutGraphs):
     """RolloutGraphs that notes whether a step's part is running (what a CUDA graph would capture)."""
     inside = False

@@ -1,8 +1,8 @@
 """Rollout collection for CCE-MAPPO: drive every world for `rollout_steps` steps under the current actor
 and keep what the update reads.
 
-Per step the actor runs on the live rows only (often under half of W x C; on every slot when the steps
-replay from CUDA graphs, graphs.RolloutGraphs) and samples from draws made with the trainer's own generator
+Per step the actor runs on the live rows only (often under half of W x C; when the steps replay from CUDA
+graphs, graphs.RolloutGraphs, on the fixed set of slots the policy drives, live or not) and samples from draws made with the trainer's own generator
 at the rollout's start (so a resumed run replays the same actions); the magnet (the behaviour prior) keeps its
 context; the engine steps; rewards, costs, ends and the episodes that ended go into the buffers and the
 rollout's counters, all on the device. Controlled agents sit in slots [0, C) of every world, so every
@@ -138,7 +138,7 @@ class RolloutCollector:
         self.actor_hist = actor_hist  # the actor's own motion window: kept in step with the engine
         self.background = None  # a driver of the background rows (agents.builtin.make_background_driver), or None
         self.prior_logits = nets.head.discrete and cfg.eta1 > 0  # store the magnet's logits in the rollout
-        # a RolloutGraphs (graphs.py) replays the steps from CUDA graphs; the steps then act on every slot
+        # a RolloutGraphs (graphs.py) replays the steps from CUDA graphs; the steps then act on every policy slot
         self.graphs = None
         # a magnet whose context launches engine kernels is read before a step's captured part, into `_ctx`
         # (allocated when first needed), which that part reads: a torch capture records neither the kernel nor
@@ -147,6 +147,8 @@ class RolloutCollector:
         self._ctx: Tensor | None = None
         self._buf: Rollout | None = None
         self._buf_key = None
+        self._rows_of = None  # the engine model whose policy rows `_rows` holds
+        self._rows: tuple[Tensor, Tensor] | None = None
 
     @torch.no_grad()
     def collect(self) -> Rollout:
@@ -208,13 +210,24 @@ class RolloutCollector:
     def _values(self, buf: Rollout, T: int, C: int) -> None:
         """The critic's values and cost quantiles of every step's stored observations, a few steps per call,
         and of the state after the last step (the bootstrap row T)."""
-        sim, critic = self.sim, self.nets.critic
+        sim = self.sim
         chunk = max(1, CRITIC_SLOTS // (sim.num_worlds * C))
+        for t0 in range(0, T, chunk):
+            t1 = min(T, t0 + chunk)
+            self._critic_rows(buf.obs[t0:t1], buf.mask[t0:t1], buf.value[t0:t1], buf.quant[t0:t1])
+        self._critic_rows(sim.obs[:, :C], sim.active[:, :C] != 0, buf.value[T], buf.quant[T])
+
+    def _critic_rows(self, obs: Tensor, mask: Tensor, value: Tensor, quant: Tensor) -> None:
+        """The critic's heads on `mask`'s live rows only (under half the slots in most worlds) into `value` and
+        `quant`; 0 at the other rows, which no target reads (a row after a live one that is not live ends its
+        episode, and the ends cut the bootstrap)."""
+        rows = mask.reshape(-1).nonzero(as_tuple=True)[0]
         with self.nets.autocast():
-            for t0 in range(0, T, chunk):
-                t1 = min(T, t0 + chunk)
-                buf.value[t0:t1], buf.quant[t0:t1] = critic(buf.obs[t0:t1], buf.mask[t0:t1])
-            buf.value[T], buf.quant[T] = critic(sim.obs[:, :C], sim.active[:, :C] != 0)
+            v, q = self.nets.critic(obs, mask, rows=rows, head_rows=rows)
+        value.zero_()
+        quant.zero_()
+        value.view(-1)[rows] = v.float()
+        quant.view(-1, quant.shape[-1])[rows] = q.float()
 
     def _prior_logits(self, buf: Rollout) -> None:
         """The magnet's logits on the rows that take it (every live row, or the `magnet_fraction` picked per
@@ -231,8 +244,8 @@ class RolloutCollector:
         """Step t before the engine steps: sample the live agents' actions, store them with the rollout
         policy's output, the observations and the magnet's context (or, continuous, the prior's), and hand
         the actions to the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here).
-        `dense`: the actor runs on every slot, dead ones fed zeros and given the no-op, so that nothing
-        depends on how many act (a CUDA graph's fixed shapes, no host sync); the live rows get the same
+        `dense`: the actor runs on every slot the policy drives (`_policy_rows`), dead ones fed zeros and given
+        the no-op, so that nothing depends on how many act (a CUDA graph's fixed shapes, no host sync); the live rows get the same
         actions either way (the same draws)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
         # the motion windows first: their reset checks read the host, and here that read waits only for the
@@ -248,11 +261,13 @@ class RolloutCollector:
         with phase("rollout/live_rows"):  # the host sync of a step: how many rows act
             obs = sim.obs[:, :C]
             mask = sim.active[:, :C] != 0
-            if dense:
-                w_idx, c_idx = self._all_rows
-                rows_obs = torch.where(mask.reshape(-1, 1), obs.reshape(-1, obs.shape[-1]), 0.0)
+            if dense:  # the slots the policy drives, live or not: a fixed set for a batch of scenes
+                w_idx, c_idx = self._policy_rows()
+                live = mask[w_idx, c_idx]
+                rows_obs = torch.where(live[:, None], obs[w_idx, c_idx], 0.0)
             else:  # the other slots get the no-op action, which the engine ignores for agents that do not act
                 w_idx, c_idx = mask.nonzero(as_tuple=True)
+                live = None
                 rows_obs = obs[w_idx, c_idx]
         hist = None
         if self.actor_hist is not None:  # the actor's motion window
@@ -270,7 +285,7 @@ class RolloutCollector:
             d = head.dist(out)
             a = self._sample(out, self._noise[t][w_idx, c_idx])
         with phase("rollout/buffers"):
-            self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out, dense)
+            self._store(buf, t, obs, mask, w_idx, c_idx, a, d.log_prob(a), out, live)
         with phase("rollout/magnet"):
             self._magnet(buf, t, C, ctx, mask, None if dense else (w_idx, c_idx))
         act = buf.act[t]
@@ -281,17 +296,15 @@ class RolloutCollector:
         return bad
 
     def _store(self, buf: Rollout, t: int, obs: Tensor, mask: Tensor, w_idx: Tensor, c_idx: Tensor, a: Tensor,
-               logp: Tensor, out, dense: bool = False) -> None:
+               logp: Tensor, out, live: Tensor | None = None) -> None:
         """Step t's observations, live mask, actions (the no-op where not live), their log-probabilities and
-        the rollout policy's output into the buffers (`dense`: rows of every slot, the dead ones' actions
-        replaced by the no-op)."""
+        the rollout policy's output into the buffers (`live`: which of the rows act, when not all of them do;
+        the others' actions are replaced by the no-op)."""
         act = buf.act[t]
         noop = self.cfg.env.noop_index if self.nets.head.discrete else 0.0
-        if dense:
-            live = mask.reshape(-1) if a.dim() == 1 else mask.reshape(-1, 1)
-            a = torch.where(live, a, noop)
-        else:
-            act.fill_(noop)  # rows that do not act
+        if live is not None:
+            a = torch.where(live if a.dim() == 1 else live[:, None], a, noop)
+        act.fill_(noop)  # rows that do not act
         act[w_idx, c_idx] = a.to(act.dtype)
         buf.logp[t][w_idx, c_idx] = logp
         if self.nets.head.discrete:
@@ -376,9 +389,19 @@ class RolloutCollector:
         self._stats = {"terms": torch.zeros(len(sim.reward_term_names), device=dev),
                        **{k: torch.zeros((), device=dev) for k in STAT_KEYS}}
         self._bad = torch.zeros((), dtype=torch.bool, device=dev)
-        self._all_rows = (torch.arange(W, device=dev).repeat_interleave(C), torch.arange(C, device=dev).repeat(W))
         self._buf_key = key
         return self._buf
+
+    def _policy_rows(self) -> tuple[Tensor, Tensor]:
+        """(world, slot) of every controlled slot the engine's model integrates: a superset of the live rows
+        at any step of its batch of scenes (an agent acts only while integrated), found once per model. The
+        fixed-shape steps act on these: at procedural scenes' sizes under half of the W x C slots."""
+        model = self.sim.model
+        if self._rows_of is not model:
+            C = max(self.sim.max_controlled, 1)
+            self._rows = (self.sim.integrated[:, :C] != 0).nonzero(as_tuple=True)
+            self._rows_of = model
+        return self._rows
 
     def _prior_dim(self) -> int:
         """Per row and step: the magnet's logits (discrete), its context (continuous), nothing (eta1 0)."""

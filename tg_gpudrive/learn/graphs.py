@@ -263,8 +263,8 @@ class RolloutGraphs:
     """A rollout's steps replayed from CUDA graphs (the collector's `graphs`): per step t, what comes before
     the engine's step (the magnet's context, the actor, sampling, the buffers) and what comes after it
     (rewards, ends and counters into the buffers), each its own graph; the engine's step between them is
-    already a Warp graph. The collector then acts on every slot (collector.RolloutCollector._act with
-    `dense`) and draws the rollout's random numbers before its steps, so a step's shapes and memory are
+    already a Warp graph. The collector then acts on every slot the policy drives, live or not
+    (collector.RolloutCollector._act with `dense`) and draws the rollout's random numbers before its steps, so a step's shapes and memory are
     fixed for a batch of scenes. The first rollout on a batch runs its steps eagerly, the next captures
     each part as it comes to it, the later ones replay them; a new batch of scenes, new buffers or a new
     magnet get new captures. On the CPU the parts run as they are."""
