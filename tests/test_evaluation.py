@@ -476,6 +476,16 @@ def test_export_generated_episode_carries_the_rollout(merge_sim, tmp_path):
 
 
 # ------------------------------------------------------------------ report
+def test_report_refuses_two_runs_of_one_name(tmp_path):
+    """The report labels a run by its folder's name (tables, cache, grid cells): two grids' cells of one name
+    would overwrite each other, so it stops before evaluating anything and names both."""
+    from tg_gpudrive.evaluation.report import report_main
+    a, b = tmp_path / "grid" / "beta2.0_alpha0.125_s0", tmp_path / "other" / "beta2.0_alpha0.125_s0"
+    with pytest.raises(ValueError, match="grid/beta2.0_alpha0.125_s0 and .*other/beta2.0_alpha0.125_s0 share"):
+        report_main([a, b], tmp_path / "report")
+    assert not (tmp_path / "report").exists()
+
+
 def test_report_on_tiny_runs(tmp_path):
     from tg_gpudrive.cli import main as cli_main
     from tg_gpudrive.evaluation.report import FILES

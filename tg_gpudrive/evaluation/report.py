@@ -405,6 +405,12 @@ def report_main(runs: Sequence[str | Path], out: str | Path, options: ReportOpti
     runs = [Path(r) for r in runs]
     if not runs:
         raise ValueError("report: give at least one run directory")
+    seen: dict[str, Path] = {}
+    for run in runs:  # a run's label is its folder's name: the tables, the cache and the cells key on it
+        if run.name in seen:
+            raise ValueError(f"report: runs {seen[run.name]} and {run} share the name {run.name!r}, which labels a "
+                             "run in the report; report them separately or rename one")
+        seen[run.name] = run
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     threads = torch.get_num_threads()
