@@ -205,6 +205,32 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.0)
 
 
+def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path):
+    """update.advantages computes its targets on the (world, slot) columns that act at some step: there they
+    equal the targets of the whole (T, W, C) block, computed as losses.py states them (the quantiles sorted
+    inside CVaR), and a column that never acts holds zeros. The critic's quantiles come sorted, which lets
+    CVaR skip its sort."""
+    cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", num_worlds=3)  # a world with fewer agents
+    batch = collector.collect()
+    assert bool((batch.quant.diff(dim=-1) >= 0).all())
+    with torch.no_grad():  # a cost to propagate, and a critic with spread
+        batch.cost.copy_(torch.rand(batch.cost.shape, generator=torch.Generator().manual_seed(3)) * batch.mask)
+        batch.quant.add_(torch.linspace(0.0, 4.0, cfg.quantiles))
+    cfg = dataclasses.replace(cfg, cost_nstep=3)
+    tg = advantages(cfg, batch)
+    q = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+    adv_r, ret_r = L.gae(batch.reward, batch.value, batch.done, cfg.gamma, cfg.gae_lambda)
+    adv_c, cvar = L.cvar_gae(batch.cost, q, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
+    q_target = L.cost_quantile_targets(batch.cost, q, batch.done, cfg.gamma, cfg.cost_nstep)
+    acts = batch.mask.any(0)
+    assert bool(acts.any()) and not bool(acts.all())  # columns that never act were there
+    for got, want in ((tg.adv_r, adv_r), (tg.ret_r, ret_r), (tg.adv_c, adv_c), (tg.cvar, cvar),
+                      (tg.q_target, q_target), (tg.ctg_mean, q.mean(-1))):
+        assert got.shape == want.shape
+        torch.testing.assert_close(got[:, acts], want[:, acts])
+        assert not got[:, ~acts].any()
+
+
 def test_lambda_on_mean_steps_the_multipliers_on_the_expected_cost_to_go(tmp_path):
     """lambda_on mean (TrafficGamer's Algorithm 1): each slot's multiplier moves by lambda_lr times the mean
     over its live states of E[Z(o)] (the quantiles' mean, inside the cost-to-go's support) minus the

@@ -81,7 +81,7 @@ class Rollout(ByName):
     cost: Tensor  # (T, W, C) the step's cost (what the constraint bounds)
     done: Tensor  # (T, W, C) 1.0 where the agent's episode ended at that step (terminated or world ended)
     value: Tensor  # (T + 1, W, C) the critic's reward value; row T bootstraps the last step
-    quant: Tensor  # (T + 1, W, C, quantiles) the cost critic's quantiles of the discounted cost-to-go
+    quant: Tensor  # (T + 1, W, C, quantiles) the cost critic's quantiles of the discounted cost-to-go, ascending
     prior: Tensor  # (T, W, C, P) the magnet: its logits (discrete), its context (continuous), P 0 (eta1 0)
     old: Tensor | tuple[Tensor, Tensor]  # the rollout policy's output: logits, or (mean, log_std)
     hist: Tensor | None = None  # (T, W, C, actor_history, hist_dim) the motion window the actor sees, if it has one

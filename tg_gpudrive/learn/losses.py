@@ -286,7 +286,7 @@ def cost_quantile_targets(
     return target.clamp(0.0, cost_to_go_bound(gamma, max_cost))
 
 
-def cvar_from_quantiles(quantiles: torch.Tensor, alpha: float | torch.Tensor) -> torch.Tensor:
+def cvar_from_quantiles(quantiles: torch.Tensor, alpha: float | torch.Tensor, presorted: bool = False) -> torch.Tensor:
     """CVaR at risk level ``alpha`` of a COST distribution given by N quantiles.
 
     ==========  ========  ======================================================
@@ -310,8 +310,10 @@ def cvar_from_quantiles(quantiles: torch.Tensor, alpha: float | torch.Tensor) ->
     smooth in alpha. Quantiles are sorted first (quantile crossing of a learned
     critic would otherwise make the tail ill-defined); the gradient flows to
     the quantile values through the sort. ``alpha = 1`` returns the max.
+    ``presorted``: the quantiles are ascending already (a critic that sorts its
+    output), so the sort, the largest cost of a big batch's CVaR, is skipped.
     """
-    q, _ = quantiles.sort(dim=-1)
+    q = quantiles if presorted else quantiles.sort(dim=-1).values
     n = q.shape[-1]
     if isinstance(alpha, (int, float)) and not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must be in [0, 1], got {alpha}")
@@ -332,8 +334,10 @@ def cvar_gae(
     alpha: float | torch.Tensor,
     gamma: float,
     lam: float,
+    presorted: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cost advantages from CVaR_alpha of the quantile critic, so the risk level reaches the actor.
+    """Cost advantages from CVaR_alpha of the quantile critic, so the risk level reaches the actor
+    (``presorted``: see cvar_from_quantiles).
 
     ==========  ============  ================================================
     name        shape         meaning
@@ -352,7 +356,7 @@ def cvar_gae(
     weighs states by their cost tail, so two actions with the same expected cost but a
     riskier outcome get different advantages.
     """
-    cvar = cvar_from_quantiles(quantiles, alpha)
+    cvar = cvar_from_quantiles(quantiles, alpha, presorted)
     adv, _ = gae(costs, cvar, dones, gamma, lam)
     return adv, cvar
 

@@ -76,12 +76,27 @@ class Groups(ByName):
 
 
 def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
-    adv_r, ret_r = L.gae(batch.reward, batch.value, batch.done, cfg.gamma, cfg.gae_lambda)
+    """Step 1 over the (world, slot) columns that act at some step of the rollout, under half of W x C on
+    procedural scenes; the other columns get zeros, which nothing reads (the losses and the multipliers read
+    live rows). The critic's quantiles come sorted (Rollout.quant), so CVaR reads them as they are."""
+    T, W, C = batch.mask.shape
+    cols = batch.mask.reshape(T, W * C).any(0).nonzero(as_tuple=True)[0]  # a host sync
+
+    def take(x: Tensor) -> Tensor:
+        return x.reshape(x.shape[0], W * C, *x.shape[3:])[:, cols]
+
+    def put(x: Tensor) -> Tensor:
+        full = x.new_zeros((x.shape[0], W * C, *x.shape[2:]))
+        full[:, cols] = x
+        return full.view(x.shape[0], W, C, *x.shape[2:])
+
+    cost, done = take(batch.cost), take(batch.done)
+    adv_r, ret_r = L.gae(take(batch.reward), take(batch.value), done, cfg.gamma, cfg.gae_lambda)
     # the cost critic is read inside the cost-to-go's support (targets, advantages, constraint)
-    quant = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
-    adv_c, cvar = L.cvar_gae(batch.cost, quant, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
-    q_target = L.cost_quantile_targets(batch.cost, quant, batch.done, cfg.gamma, cfg.cost_nstep)
-    return Targets(adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1))
+    quant = take(batch.quant).clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+    adv_c, cvar = L.cvar_gae(cost, quant, done, cfg.alpha, cfg.gamma, cfg.gae_lambda, presorted=True)
+    q_target = L.cost_quantile_targets(cost, quant, done, cfg.gamma, cfg.cost_nstep)
+    return Targets(*(put(x) for x in (adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1))))
 
 
 def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
