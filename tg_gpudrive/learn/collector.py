@@ -2,11 +2,11 @@
 and keep what the update reads.
 
 Per step the actor runs on the live rows only (often under half of W x C; when the steps replay from CUDA
-graphs, graphs.RolloutGraphs, on the fixed set of slots the policy drives, live or not) and samples from draws made with the trainer's own generator
-at the rollout's start (so a resumed run replays the same actions); the magnet (the behaviour prior) keeps its
-context; the engine steps; rewards, costs, ends and the episodes that ended go into the buffers and the
-rollout's counters, all on the device. Controlled agents sit in slots [0, C) of every world, so every
-buffer is a (T, W, C, ...) block. The buffers are allocated once per shape (several GB at 4,096 worlds)
+graphs, graphs.RolloutGraphs, on the fixed set of slots the policy drives, live or not) and samples from
+draws made with the trainer's own generator at the rollout's start (so a resumed run replays the same
+actions); the magnet (the behaviour prior) keeps its context; the engine steps; rewards, costs, ends and
+the episodes that ended go into the buffers and the rollout's counters, all on the device. Controlled
+agents sit in slots [0, C) of every world, so every buffer is a (T, W, C, ...) block. The buffers are allocated once per shape (several GB at 4,096 worlds)
 and overwritten by every rollout.
 
 What acting does not need waits for the rollout's end: the critic's values and the world model's magnet
@@ -245,8 +245,8 @@ class RolloutCollector:
         policy's output, the observations and the magnet's context (or, continuous, the prior's), and hand
         the actions to the engine. Whether the policy's output was non-finite (a device bool; it acts as 0 here).
         `dense`: the actor runs on every slot the policy drives (`_policy_rows`), dead ones fed zeros and given
-        the no-op, so that nothing depends on how many act (a CUDA graph's fixed shapes, no host sync); the live rows get the same
-        actions either way (the same draws)."""
+        the no-op, so that nothing depends on how many act (a CUDA graph's fixed shapes, no host sync); the
+        live rows get the same actions either way (the same draws)."""
         sim, nets, head = self.sim, self.nets, self.nets.head
         # the motion windows first: their reset checks read the host, and here that read waits only for the
         # engine's step, which the live rows' count waits for anyway, not for the networks queued after it
