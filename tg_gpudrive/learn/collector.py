@@ -6,8 +6,8 @@ graphs, graphs.RolloutGraphs, on the fixed set of slots the policy drives, live 
 draws made with the trainer's own generator at the rollout's start (so a resumed run replays the same
 actions); the magnet (the behaviour prior) keeps its context; the engine steps; rewards, costs, ends and
 the episodes that ended go into the buffers and the rollout's counters, all on the device. Controlled
-agents sit in slots [0, C) of every world, so every buffer is a (T, W, C, ...) block. The buffers are allocated once per shape (several GB at 4,096 worlds)
-and overwritten by every rollout.
+agents sit in slots [0, C) of every world, so every buffer is a (T, W, C, ...) block. The buffers are
+allocated once per shape (several GB at 4,096 worlds) and overwritten by every rollout.
 
 What acting does not need waits for the rollout's end: the critic's values and the world model's magnet
 logits are then computed from the stored observations and contexts in a few large batches, not in one

@@ -264,10 +264,10 @@ class RolloutGraphs:
     the engine's step (the magnet's context, the actor, sampling, the buffers) and what comes after it
     (rewards, ends and counters into the buffers), each its own graph; the engine's step between them is
     already a Warp graph. The collector then acts on every slot the policy drives, live or not
-    (collector.RolloutCollector._act with `dense`) and draws the rollout's random numbers before its steps, so a step's shapes and memory are
-    fixed for a batch of scenes. The first rollout on a batch runs its steps eagerly, the next captures
-    each part as it comes to it, the later ones replay them; a new batch of scenes, new buffers or a new
-    magnet get new captures. On the CPU the parts run as they are."""
+    (collector.RolloutCollector._act with `dense`), and draws the rollout's random numbers before its steps,
+    so a step's shapes and memory are fixed for a batch of scenes. The first rollout on a batch runs its
+    steps eagerly, the next captures each part as it comes to it, the later ones replay them; a new batch of
+    scenes, new buffers or a new magnet get new captures. On the CPU the parts run as they are."""
 
     def __init__(self, device):
         self.cuda = torch.device(device).type == "cuda"
