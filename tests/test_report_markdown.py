@@ -71,11 +71,13 @@ def _meta(labels: list[str]) -> dict:
 
 
 def _write(out: Path, agents: int, top: int) -> list[dict]:
-    """report.md and its CSV files of two baselines and a 3 x 3 grid, each policy with `agents` agents."""
+    """report.md and its CSV files of two baselines, a 3 x 3 grid and a MAPPO run, each policy with `agents`
+    agents."""
     rng = np.random.default_rng(agents)
     results = [_result(rng, name, None, agents, top, 0, 0) for name in ("expert (inverse dynamics)", "world model")]
     results += [_result(rng, f"beta{b}_alpha{a}", "CCE-MAPPO", agents, top, b, a)
                 for b in (2.0, 4.0, 6.0) for a in (0.125, 0.5, 0.875)]
+    results += [_result(rng, "mappo_s0", "MAPPO", agents, top, 0, 0)]
     out.mkdir(parents=True, exist_ok=True)
     write_markdown(out, results, _meta([r["label"] for r in results if r.get("kind")]))
     write_csv_tables(out, results)
@@ -89,15 +91,16 @@ def test_report_md_holds_no_per_agent_rows_and_stays_short(tmp_path):
     # as many lines at 400 agents and 10 scenarios a run as at 8 and 1: nothing in it is per agent or scene
     assert len(md.splitlines()) == len(small[1].splitlines()) <= MAX_LINES
     agents = csv_rows(tmp_path / "large" / "per_agent.csv", PER_AGENT_COLUMNS)
-    assert len(agents) == 11 * 400 and not per_agent_lines(md, agents)
+    assert len(agents) == 12 * 400 and not per_agent_lines(md, agents)
     assert agents[0]["policy"] == "expert (inverse dynamics)" and agents[0]["ppo_iterations"] == "20;25"
     assert agents[0]["plateaued"] == "1;0" and float(agents[0]["gap"]) == results[0]["cce_gap"]["gap_per_agent"][0]
     scenes = csv_rows(tmp_path / "large" / "per_scene.csv", PER_SCENE_COLUMNS)
-    assert len(scenes) == 9 * 10 and {s["run"] for s in scenes} == {r["label"] for r in results if r.get("kind")}
+    assert len(scenes) == 10 * 10 and {s["run"] for s in scenes} == {r["label"] for r in results if r.get("kind")}
     assert "](per_agent.csv)" in md and "](per_scene.csv)" in md
     # the summary tables stay: one row per policy, per beta x alpha cell, per scenario type column
     for text in ("## Comparison against baselines", "## Flexibility: beta x alpha", "## CCE-gap per scenario type",
-                 "| beta6.0_alpha0.875 | CCE-MAPPO", "| roundabout |"):
+                 "| beta6.0_alpha0.875 | CCE-MAPPO", "| roundabout |", "## CCE-gap against plain MAPPO",
+                 "| beta2.0_alpha0.125 | merge | 134 | 1 |"):
         assert text in md, text
 
 

@@ -162,3 +162,47 @@ def test_cells_group_their_training_seeds_and_effects_compare_the_extreme_cells(
     assert eff[("collision rate", "beta", "alpha 0.1")][9] == "not shown"
     assert eff[("min gap [m]", "alpha", "beta 4")][3] == "0.1 -> 0.9"  # alpha's extremes, beta held
     assert not any(k[0] == "hard brakes / agent" for k in eff)  # the paper claims no direction there
+
+
+def test_paired_difference_by_hand():
+    """a - b = (1, 2, 3): mean 2, median 2, every unit greater; a constant difference has a zero-width interval;
+    unequal samples are an error."""
+    from tg_gpudrive.evaluation.stats import paired_difference
+
+    d = paired_difference([1.5, 2.0, 3.5], [0.5, 0.0, 0.5], n_boot=500)
+    assert (d.n, d.mean_a, d.mean_b, d.diff, d.median_diff, d.share_a_greater) == (3, pytest.approx(7 / 3),
+                                                                                   pytest.approx(1 / 3), 2.0, 2.0, 1.0)
+    assert 1.0 <= d.lo < 2.0 < d.hi <= 3.0 and d.verdict(1) == "holds" and d.verdict(-1) == "reversed"
+    flat = paired_difference([1.0, 2.0, 3.0], [1.5, 2.5, 3.5], n_boot=200)
+    assert flat.lo == flat.hi == pytest.approx(-0.5) and flat.share_a_greater == 0.0
+    with pytest.raises(ValueError, match="paired_difference"):
+        paired_difference([1.0, 2.0], [1.0])
+
+
+def test_gap_against_mappo_pairs_agents_and_says_which_side():
+    """Two MAPPO runs and three CCE-MAPPO policies over the same six agents (two scenario types): one policy
+    more exploitable on every agent, one less, one the same; an agent MAPPO never played is left out."""
+    from tg_gpudrive.evaluation.report_stats import gap_against_mappo
+
+    agents = [f"s{i // 3}/agent{i}" for i in range(6)]
+    types = ["merge"] * 3 + ["roundabout"] * 3
+    base = np.array([0.1, 0.3, 0.2, 0.4, 0.2, 0.1])
+
+    def result(label, kind, gaps, who=agents, kinds=types):
+        return {"label": label, "kind": kind,
+                "cce_gap": {"agents": list(who), "types": list(kinds), "gap_per_agent": list(gaps)}}
+
+    results = [result("mappo_s0", "MAPPO", base - 0.05), result("mappo_s1", "MAPPO", base + 0.05),
+               result("high", "CCE-MAPPO", np.append(base + [0.5, 0.4, 0.6, 0.5, 0.45, 0.55], 9.0),
+                      agents + ["s9/agent99"], types + ["merge"]),
+               result("low", "CCE-MAPPO", base - [0.1, 0.05, 0.15, 0.2, 0.1, 0.05]),
+               result("same", "CCE-MAPPO", base + [0.1, -0.1, 0.05, -0.05, 0.1, -0.1]),
+               {"label": "expert", "cce_gap": None}]
+    rows = {(r[0], r[1]): r for r in gap_against_mappo(results, n_boot=500)}
+    assert set(rows) == {(p, t) for p in ("high", "low", "same") for t in ("all", "merge", "roundabout")}
+    high = rows[("high", "all")]
+    assert high[2:4] == [6, 2] and high[4] == pytest.approx(base.mean() + 0.5) and high[5] == pytest.approx(base.mean())
+    assert high[7] == pytest.approx(0.5) and high[8] == "100%" and high[9] == "more exploitable"
+    assert rows[("high", "merge")][2] == 3 and rows[("low", "all")][9] == "less exploitable"
+    assert rows[("same", "all")][9] == "not distinguishable" and rows[("same", "all")][8] == "50%"
+    assert gap_against_mappo([r for r in results if r.get("kind") != "MAPPO"]) == []

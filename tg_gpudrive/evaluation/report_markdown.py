@@ -20,7 +20,8 @@ import numpy as np
 
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.report_stats import flexibility_directions, fmt, group_cells, knob_effects
+from tg_gpudrive.evaluation.report_stats import (flexibility_directions, fmt, gap_against_mappo, group_cells,
+                                                 knob_effects)
 
 PER_AGENT_CSV, PER_SCENE_CSV = "per_agent.csv", "per_scene.csv"
 PER_AGENT_COLUMNS = ("policy", "agent", "scenario_type", "gap", "gain", "gain_ci95", "j_pi", "j_br",
@@ -196,6 +197,22 @@ def _gap_type_section(gapped: list[tuple[str, dict]]) -> list[str]:
                    rows)]
 
 
+def _gap_mappo_section(results: list[dict]) -> list[str]:
+    """The paper's exploitability claim, agent by agent against plain MAPPO (report_stats.gap_against_mappo);
+    a line saying what it needs when the report holds no MAPPO run with CCE-gaps."""
+    rows = gap_against_mappo(results)
+    if not rows:
+        return ["\nNo comparison of CCE-gaps against plain MAPPO: it needs a MAPPO run (eta1 0, eta2 inf, no "
+                "constraint) among --runs, evaluated on the same scenes.\n"]
+    return ["\n## CCE-gap against plain MAPPO\n\nThe paper's claim is that TrafficGamer's equilibrium is less "
+            "exploitable than plain MAPPO's. Each agent's gap in the task game under the policy is paired with the "
+            "same agent's gap under MAPPO (the mean over the MAPPO runs); difference = policy - MAPPO, mean over "
+            "agents with a 95 % bootstrap interval over agents; the verdict says which side of 0 the interval "
+            "lies on.\n\n",
+            _table(["policy", "scenario type", "agents", "MAPPO runs", "CCE-gap (policy)", "CCE-gap (MAPPO)",
+                    "difference [95% CI]", "median difference", "agents more exploitable", "verdict"], rows)]
+
+
 def _gap_curve_section(results: list[dict]) -> list[str]:
     """One row per run and training point of the CCE-gap over training, or why there is none."""
     curves = [(r["label"], r["gap_curve"]) for r in results if r.get("gap_curve")]
@@ -220,7 +237,8 @@ def _gap_sections(results: list[dict], computed: bool = True) -> list[str]:
     for r in results:  # the task game, then for CCE-MAPPO runs the constrained one
         gapped += [(r["label"], r["cce_gap"])] if r.get("cce_gap") else []
         gapped += [(f"{r['label']} (constrained game)", r["cce_gap_constrained"])] if r.get("cce_gap_constrained") else []
-    return [*_gap_agent_section(), *_gap_type_section(gapped), *_gap_curve_section(results)]
+    return [*_gap_agent_section(), *_gap_type_section(gapped), *_gap_mappo_section(results),
+            *_gap_curve_section(results)]
 
 
 def _diversity_section(results: list[dict]) -> list[str]:

@@ -5,6 +5,7 @@
     group_cells(results)               the CCE-MAPPO runs grouped by (beta, alpha), their training seeds together
     flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
     knob_effects(cells)                each figure's change between a knob's extreme cells, with intervals
+    gap_against_mappo(results)         each CCE-MAPPO policy's CCE-gap against plain MAPPO's, agent by agent
     worst_scenes(gen)                  the scenes where the policy's agents fail most
     knob_scene(gens)                   the scene where beta (or alpha) moves the distance kept most
     tail_means(rows, keys)             training figures averaged over the last updates
@@ -25,7 +26,7 @@ import numpy as np
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.stats import effect_ci, spearman_ci
+from tg_gpudrive.evaluation.stats import effect_ci, paired_difference, spearman_ci
 
 WORST_SCENES = 4  # scenes drawn in worst_scenes.png
 
@@ -179,6 +180,44 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
                              f"{fmt(e.diff)} [{fmt(e.diff_lo)}, {fmt(e.diff_hi)}]",
                              f"{fmt(e.ratio)} [{fmt(e.ratio_lo)}, {fmt(e.ratio_hi)}]",
                              {1: "+", -1: "-"}[sign], e.verdict(sign)])
+    return rows
+
+
+def gap_against_mappo(results: list[dict], n_boot: int = 2000) -> list[list]:
+    """Rows (policy, scenario type, agents, MAPPO runs, CCE-gap of the policy, of MAPPO, difference with its
+    95 % interval, median difference, share of agents more exploitable under the policy, verdict) of the
+    paper's claim that TrafficGamer's equilibrium is less exploitable than plain MAPPO's, in the task game
+    both profiles can play. Each agent's gap under a CCE-MAPPO policy is paired with its gap under MAPPO,
+    averaged over the MAPPO runs (training seeds) that hold the agent, so the interval resamples agents
+    of the same scenes; a row for all agents, then one per scenario type. No rows without a MAPPO run
+    with CCE-gaps."""
+    mappo = [r["cce_gap"] for r in results if r.get("kind") == "MAPPO" and r.get("cce_gap")]
+    if not mappo:
+        return []
+    per_agent: dict[str, list[float]] = {}
+    for g in mappo:
+        for agent, gap in zip(g["agents"], g["gap_per_agent"]):
+            per_agent.setdefault(agent, []).append(gap)
+    rows = []
+    for r in results:
+        g = r.get("cce_gap")
+        if r.get("kind") != "CCE-MAPPO" or not g:
+            continue
+        shared = [(agent, t, gap) for agent, t, gap in zip(g["agents"], g["types"], g["gap_per_agent"])
+                  if agent in per_agent]
+        types = sorted({t for _, t, _ in shared})  # per-type rows only where there are several types
+        groups = [("all", shared)] + ([(t, [x for x in shared if x[1] == t]) for t in types]
+                                      if len(types) > 1 else [])
+        for label, members in groups:
+            if not members:
+                continue
+            d = paired_difference([gap for _, _, gap in members],
+                                  [float(np.mean(per_agent[agent])) for agent, _, _ in members], n_boot=n_boot)
+            verdict = {"holds": "more exploitable", "reversed": "less exploitable"}.get(d.verdict(1),
+                                                                                      "not distinguishable")
+            rows.append([r["label"], label, d.n, len(mappo), d.mean_a, d.mean_b,
+                         f"{fmt(d.diff)} [{fmt(d.lo)}, {fmt(d.hi)}]", d.median_diff, f"{d.share_a_greater:.0%}",
+                         verdict])
     return rows
 
 

@@ -9,7 +9,8 @@ and returns the percentile interval of those correlations. A cell given as sever
 array of episodes per training seed) is resampled in two stages: its runs with replacement, then
 each drawn run's episodes, and its figure is the mean of the drawn runs' means, so the interval
 holds training noise too; a cell of one run holds evaluation noise only. `effect_ci` gives the
-difference (and ratio) between two cells' figures with the same resampling.
+difference (and ratio) between two cells' figures with the same resampling. `paired_difference`
+compares two policies on the same units (the CCE-gap of each agent under each), resampling the units.
 
 Must not: decide a claim holds (the caller compares the interval with the expected sign), or drop
 cells with no episodes silently (that is a ValueError naming the cell).
@@ -144,6 +145,38 @@ def effect_ci(low, high, *, n_boot: int = 2000, level: float = 0.95, seed: int =
     ratios = ratios[np.isfinite(ratios)]
     r_lo, r_hi = np.percentile(ratios, [tail, 100 - tail]) if ratios.size else (np.nan, np.nan)
     return Effect(a, b, b - a, float(d_lo), float(d_hi), float(ratio), float(r_lo), float(r_hi))
+
+
+@dataclasses.dataclass(frozen=True)
+class PairedDifference:
+    n: int  # units (agents) compared
+    mean_a: float
+    mean_b: float
+    diff: float  # mean of a - b over the units
+    lo: float  # bootstrap percentile interval of diff
+    hi: float
+    median_diff: float
+    share_a_greater: float  # units where a > b
+
+    def verdict(self, expected_sign: int) -> str:
+        """As RankCorrelation.verdict, for the paired difference."""
+        return _verdict(self.lo, self.hi, expected_sign)
+
+
+def paired_difference(a: Sequence[float], b: Sequence[float], *, n_boot: int = 2000, level: float = 0.95,
+                      seed: int = 0) -> PairedDifference:
+    """a - b over paired units (a[i] and b[i] measure the same unit), with the `level` percentile interval
+    of the mean difference over `n_boot` resamples of the units (seeded)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim != 1 or a.size == 0:
+        raise ValueError(f"paired_difference: two equal non-empty 1-d samples needed, got {a.shape} and {b.shape}")
+    d = a - b
+    rng = np.random.default_rng(seed)
+    boot = d[rng.integers(0, d.size, (n_boot, d.size))].mean(axis=1)
+    tail = 100 * (1 - level) / 2
+    lo, hi = np.percentile(boot, [tail, 100 - tail])
+    return PairedDifference(int(d.size), float(a.mean()), float(b.mean()), float(d.mean()), float(lo), float(hi),
+                            float(np.median(d)), float((d > 0).mean()))
 
 
 def _verdict(lo: float, hi: float, expected_sign: int) -> str:
