@@ -167,6 +167,7 @@ def reset_agents_kernel(
     agent_done: wp.array(dtype=wp.int32),
     removed: wp.array(dtype=wp.int32),
     goal_dist: wp.array(dtype=float),
+    cost_depth: wp.array(dtype=float),
     ep_collided: wp.array(dtype=wp.int32),
     ep_offroad: wp.array(dtype=wp.int32),
     ep_goal: wp.array(dtype=wp.int32),
@@ -224,6 +225,7 @@ def reset_agents_kernel(
         speed[i] = 0.0
         present[i] = 0
     goal_dist[i] = wp.length(goal[i] - pos[i])
+    cost_depth[i] = -1.0
 
 
 def _reset_agents(model, state, force: int) -> None:
@@ -232,8 +234,8 @@ def _reset_agents(model, state, force: int) -> None:
                       model.log_yaw, model.log_vel, model.log_valid, model.goal,
                       state.world_ended, state.world_reset, state.world_truncated, state.alive, state.terminated,
                       state.pos, state.yaw, state.vel, state.speed, state.present, state.agent_done,
-                      state.removed, state.goal_dist, state.ep_collided, state.ep_offroad, state.ep_goal,
-                      state.ep_return, state.ep_cost, state.ep_min_dist, state.ep_steps],
+                      state.removed, state.goal_dist, state.cost_depth, state.ep_collided, state.ep_offroad,
+                      state.ep_goal, state.ep_return, state.ep_cost, state.ep_min_dist, state.ep_steps],
               outputs=[state.truncated, state.final_goal, state.final_collided, state.final_offroad,
                        state.final_return, state.final_cost, state.final_min_dist, state.final_steps])
 

@@ -21,9 +21,14 @@ cost, the constraint signal of CCE-MAPPO, from the centre distance d to the near
 other present agent the cost counts (`cost_dist` of kernels/collision.py: any agent, or
 the policy's own with `cost_partners: players`; with `cost_horizon` > 0 the least such distance over
 that look-ahead at constant velocity), shaped by `cost_shape`:
-    step   1 when d < beta (TrafficGamer's distance cost)
-    hinge  max(beta - d, 0) / beta: how deep the neighbour is inside beta, so a contact
-           costs nearly 1 and a pass just inside beta nearly 0
+    step      1 when d < beta (TrafficGamer's distance cost)
+    hinge     max(beta - d, 0) / beta: how deep the neighbour is inside beta, so a contact
+              costs nearly 1 and a pass just inside beta nearly 0
+    approach  the hinge's increase since the agent's last step, never below 0: a pass costs the
+              depth of its closest approach once, however long it stays inside beta, so a policy
+              lowers it by passing wider, not by passing sooner. An episode's first step costs 0:
+              its depth is the state the log hands over (`cost_depth` holds the last step's depth,
+              -1 after a reset)
 The distance is capped at
 the world's `nearest_cap` (kernels/collision.py); the cost is exact only because
 the Model builder keeps that cap >= beta. A step in contact with another agent (`collided`) costs at least
@@ -42,7 +47,7 @@ NUM_TERMS = len(REWARD_TERMS)
 def reward_kernel(
     goal_radius: float,
     beta: float,
-    cost_hinge: int,  # 0: step, 1: hinge (config.COST_SHAPES)
+    cost_shape: int,  # 0: step, 1: hinge, 2: approach (config.COST_SHAPES)
     cost_collision: float,  # the least cost of a step in contact
     speed_limit: float,
     lane_cap: float,
@@ -62,6 +67,7 @@ def reward_kernel(
     ep_goal: wp.array(dtype=wp.int32),
     ep_offroad: wp.array(dtype=wp.int32),
     goal_dist: wp.array(dtype=float),  # in: distance before the step; out: after
+    cost_depth: wp.array(dtype=float),  # in: the hinge depth of the last step (-1: none yet); out: this step's
     # out
     goal_event_out: wp.array(dtype=wp.int32),
     terms_out: wp.array2d(dtype=float),  # (world * agent, NUM_TERMS)
@@ -100,11 +106,17 @@ def reward_kernel(
     terms_out[i, 6] = t6
     reward_out[i] = (weights[0] * t0 + weights[1] * t1 + weights[2] * t2
                      + weights[3] * t3 + weights[4] * t4 + weights[5] * t5 + weights[6] * t6)
-    c = float(0.0)
+    depth = float(0.0)
     if cost_dist[i] < beta:
+        depth = (beta - cost_dist[i]) / beta
+    c = depth
+    if cost_shape == 0 and depth > 0.0:
         c = 1.0
-        if cost_hinge == 1:
-            c = (beta - cost_dist[i]) / beta
+    if cost_shape == 2:
+        c = float(0.0)
+        if cost_depth[i] >= 0.0:
+            c = wp.max(depth - cost_depth[i], 0.0)
+        cost_depth[i] = depth
     if collided[i] != 0:
         c = wp.max(c, cost_collision)
     cost_out[i] = c
@@ -112,8 +124,8 @@ def reward_kernel(
 
 def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.goal_radius, model.beta, model.cost_hinge, model.cost_collision, model.speed_limit, model.lane_cap,
+              inputs=[model.goal_radius, model.beta, model.cost_shape, model.cost_collision, model.speed_limit, model.lane_cap,
                       model.ttc_on, model.ttc_horizon, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
-                      state.cost_dist, state.ttc, state.ep_goal, state.ep_offroad, state.goal_dist],
+                      state.cost_dist, state.ttc, state.ep_goal, state.ep_offroad, state.goal_dist, state.cost_depth],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])

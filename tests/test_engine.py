@@ -308,7 +308,7 @@ def test_modes_parse_print_and_round_trip_as_their_yaml_names():
         EngineConfig(control="ids")
     with pytest.raises(ConfigError, match="collision_mode"):
         from_dict(EngineConfig, {"collision_mode": 1})
-    with pytest.raises(ConfigError, match="cost_shape: expected one of step, hinge, got 'linear'"):
+    with pytest.raises(ConfigError, match="cost_shape: expected one of step, hinge, approach, got 'linear'"):
         EngineConfig(cost_shape="linear")
     with pytest.raises(ConfigError, match="cost_partners: expected all or players, got 'others'"):
         EngineConfig(cost_partners="others")

@@ -412,6 +412,48 @@ def test_cost_horizon_keeps_beta_ahead_of_time(device):
     np.testing.assert_allclose(got[2.0], [(8 - 3.0) / 8, (8 - 3.0) / 8, 0.0], atol=1e-4)
 
 
+def test_cost_approach_charges_a_pass_its_closest_approach_once(device):
+    """Car 0 drives at 10 m/s past car 1, standing 3 m beside its lane; both are the policy's. Under beta 8
+    the hinge charges every step inside beta; `approach` charges only the hinge's increase since the last
+    step (NumPy below), nothing at an episode's first step, and so over the whole pass the depth of the
+    closest approach, (8 - 3) / 8, less the first step's depth. A car that starts inside beta pays nothing
+    at its first step, in the first episode and after a reset alike."""
+    n = T - 1 - INIT
+
+    def pass_costs(shape: str, start: float, episodes: int = 1) -> np.ndarray:
+        pos = np.zeros((2, T, 2))
+        pos[0, :, 0] = start + (np.arange(T) - INIT) * 1.0
+        pos[1, :, :] = (0.0, 3.0)
+        vel = np.zeros((2, T, 2))
+        vel[0, :, 0] = 10.0
+        sc = make_scene(pos, np.zeros((2, T)), log_vel=vel, goal=np.array([[300.0, 0.0], [0.0, 300.0]]))
+        sim = Simulator([sc], cfg(action_space="continuous", control="all_agents", beta=8.0, cost_shape=shape),
+                        device)
+        rows = []
+        for _ in range(episodes):
+            sim.reset()
+            for _ in range(n):
+                sim.step(torch.zeros((1, 32, 2), device=device))
+                rows.append(sim.cost[0, :2].cpu().numpy().copy())
+        return np.array(rows)
+
+    def depth(start: float) -> np.ndarray:
+        return np.clip((8.0 - np.hypot(start + np.arange(1, n + 1), 3.0)) / 8.0, 0.0, 1.0)
+
+    def approach(d: np.ndarray) -> np.ndarray:
+        return np.concatenate([[0.0], np.maximum(np.diff(d), 0.0)])
+
+    hinge, got = pass_costs("hinge", -8.0), pass_costs("approach", -8.0)
+    np.testing.assert_allclose(hinge[:, 0], depth(-8.0), atol=1e-4)
+    np.testing.assert_allclose(got, np.stack([approach(depth(-8.0))] * 2, axis=1), atol=1e-4)
+    assert got[:, 0].sum() == pytest.approx(5.0 / 8.0 - depth(-8.0)[0], abs=1e-4)
+    assert hinge[:, 0].sum() > 2 * got[:, 0].sum()  # the hinge charges the time spent inside beta
+    inside = pass_costs("approach", -4.0, episodes=2)  # 5 m apart at the start: depth 3 / 8
+    assert depth(-4.0)[0] > 3.0 / 8.0 and np.all(inside[[0, n], :] == 0.0)
+    np.testing.assert_allclose(inside[:n, 0], approach(depth(-4.0)), atol=1e-4)
+    np.testing.assert_allclose(inside[n:], inside[:n], atol=1e-6)
+
+
 def test_cost_collision_puts_a_contact_at_the_top_of_the_cost(device):
     """Cars 0 and 1 drive 4 m apart, nose to tail (boxes 4.5 m long: in contact); car 2 drives 30 m ahead. Under
     beta 2 the distance cost of the contact is 0 (the centres are 4 m apart); with cost_collision c the contact

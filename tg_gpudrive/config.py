@@ -33,7 +33,7 @@ from tg_gpudrive.enums import (
     NamedMode,
 )
 
-COST_SHAPES = ("step", "hinge")  # EngineConfig.cost_shape, in the order of the reward kernel's codes
+COST_SHAPES = ("step", "hinge", "approach")  # EngineConfig.cost_shape, in the order of the reward kernel's codes
 COST_PARTNERS = ("all", "players")  # EngineConfig.cost_partners, in the order of the collision kernel's codes
 BACKGROUNDS = ("log", "world_model", "idm")  # who drives the vehicles the policy does not (agents.builtin)
 REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -114,7 +114,9 @@ class EngineConfig:
     replay_infeasible: bool = True  # marked and log-infeasible agents replay their logs, counted apart
     beta: float = 4.0  # m, distance under which the cost is 1
     # step: the cost is 1 whenever the nearest other agent is nearer than beta (TrafficGamer's); hinge:
-    # (beta - d) / beta, so a deeper intrusion costs more and a contact nearly 1, a pass at beta nothing
+    # (beta - d) / beta, so a deeper intrusion costs more and a contact nearly 1, a pass at beta nothing;
+    # approach: how much deeper inside beta than at the agent's last step (the hinge's increase, never below 0),
+    # so a pass costs the depth of its closest approach once, however long it lasts
     cost_shape: str = "step"
     # whom the cost's distance counts: all, every other present agent; players, only the agents the policy
     # drives (TrafficGamer's cost, over the agents of its game: replayed and parked ones are not counted)

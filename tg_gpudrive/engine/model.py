@@ -49,7 +49,7 @@ here from the EngineConfig once, so launchers read the Model, never the config):
     goal_behaviour      GoalBehaviour value
     auto_reset          1: a world resets inside the step its episode ends
     max_accel, max_curvature, accel_bins, curvature_bins, delta_max     the action box and grid
-    goal_radius, beta, cost_hinge, cost_players, cost_collision, speed_limit, lane_cap  reward and cost parameters
+    goal_radius, beta, cost_shape, cost_players, cost_collision, speed_limit, lane_cap  reward and cost parameters
     cost_horizon        s, the cost's distance is the least over this look-ahead (0: now)
     ttc_on, ttc_horizon 1: the reward weights the ttc term, so ttc_kernel runs; its horizon (s)
     partner_k, partner_radius, road_k, road_radius, obs_dim             observation layout
@@ -353,7 +353,7 @@ class Model:
         self.accel_bins, self.curvature_bins = int(cfg.accel_bins), int(cfg.curvature_bins)
         self.delta_max = wp.vec3(*cfg.delta_max)
         self.goal_radius, self.beta = float(cfg.goal_radius), float(cfg.beta)
-        self.cost_hinge = COST_SHAPES.index(cfg.cost_shape)
+        self.cost_shape = COST_SHAPES.index(cfg.cost_shape)
         self.cost_players = COST_PARTNERS.index(cfg.cost_partners)
         self.cost_horizon, self.cost_collision = float(cfg.cost_horizon), float(cfg.cost_collision)
         self.speed_limit, self.lane_cap = float(cfg.reward.speed_limit), float(cfg.reward.lane_cap)
@@ -463,6 +463,8 @@ class StepState(Generic[ArrayT]):
     reward: ArrayT = array_field(SLOT, wp.float32, "weighted sum of the reward terms")
     reward_terms: ArrayT = array_field(Dims.TERMS, wp.float32, "the named terms (kernels/reward.py), unweighted")
     cost: ArrayT = array_field(SLOT, wp.float32, "in [0, 1], a present agent is nearer than beta (cost_shape)")
+    cost_depth: ArrayT = array_field(SLOT, wp.float32, "in [0, 1], (beta - d) / beta of its last step (cost_shape "
+                                                      "approach); -1 before its episode's first step")
     # the running episode
     ep_goal: ArrayT = array_field(SLOT, wp.int32, "0/1, reached its goal")
     ep_collided: ArrayT = array_field(SLOT, wp.int32, "0/1, collided")
