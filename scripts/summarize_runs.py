@@ -11,6 +11,12 @@ For each `<root>/<run>/metrics.csv` of a policy run (world-model logs are skippe
            update's entropy, KL to the prior, lambda (and its cap), CVaR, cost budget and wall-clock
       time to quality: the first update whose window has goal >= 0.95 with collision <= 0.05 and
            off-road <= 0.02 (tg_gpudrive.learn.quality.time_to_quality), or "not reached"
+      quality stop: where the run stopped at its own targets after the held-out check (target.json,
+           `--set target_heldout=...`): its wall-clock, update and held-out rates
+
+Then, where runs that stopped at quality differ in their number of GPUs (metrics.csv's `ranks`), one line per
+run of several GPUs: its quality stop against the fastest one-GPU run of the same seed (config.json), and per GPU
+count the ratio of the summed fastest times over the seeds both have (how much sooner more GPUs reach quality).
 
 Used by scripts/gpu_measure.sh after its training stages; numbers only, it never fails on them.
 """
@@ -19,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 from pathlib import Path
 
@@ -52,12 +59,51 @@ def describe(name: str, rows: list[dict]) -> list[str]:
     return [rates, f"  time to quality: {reached}"]
 
 
+def quality_stop(run: Path) -> dict | None:
+    """target.json of a run that stopped at its quality targets (with the held-out check), else None."""
+    path = run / "target.json"
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def stop_line(stop: dict) -> str:
+    h = stop.get("heldout") or {}
+    held = (f", held out goal {h['goal_rate']:.3f} coll {h['collision_rate']:.3f} off {h['offroad_rate']:.3f} "
+            f"({h.get('episodes', 0):.0f} episodes)") if h else ""
+    return f"  quality stop: {stop['wall_s']:.1f} s (update {stop['update']}){held}"
+
+
+def scaling_lines(stops: list[tuple[str, int, int, float]]) -> list[str]:
+    """(run, GPUs, seed, seconds to its quality stop) -> each several-GPU run against the fastest one-GPU run of
+    its seed, then per GPU count the ratio of the summed fastest times over the seeds both have (the fastest, so
+    that a warm repeat counts, not its cold first run)."""
+    best: dict[tuple[int, int], float] = {}
+    for _, gpus, seed, wall in stops:
+        best[gpus, seed] = min(wall, best.get((gpus, seed), float("inf")))
+    lines = [f"{name}: {gpus} GPUs {wall:.1f} s against {best[1, seed]:.1f} s on one (seed {seed}): "
+             f"{wall / best[1, seed]:.2f}x" for name, gpus, seed, wall in stops if gpus > 1 and (1, seed) in best]
+    for gpus in sorted({g for g, _ in best if g > 1}):
+        seeds = sorted(s for g, s in best if g == gpus and (1, s) in best)
+        if seeds:
+            ratio = sum(best[gpus, s] for s in seeds) / sum(best[1, s] for s in seeds)
+            lines.append(f"{gpus} GPUs: {ratio:.2f}x one GPU's time to quality over seeds {seeds}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("root", type=Path, help="the directory holding the run directories")
     args = ap.parse_args(argv)
+    stops = []
     for name, rows in policy_runs(args.root):
-        print("\n".join(describe(name, rows)))
+        lines = describe(name, rows)
+        stop = quality_stop(args.root / name)
+        if stop is not None:
+            lines.append(stop_line(stop))
+            config = json.loads((args.root / name / "config.json").read_text())
+            stops.append((name, int(float(rows[-1].get("ranks") or 1)), int(config["seed"]), float(stop["wall_s"])))
+        print("\n".join(lines))
+    if len({gpus for _, gpus, _, _ in stops}) > 1:
+        print("\n".join(scaling_lines(stops)))
     return 0
 
 

@@ -5,6 +5,7 @@ and the real-scene job trains the recipe it names."""
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -60,6 +61,29 @@ def test_summarize_runs(tmp_path):
         "good: 14 updates, goal 0.970 coll 0.010 off 0.000 (100 episodes), ent 1.50 klp 0.30 lambda 0.20 "
         "(max 1.00) cvar 0.10 budget 0.50 wall 28s",
         "  time to quality: 20 s of rollouts and updates, 25 s elapsed (update 10)"]
+
+
+def test_summarize_runs_compares_quality_stops_across_gpu_counts(tmp_path):
+    """Runs that stopped at quality (target.json): one GPU at seeds 0 (cold 60 s, warm 30 s) and 1 (40 s), two GPUs
+    at seed 0 (18 s) and four at seeds 0 and 1 (15 s, 20 s), and a two-GPU run of a seed with no one-GPU run. Each
+    several-GPU run is compared with its seed's fastest one-GPU run; the ratios per GPU count sum the seeds both
+    have: four GPUs (15 + 20) / (30 + 40) = 0.50x."""
+    runs = {"a_one_s0": (1, 0, 60.0), "a_one_s0_warm": (1, 0, 30.0), "a_one_s1": (1, 1, 40.0), "b_two_s0": (2, 0, 18.0),
+            "b_two_s7": (2, 7, 10.0), "c_four_s0": (4, 0, 15.0), "c_four_s1": (4, 1, 20.0)}
+    for name, (gpus, seed, wall) in runs.items():
+        write_csv(tmp_path / name / "metrics.csv", [{**metrics_row(u, 10, 0.97), "ranks": gpus} for u in range(1, 4)])
+        (tmp_path / name / "config.json").write_text(json.dumps({"seed": seed}))
+        (tmp_path / name / "target.json").write_text(json.dumps({"update": 3, "wall_s": wall, "heldout": {
+            "goal_rate": 0.96, "collision_rate": 0.02, "offroad_rate": 0.01, "episodes": 3463}}))
+    out = run("summarize_runs", tmp_path)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert "  quality stop: 30.0 s (update 3), held out goal 0.960 coll 0.020 off 0.010 (3463 episodes)" in lines
+    assert lines[-5:] == ["b_two_s0: 2 GPUs 18.0 s against 30.0 s on one (seed 0): 0.60x",
+                          "c_four_s0: 4 GPUs 15.0 s against 30.0 s on one (seed 0): 0.50x",
+                          "c_four_s1: 4 GPUs 20.0 s against 40.0 s on one (seed 1): 0.50x",
+                          "2 GPUs: 0.60x one GPU's time to quality over seeds [0]",
+                          "4 GPUs: 0.50x one GPU's time to quality over seeds [0, 1]"]
 
 
 def test_scale_timing(tmp_path):
