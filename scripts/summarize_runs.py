@@ -66,6 +66,7 @@ def quality_stop(run: Path) -> dict | None:
 
 
 def stop_line(stop: dict) -> str:
+    """The quality-stop line of one run: its time, update and held-out rates."""
     h = stop.get("heldout") or {}
     held = (f", held out goal {h['goal_rate']:.3f} coll {h['collision_rate']:.3f} off {h['offroad_rate']:.3f} "
             f"({h.get('episodes', 0):.0f} episodes)") if h else ""
@@ -99,8 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         stop = quality_stop(args.root / name)
         if stop is not None:
             lines.append(stop_line(stop))
-            config = json.loads((args.root / name / "config.json").read_text())
-            stops.append((name, int(float(rows[-1].get("ranks") or 1)), int(config["seed"]), float(stop["wall_s"])))
+            config = args.root / name / "config.json"
+            if config.exists():  # its seed pairs it with the one-GPU run below
+                seed = int(json.loads(config.read_text())["seed"])
+                stops.append((name, int(float(rows[-1].get("ranks") or 1)), seed, float(stop["wall_s"])))
         print("\n".join(lines))
     if len({gpus for _, gpus, _, _ in stops}) > 1:
         print("\n".join(scaling_lines(stops)))

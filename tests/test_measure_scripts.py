@@ -65,9 +65,10 @@ def test_summarize_runs(tmp_path):
 
 def test_summarize_runs_compares_quality_stops_across_gpu_counts(tmp_path):
     """Runs that stopped at quality (target.json): one GPU at seeds 0 (cold 60 s, warm 30 s) and 1 (40 s), two GPUs
-    at seed 0 (18 s) and four at seeds 0 and 1 (15 s, 20 s), and a two-GPU run of a seed with no one-GPU run. Each
-    several-GPU run is compared with its seed's fastest one-GPU run; the ratios per GPU count sum the seeds both
-    have: four GPUs (15 + 20) / (30 + 40) = 0.50x."""
+    at seed 0 (18 s) and four at seeds 0 and 1 (15 s, 20 s), a two-GPU run of a seed with no one-GPU run and one
+    with no config.json (no seed): summarised, not compared. Each several-GPU run is compared with its seed's
+    fastest one-GPU run; the ratios per GPU count sum the seeds both have: four GPUs (15 + 20) / (30 + 40) =
+    0.50x."""
     runs = {"a_one_s0": (1, 0, 60.0), "a_one_s0_warm": (1, 0, 30.0), "a_one_s1": (1, 1, 40.0), "b_two_s0": (2, 0, 18.0),
             "b_two_s7": (2, 7, 10.0), "c_four_s0": (4, 0, 15.0), "c_four_s1": (4, 1, 20.0)}
     for name, (gpus, seed, wall) in runs.items():
@@ -75,10 +76,13 @@ def test_summarize_runs_compares_quality_stops_across_gpu_counts(tmp_path):
         (tmp_path / name / "config.json").write_text(json.dumps({"seed": seed}))
         (tmp_path / name / "target.json").write_text(json.dumps({"update": 3, "wall_s": wall, "heldout": {
             "goal_rate": 0.96, "collision_rate": 0.02, "offroad_rate": 0.01, "episodes": 3463}}))
+    write_csv(tmp_path / "d_two" / "metrics.csv", [{**metrics_row(1, 10, 0.97), "ranks": 2}])
+    (tmp_path / "d_two" / "target.json").write_text(json.dumps({"update": 1, "wall_s": 5.0}))  # no config.json
     out = run("summarize_runs", tmp_path)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
     assert "  quality stop: 30.0 s (update 3), held out goal 0.960 coll 0.020 off 0.010 (3463 episodes)" in lines
+    assert "  quality stop: 5.0 s (update 1)" in lines
     assert lines[-5:] == ["b_two_s0: 2 GPUs 18.0 s against 30.0 s on one (seed 0): 0.60x",
                           "c_four_s0: 4 GPUs 15.0 s against 30.0 s on one (seed 0): 0.50x",
                           "c_four_s1: 4 GPUs 20.0 s against 40.0 s on one (seed 1): 0.50x",
