@@ -74,8 +74,9 @@ def group(events: list[dict]) -> list[dict]:
 
 def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[tuple, list[dict]]:
     """One episode of every world under `policy`: per (world, agent, partner) case (scene agent indices),
-    a row per step up to the agent's first collision, with both speeds, the centres' gap and whether the
-    partner is one of the agent's observed partner rows."""
+    a row per step up to the agent's first collision, with both speeds, the centres' gap, where the partner's
+    centre lies in the agent's frame (ahead along its heading, and to its left) and whether the partner is one of
+    the agent's observed partner rows."""
     W, A, K = sim.num_worlds, sim.max_agents, sim.cfg.partner_k
     slot_agent = np.asarray(sim.model.slot_agent)
     slots = {}
@@ -95,7 +96,11 @@ def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[
     sim.reset()
     out: dict[tuple, list[dict]] = {c: [] for c in cases}
     for step in range(sim.episode_length):
-        gap = (sim.pos[ws, sa_] - sim.pos[ws, sb_]).norm(dim=-1).cpu().numpy()
+        rel = sim.pos[ws, sb_] - sim.pos[ws, sa_]
+        gap = rel.norm(dim=-1).cpu().numpy()
+        cos, sin = torch.cos(sim.yaw[ws, sa_]), torch.sin(sim.yaw[ws, sa_])
+        ahead = (rel[:, 0] * cos + rel[:, 1] * sin).cpu().numpy()
+        left = (rel[:, 1] * cos - rel[:, 0] * sin).cpu().numpy()
         speed_a, speed_b = sim.speed[ws, sa_].cpu().numpy(), sim.speed[ws, sb_].cpu().numpy()
         collided = (sim.collided[ws, sa_] != 0).cpu().numpy()
         part_j = wp.to_torch(sim.state.part_j).view(W, A, K)[ws, sa_].cpu().numpy()
@@ -106,7 +111,7 @@ def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[
                 continue
             seen = {int(j) - w * A for j in part_j[n][present[n]]}
             rows.append({"step": step, "speed": float(speed_a[n]), "partner_speed": float(speed_b[n]),
-                         "gap": float(gap[n]), "seen": sb in seen, "collided": bool(collided[n]) and step > 0})
+                         "gap": float(gap[n]), "ahead": float(ahead[n]), "left": float(left[n]), "seen": sb in seen, "collided": bool(collided[n]) and step > 0})
         policy(sim)
         sim.step()
     return out
@@ -117,10 +122,11 @@ def print_approach(name: str, seed: int, case: tuple, rows: list[dict], every: i
     hit = next((r["step"] for r in rows if r["collided"]), None)
     print(f"\n{name}, seed {seed}, world {w}: agent {a} and agent {b}"
           f" ({'first collision at step ' + str(hit) if hit is not None else 'no collision'})\n")
-    print("| step | speed [m/s] | partner speed [m/s] | gap [m] | partner observed |")
-    print("|---:|---:|---:|---:|---|")
+    print("| step | speed [m/s] | partner speed [m/s] | gap [m] | partner ahead / left [m] | partner observed |")
+    print("|---:|---:|---:|---:|---:|---|")
     for r in rows[::every] + ([rows[-1]] if (len(rows) - 1) % every else []):
-        print(f"| {r['step']} | {r['speed']:.1f} | {r['partner_speed']:.1f} | {r['gap']:.1f} | {'yes' if r['seen'] else 'no'} |")
+        print(f"| {r['step']} | {r['speed']:.1f} | {r['partner_speed']:.1f} | {r['gap']:.1f} | "
+              f"{r['ahead']:.1f} / {r['left']:.1f} | {'yes' if r['seen'] else 'no'} |")
 
 
 def main(argv=None) -> int:

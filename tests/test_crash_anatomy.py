@@ -50,8 +50,9 @@ def test_script_prints_a_row_per_colliding_vehicle(capsys):
 
 def test_approach_follows_a_pair_from_the_logged_start():
     """--approach on a real WOMD test scene: at the first step the gap is the two logs' distance at the
-    start step, the speeds are the logs', and the agent's nearest neighbour is among its observed partner rows;
-    a bad pair is refused with its name."""
+    start step, the speeds are the logs', the partner's place in the agent's frame is the logs' offset turned by
+    the agent's logged heading, and the agent's nearest neighbour is among its observed partner rows; a bad pair
+    is refused with its name."""
     import numpy as np
     import pytest
 
@@ -74,5 +75,11 @@ def test_approach_follows_a_pair_from_the_logged_start():
     assert first["step"] == 0 and first["gap"] == pytest.approx(d.min(), abs=1e-3) and first["seen"]
     assert first["speed"] == pytest.approx(np.linalg.norm(sc.log_vel[a, t0]), abs=1e-3)
     assert first["partner_speed"] == pytest.approx(np.linalg.norm(sc.log_vel[b, t0]), abs=1e-3)
+    # the partner's place in the agent's frame: the logs' offset turned by minus the agent's logged heading
+    yaw = sc.log_yaw[a, t0]
+    dx, dy = sc.log_pos[b, t0] - sc.log_pos[a, t0]
+    assert first["ahead"] == pytest.approx(dx * np.cos(yaw) + dy * np.sin(yaw), abs=1e-2)
+    assert first["left"] == pytest.approx(dy * np.cos(yaw) - dx * np.sin(yaw), abs=1e-2)
+    assert np.hypot(first["ahead"], first["left"]) == pytest.approx(first["gap"], abs=1e-3)
     with pytest.raises(SystemExit, match="no world 7"):
         crash_anatomy.approach(sim, opened.policy, 0, [(7, a, b)])
