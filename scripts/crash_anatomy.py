@@ -111,7 +111,8 @@ def approach(sim, policy, seed: int, cases: list[tuple[int, int, int]]) -> dict[
                 continue
             seen = {int(j) - w * A for j in part_j[n][present[n]]}
             rows.append({"step": step, "speed": float(speed_a[n]), "partner_speed": float(speed_b[n]),
-                         "gap": float(gap[n]), "ahead": float(ahead[n]), "left": float(left[n]), "seen": sb in seen, "collided": bool(collided[n]) and step > 0})
+                         "gap": float(gap[n]), "ahead": float(ahead[n]), "left": float(left[n]), "seen": sb in seen,
+                         "collided": bool(collided[n]) and step > 0})
         policy(sim)
         sim.step()
     return out
