@@ -124,8 +124,8 @@ def reward_kernel(
 
 def launch_reward(model, state, control) -> None:
     wp.launch(reward_kernel, dim=model.num_slots, device=model.device,
-              inputs=[model.goal_radius, model.beta, model.cost_shape, model.cost_collision, model.speed_limit, model.lane_cap,
-                      model.ttc_on, model.ttc_horizon, model.reward_weights, model.goal,
+              inputs=[model.goal_radius, model.beta, model.cost_shape, model.cost_collision, model.speed_limit,
+                      model.lane_cap, model.ttc_on, model.ttc_horizon, model.reward_weights, model.goal,
                       state.alive, state.pos, state.speed, state.collided, state.offroad, state.lane_dist,
                       state.cost_dist, state.ttc, state.ep_goal, state.ep_offroad, state.goal_dist, state.cost_depth],
               outputs=[state.goal_event, state.reward_terms, state.reward, state.cost])
