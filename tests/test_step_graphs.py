@@ -193,6 +193,44 @@ def test_the_compiled_live_row_loss_moves_the_weights_as_the_eager_one_on_the_cp
     torch.testing.assert_close(lam_c, lam_e)
 
 
+@pytest.mark.slow
+def test_a_grown_step_capacity_does_not_compile_the_loss_again(tmp_path):
+    """compile_update with the fixed-shape steps: a rollout with a third of its slots live, then the whole rollout,
+    whose minibatches need more rows than the first capacity: new row buffers, but the compiled loss (its row count
+    a symbolic size) serves them without a second compilation, and the weights stay the eager steps' ones."""
+    import torch._dynamo
+
+    from tg_gpudrive.learn.update import eager_steps
+
+    weights, compiled = {}, []
+    for mode in ("eager", "compiled"):
+        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / mode, "discrete", epochs=1,
+                                                                      minibatches=3, cuda_graphs=True,
+                                                                      compile_update=mode == "compiled")
+        batch = collector.collect()
+        full = flatten(batch, advantages(cfg, batch), nets.head.discrete)
+        few = dataclasses.replace(full, mask=full.mask & (torch.rand(full.mask.shape,
+                                                                     generator=torch.Generator().manual_seed(2)) < 0.3))
+        lam = torch.linspace(0.1, 0.9, full.mask.shape[1])
+        steps = StepGraphs(cfg, nets, opt)
+        torch._dynamo.reset()
+        torch._dynamo.utils.counters.clear()
+        caps = []
+        for groups in (few, full):
+            ugen = torch.Generator().manual_seed(4)
+            if mode == "eager":
+                eager_steps(cfg, groups, lam, nets, opt, ugen, prior)
+            else:
+                steps.run(groups, lam, ugen, prior)
+                caps.append(steps.cap)
+                compiled.append(torch._dynamo.utils.counters["stats"]["unique_graphs"])
+        weights[mode] = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    assert caps[0] < caps[1]
+    assert compiled[0] >= 1 and compiled[1] == compiled[0]
+    for a, b in zip(weights["compiled"], weights["eager"]):
+        torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("graphs", [True, False], ids=["replayed", "live_rows"])
 def test_compiled_steps_equal_eager_ones_on_cuda(tmp_path, graphs):

@@ -23,7 +23,8 @@ memory is given back, and training goes on as without graphs, on the live rows.
 A replay saves the host its launches, not the device its kernels: at these sizes each of a step's kernels costs
 a few microseconds of device time whatever its work. `compile_update` compiles the fixed-shape loss with
 torch.compile, so that its forward and backward pass are fewer, fused kernels; the warm-up steps compile it
-(once per rollout shape, cached on disk), and the capture records the compiled kernels.
+(once per rollout shape, the rows a step holds a symbolic size; cached on disk), and the capture records the
+compiled kernels.
 """
 
 from __future__ import annotations
@@ -182,6 +183,9 @@ class StepGraphs:
             self.cap, self.graph, self.grads, self.warm = cap, None, [], 0
             self.rows = (torch.zeros(cap, dtype=torch.long, device=dev), torch.zeros(cap, dtype=torch.long, device=dev),
                          torch.zeros(cap, device=dev))
+            if self.cfg.compile_update:  # the row count a symbolic size: a grown capacity is captured again, not
+                for t in self.rows:  # compiled again (tens of seconds cold, a few warm)
+                    torch._dynamo.maybe_mark_dynamic(t, 0)
 
     def _forward_backward(self, idx: Tensor, loss_fn, rows: tuple[Tensor, Tensor] | None = None) -> None:
         """A step's loss and backward pass: over the fixed row buffers, or over the live `rows` given."""
