@@ -704,9 +704,12 @@ def test_run_experiments_leaves_the_distance_keeping_reward_to_the_knobs():
         assert load_config(TrainConfig, base, overrides=sets).env.reward.ttc == 0.0, name
     exp["overrides"] = {"env.reward.ttc": -0.1}  # named by the grid: kept
     assert {load_config(TrainConfig, base, overrides=sets).env.reward.ttc for _, sets in mod.plan(exp, [])} == {-0.1}
-    # the repository's real-scene grid, resolved as run_experiments resolves it
-    exp = yaml.safe_load((REPO_CONFIGS / "experiments" / "grid_horizon_real.yaml").read_text())
-    assert all(load_config(TrainConfig, base, overrides=sets).env.reward.ttc == 0.0 for _, sets in mod.plan(exp, []))
+    # the repository's real-scene grids, resolved as run_experiments resolves them
+    for grid in ("grid_horizon_real.yaml", "grid_approach_real.yaml"):
+        exp = yaml.safe_load((REPO_CONFIGS / "experiments" / grid).read_text())
+        cfgs = [load_config(TrainConfig, base, overrides=sets) for _, sets in mod.plan(exp, [])]
+        assert cfgs and all(c.env.reward.ttc == 0.0 for c in cfgs), grid
+    assert {c.env.cost_shape for c in cfgs} == {"approach"}
 
 
 def test_flexibility_table_averages_the_last_updates(tmp_path):
