@@ -105,21 +105,28 @@ def test_the_step_capacity_rounds_up_to_a_sixteenth_and_never_shrinks_until_new_
     assert steps.capacity(30, 320) == 120
 
 
-def test_more_live_rows_grow_the_step_capacity_and_the_steps_stay_the_eager_ones(tmp_path):
-    """A rollout with a third of its slots live, then the whole rollout: the second needs more rows than the first
-    capacity holds, so the steps take new row buffers; both updates move the weights as the eager steps do."""
+def _few_then_full(tmp_path, epochs: int, compiled: bool = False):
+    """Two updates, eager and through StepGraphs: on a rollout with a third of its slots live, then on the whole
+    rollout, whose minibatches need more rows than the first capacity holds. (the weights after each way, the
+    steps' capacity after each update, torch.compile's graphs after each update; `compiled`: the steps' loss
+    through torch.compile)."""
+    import torch._dynamo
+
     from tg_gpudrive.learn.update import eager_steps
 
-    weights, caps = {}, []
-    for mode in ("eager", "fixed rows"):
-        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / mode, "discrete", epochs=2,
-                                                                      minibatches=3, cuda_graphs=True)
+    weights, caps, graphs = {}, [], []
+    for mode in ("eager", "steps"):
+        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / mode, "discrete", epochs=epochs,
+                                                                      minibatches=3, cuda_graphs=True,
+                                                                      compile_update=compiled and mode == "steps")
         batch = collector.collect()
         full = flatten(batch, advantages(cfg, batch), nets.head.discrete)
         few = dataclasses.replace(full, mask=full.mask & (torch.rand(full.mask.shape,
                                                                      generator=torch.Generator().manual_seed(2)) < 0.3))
         lam = torch.linspace(0.1, 0.9, full.mask.shape[1])
         steps = StepGraphs(cfg, nets, opt)
+        torch._dynamo.reset()
+        torch._dynamo.utils.counters.clear()
         for groups in (few, full):
             ugen = torch.Generator().manual_seed(4)
             if mode == "eager":
@@ -127,9 +134,17 @@ def test_more_live_rows_grow_the_step_capacity_and_the_steps_stay_the_eager_ones
             else:
                 steps.run(groups, lam, ugen, prior)
                 caps.append(steps.cap)
+                graphs.append(torch._dynamo.utils.counters["stats"]["unique_graphs"])
         weights[mode] = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    return weights, caps, graphs
+
+
+def test_more_live_rows_grow_the_step_capacity_and_the_steps_stay_the_eager_ones(tmp_path):
+    """The second rollout needs more rows than the first capacity holds, so the steps take new row buffers; both
+    updates move the weights as the eager steps do."""
+    weights, caps, _ = _few_then_full(tmp_path, epochs=2)
     assert caps[0] < caps[1]
-    for a, b in zip(weights["fixed rows"], weights["eager"]):
+    for a, b in zip(weights["steps"], weights["eager"]):
         torch.testing.assert_close(a, b, rtol=1e-4, atol=2e-5)
 
 
@@ -195,39 +210,12 @@ def test_the_compiled_live_row_loss_moves_the_weights_as_the_eager_one_on_the_cp
 
 @pytest.mark.slow
 def test_a_grown_step_capacity_does_not_compile_the_loss_again(tmp_path):
-    """compile_update with the fixed-shape steps: a rollout with a third of its slots live, then the whole rollout,
-    whose minibatches need more rows than the first capacity: new row buffers, but the compiled loss (its row count
-    a symbolic size) serves them without a second compilation, and the weights stay the eager steps' ones."""
-    import torch._dynamo
-
-    from tg_gpudrive.learn.update import eager_steps
-
-    weights, compiled = {}, []
-    for mode in ("eager", "compiled"):
-        cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path / mode, "discrete", epochs=1,
-                                                                      minibatches=3, cuda_graphs=True,
-                                                                      compile_update=mode == "compiled")
-        batch = collector.collect()
-        full = flatten(batch, advantages(cfg, batch), nets.head.discrete)
-        few = dataclasses.replace(full, mask=full.mask & (torch.rand(full.mask.shape,
-                                                                     generator=torch.Generator().manual_seed(2)) < 0.3))
-        lam = torch.linspace(0.1, 0.9, full.mask.shape[1])
-        steps = StepGraphs(cfg, nets, opt)
-        torch._dynamo.reset()
-        torch._dynamo.utils.counters.clear()
-        caps = []
-        for groups in (few, full):
-            ugen = torch.Generator().manual_seed(4)
-            if mode == "eager":
-                eager_steps(cfg, groups, lam, nets, opt, ugen, prior)
-            else:
-                steps.run(groups, lam, ugen, prior)
-                caps.append(steps.cap)
-                compiled.append(torch._dynamo.utils.counters["stats"]["unique_graphs"])
-        weights[mode] = [p.detach().clone() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
+    """compile_update: after the capacity grew, the compiled loss (its row count a symbolic size) serves the new
+    row buffers without a second compilation, and the weights stay the eager steps' ones."""
+    weights, caps, graphs = _few_then_full(tmp_path, epochs=1, compiled=True)
     assert caps[0] < caps[1]
-    assert compiled[0] >= 1 and compiled[1] == compiled[0]
-    for a, b in zip(weights["compiled"], weights["eager"]):
+    assert graphs[0] >= 1 and graphs[1] == graphs[0]
+    for a, b in zip(weights["steps"], weights["eager"]):
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
 
 
