@@ -80,6 +80,27 @@ def test_collector_fills_a_rollout_of_the_documented_shapes(tmp_path, case):
     assert groups.obs.shape == (T * W, C, sim.obs_dim) and groups.q_target.shape[:2] == (T * W, C)
 
 
+def test_the_cost_critic_loss_takes_its_huber_threshold_from_cost_kappa(tmp_path, monkeypatch):
+    from tg_gpudrive.learn.update import minibatch_loss
+
+    cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, "discrete")
+    batch = collector.collect()
+    groups = flatten(batch, advantages(cfg, batch), nets.head.discrete)
+    idx, lam = torch.arange(groups.mask.shape[0]), torch.zeros(groups.mask.shape[1])
+    real, seen = L.quantile_huber_loss, []
+
+    def spy(*args, kappa, **kwargs):
+        seen.append(kappa)
+        return real(*args, kappa=kappa, **kwargs)
+
+    monkeypatch.setattr(L, "quantile_huber_loss", spy)
+    parts = {k: minibatch_loss(dataclasses.replace(cfg, cost_kappa=k), groups, idx, lam, nets, prior)[1]
+             for k in (0.0, 1.0)}
+    assert seen == [0.0, 1.0]
+    assert float(parts[0.0]["loss/cost_quantile"]) != float(parts[1.0]["loss/cost_quantile"])
+    torch.testing.assert_close(parts[0.0]["loss/value"], parts[1.0]["loss/value"])
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_one_update_moves_the_weights_and_reports_finite_numbers(tmp_path, case):
     cfg, sim, nets, collector, opt, lagrange, gen, prior = _setup(tmp_path, case)

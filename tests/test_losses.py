@@ -279,6 +279,34 @@ def test_quantile_huber_minimiser_recovers_true_quantiles(device, kappa, single_
         close(got, torch.quantile(x[0].double().cpu(), tau), atol=0.01)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_kappa_above_the_cost_scale_crowds_the_quantiles_towards_the_mean(device, single_cpu_thread):
+    """A state's discounted cost-to-go is mostly 0 (no close pass ahead) and otherwise a fraction of 1: here 63 %
+    zeros, else Exp(mean 0.3). Below kappa the quantile Huber loss is quadratic, whose asymmetric minimiser is an
+    expectile, so at kappa 1 the fitted atoms hold no zero and their CVaR_0.875 / CVaR_0.125 is about half the
+    sample's: the risk level then hardly matters. kappa 0 (TrainConfig.cost_kappa) fits the quantiles."""
+    torch.manual_seed(0)
+    x = torch.distributions.Exponential(1 / 0.3).sample((1, 8000))
+    x = torch.where(torch.rand(1, 8000) < 0.63, torch.zeros_like(x), x).to(device)
+    xs = x.sort(-1).values
+    want = cvar_from_quantiles(xs, 0.875, True) / cvar_from_quantiles(xs, 0.125, True)
+    spread, zeros = {}, {}
+    for kappa in (0.0, 1.0):
+        q = torch.full((1, 16), float(x.mean()), device=device, requires_grad=True)
+        opt = torch.optim.Adam([q], lr=0.05)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, 300, eta_min=0.0)
+        for _ in range(300):
+            opt.zero_grad()
+            quantile_huber_loss(q, x, kappa).backward()
+            opt.step()
+            sched.step()
+        qs = q.detach().sort(-1).values
+        spread[kappa] = float(cvar_from_quantiles(qs, 0.875, True) / cvar_from_quantiles(qs, 0.125, True) / want)
+        zeros[kappa] = float((qs < 1e-3).float().mean())
+    assert spread[0.0] == pytest.approx(1.0, abs=0.1) and zeros[0.0] == pytest.approx(0.63, abs=0.07)
+    assert spread[1.0] < 0.7 and zeros[1.0] == 0.0
+
+
 # --------------------------------------------------------------------------- CVaR
 
 

@@ -282,6 +282,11 @@ class TrainConfig:
     constraint: bool = True  # false: no CVaR constraint (lambda = 0), i.e. plain MAPPO with eta1 = 0
     quantiles: int = 64
     cost_nstep: int = 8  # steps of the cost critic's distributional Bellman target (1: the one-step target)
+    # the cost critic's quantile Huber threshold, in cost-to-go units: below it the loss is quadratic, and a
+    # quadratic asymmetric loss fits expectiles, not quantiles. Per-step costs are at most 1 and most states'
+    # cost-to-go lies well under 1, so at 1 the critic's atoms crowd towards the mean and CVaR_alpha hardly
+    # depends on alpha; 0 is the plain quantile (pinball) loss, exact at any cost scale
+    cost_kappa: float = 1.0
     prior: str = "world_model"  # world_model | expert: the magnet
     prior_top_component: bool = True  # world_model, continuous: the magnet is the most probable mixture component
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir) or a packaged name (small_cpu); "" = the shipped model of the action space (shipped, shipped_continuous)
@@ -338,7 +343,8 @@ class TrainConfig:
             raise ConfigError(f"prior: expected expert or world_model, got {self.prior!r}")
         check_ranges(self, {
             "num_scenes": "[1, inf)", "num_worlds": "[1, inf)", "updates": "[1, inf)", "rollout_steps": "[1, inf)",
-            "cost_nstep": "[1, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)", "epochs": "[1, inf)",
+            "cost_nstep": "[1, inf)", "cost_kappa": "[0, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)",
+            "epochs": "[1, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",

@@ -218,7 +218,7 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     tq = pick(b.q_target)
     if tq.shape[-1] > MAX_TARGET_SAMPLES:
         tq = tq[..., torch.linspace(0, tq.shape[-1] - 1, MAX_TARGET_SAMPLES, device=tq.device).round().long()]
-    loss_q = L.quantile_huber_loss(q, tq, kappa=1.0, mask=w)
+    loss_q = L.quantile_huber_loss(q, tq, kappa=cfg.cost_kappa, mask=w)
     loss = weight * (loss_pi + cfg.value_coef * (loss_v + loss_q))
     parts = {"loss/policy": loss_pi, "loss/value": loss_v, "loss/cost_quantile": loss_q,
              "kl/prior": st["kl_prior"], "kl/prev": st["kl_prev"], "entropy": st["entropy"],
