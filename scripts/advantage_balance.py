@@ -11,7 +11,10 @@ store path that no longer exists here) for `--rollouts` rollouts of `--num-world
 - std of A_r and of lambda A_c at the run's alpha (and their ratio);
 - per alpha in `--alphas`, the std of lambda A_c and its correlation with the run's own;
 - the share of live rows whose combined advantage changes sign between the first and the last alpha, and the mean
-  |change| of A against the std of A (the normalised step the actor sees).
+  |change| of A against the std of A (the normalised step the actor sees);
+- the critic's tail: over the live states whose mean cost-to-go exceeds 1e-3, the median of CVaR at the last alpha
+  over CVaR at the first, from the quantiles the critic gives each state (how much the risk level can tell states
+  apart: a critic whose atoms crowd towards the mean, see TrainConfig.cost_kappa, gives little more than 1).
 Numbers only; it never fails on them.
 """
 
@@ -27,6 +30,7 @@ import torch
 
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.config import TrainConfig, apply_overrides, from_dict
+from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.train import Trainer
 from tg_gpudrive.learn.update import advantages
 
@@ -46,6 +50,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         tr = Trainer(cfg, out, progress=False)
         lam = ck["lagrange"]["lam"].to(tr.device) if "lagrange" in ck else torch.zeros((), device=tr.device)
         rows = {"a_r": [], **{a: [] for a in alphas}, "own": []}
+        quant = []
         lam_used = []
         for _ in range(rollouts):
             b = tr.collector.collect()
@@ -53,6 +58,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
             lam_c = lam[:C] if lam.dim() == 1 else lam.mean()  # per slot; one for all (0-d) or per vehicle (their mean)
             live = b.mask
             lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
+            quant.append(b.quant[:-1][live])
             for a in {*alphas, cfg.alpha}:  # the update's own targets (update.advantages) at each risk level
                 tg = advantages(dataclasses.replace(cfg, alpha=a), b)
                 weighted = (lam_c * tg.adv_c)[live]
@@ -65,6 +71,9 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
     a_r, own = cat["a_r"], cat["own"]
     first, last = cat[alphas[0]], cat[alphas[-1]]
     comb_first, comb_last = a_r - first, a_r - last
+    q = torch.cat(quant).float()
+    held = q.mean(-1) > 1e-3
+    tail = L.cvar_from_quantiles(q[held], alphas[-1], True) / L.cvar_from_quantiles(q[held], alphas[0], True)
     corr = lambda x, y: float(torch.corrcoef(torch.stack([x, y]))[0, 1]) if x.std() > 0 and y.std() > 0 else 0.0  # noqa: E731
     return {
         "run": run, "alpha": cfg.alpha, "beta": cfg.env.beta, "live_rows": int(a_r.numel()),
@@ -75,6 +84,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
                       for a in alphas},
         "sign_flips": float(((comb_first > 0) != (comb_last > 0)).float().mean()),
         "mean_abs_change_over_std": float((comb_first - comb_last).abs().mean() / comb_first.std().clamp(min=1e-12)),
+        "tail_ratio": float(tail.median()) if len(tail) else float("nan"),
     }
 
 
@@ -91,8 +101,9 @@ def main(argv=None) -> int:
     if not args.json:
         print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
               + " | ".join(f"std at alpha {a} (corr)" for a in args.alphas)
-              + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A |")
-        print("|" + "---|" * (10 + len(args.alphas)))
+              + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A"
+              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} |")
+        print("|" + "---|" * (11 + len(args.alphas)))
     for run in args.runs:
         r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device)
         if args.json:
@@ -101,7 +112,7 @@ def main(argv=None) -> int:
         per = " | ".join(f"{v['std_lambda_a_c']:.4f} ({v['corr_with_own']:.2f})" for v in r["per_alpha"].values())
         print(f"| {Path(run).name} | {r['beta']} | {r['alpha']} | {r['live_rows']} | {r['lambda_mean']:.2f} | "
               f"{r['std_a_r']:.4f} | {r['std_lambda_a_c']:.4f} | {r['cost_share']:.3f} | {per} | "
-              f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} |", flush=True)
+              f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} | {r['tail_ratio']:.2f} |", flush=True)
     return 0
 
 

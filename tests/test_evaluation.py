@@ -871,3 +871,6 @@ def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
     assert moved["live_rows"] == same["live_rows"]  # the same seed drives the same rollout
     assert moved["per_alpha"][str(own)]["corr_with_own"] == pytest.approx(1.0)
     assert moved["per_alpha"][str(other)]["std_lambda_a_c"] != pytest.approx(same["std_lambda_a_c"])
+    # the critic's tail: CVaR is non-decreasing in alpha, and an alpha against itself gives 1
+    assert same["tail_ratio"] == pytest.approx(1.0)
+    assert (moved["tail_ratio"] > 1.0) == (other > own) and moved["tail_ratio"] != pytest.approx(1.0)
