@@ -183,8 +183,8 @@ class StepGraphs:
             self.cap, self.graph, self.grads, self.warm = cap, None, [], 0
             self.rows = (torch.zeros(cap, dtype=torch.long, device=dev), torch.zeros(cap, dtype=torch.long, device=dev),
                          torch.zeros(cap, device=dev))
-            if self.cfg.compile_update:  # the row count a symbolic size: a grown capacity is captured again, not
-                for t in self.rows:  # compiled again (tens of seconds cold, a few warm)
+            if self.cfg.compile_update:  # the row count a symbolic size: a grown capacity is captured again,
+                for t in self.rows:  # not compiled again
                     torch._dynamo.maybe_mark_dynamic(t, 0)
 
     def _forward_backward(self, idx: Tensor, loss_fn, rows: tuple[Tensor, Tensor] | None = None) -> None:
