@@ -254,6 +254,20 @@ def test_quantile_huber_loss_does_not_backprop_into_targets():
     assert target.grad is None and pred.grad is not None
 
 
+def _fit_atoms(x, init, kappa, lr, steps):
+    """Free atoms (starting at `init`) fitted to the samples `x` by Adam on the quantile Huber loss, the step size
+    annealed to 0 over `steps`."""
+    q = init.clone().requires_grad_(True)
+    opt = torch.optim.Adam([q], lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=0.0)
+    for _ in range(steps):
+        opt.zero_grad()
+        quantile_huber_loss(q, x, kappa).backward()
+        opt.step()
+        sched.step()
+    return q.detach()
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("kappa", [0.0, 0.05])
 def test_quantile_huber_minimiser_recovers_true_quantiles(device, kappa, single_cpu_thread):
@@ -263,15 +277,7 @@ def test_quantile_huber_minimiser_recovers_true_quantiles(device, kappa, single_
     x = torch.distributions.Gamma(2.0, 1.0).sample((1, 8000)).to(device)
     tau = quantile_midpoints(n, torch.float64)
     true = stats.gamma(2.0).ppf(tau.numpy())
-    q = torch.zeros(1, n, device=device, requires_grad=True)
-    opt = torch.optim.Adam([q], lr=0.3)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, 200, eta_min=0.0)
-    for _ in range(200):
-        opt.zero_grad()
-        quantile_huber_loss(q, x, kappa).backward()
-        opt.step()
-        sched.step()
-    got = q.detach()[0].double().cpu()
+    got = _fit_atoms(x, torch.zeros(1, n, device=device), kappa, lr=0.3, steps=200)[0].double().cpu()
     # sampling error of the 15/16 quantile with 8k samples is ~0.06; interior ones far less
     close(got[:6], true[:6], atol=0.05)
     close(got, true, atol=0.15)
@@ -292,15 +298,8 @@ def test_a_kappa_above_the_cost_scale_crowds_the_quantiles_towards_the_mean(devi
     want = cvar_from_quantiles(xs, 0.875, True) / cvar_from_quantiles(xs, 0.125, True)
     spread, zeros = {}, {}
     for kappa in (0.0, 1.0):
-        q = torch.full((1, 16), float(x.mean()), device=device, requires_grad=True)
-        opt = torch.optim.Adam([q], lr=0.05)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, 300, eta_min=0.0)
-        for _ in range(300):
-            opt.zero_grad()
-            quantile_huber_loss(q, x, kappa).backward()
-            opt.step()
-            sched.step()
-        qs = q.detach().sort(-1).values
+        start = torch.full((1, 16), float(x.mean()), device=device)
+        qs = _fit_atoms(x, start, kappa, lr=0.05, steps=300).sort(-1).values
         spread[kappa] = float(cvar_from_quantiles(qs, 0.875, True) / cvar_from_quantiles(qs, 0.125, True) / want)
         zeros[kappa] = float((qs < 1e-3).float().mean())
     assert spread[0.0] == pytest.approx(1.0, abs=0.1) and zeros[0.0] == pytest.approx(0.63, abs=0.07)
