@@ -189,6 +189,13 @@ def test_the_compiled_loss_moves_the_weights_as_the_eager_one_on_the_cpu(tmp_pat
     for a, b in zip(fused, eager):
         torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
     torch.testing.assert_close(lam_c, lam_e)
+    # a warm start (a new process's, here a reset) finds the traced forward and backward pass in torch.compile's
+    # autograd cache instead of tracing them again: the graph holds no autocast region that would bar it
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    _updates(tmp_path / "w", "cpu", graphs=True, compiled=True, n=1)
+    aot = torch._dynamo.utils.counters["aot_autograd"]
+    assert aot["autograd_cache_hit"] >= 1 and aot["autograd_cache_bypass"] == 0, dict(aot)
 
 
 @pytest.mark.slow

@@ -39,7 +39,8 @@ from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import Networks
-from tg_gpudrive.learn.update import Groups, clip_and_step, eager_steps, epoch_live_rows, minibatch_loss, padded_rows
+from tg_gpudrive.learn.update import (Groups, clip_and_step, compiled_loss, eager_steps, epoch_live_rows,
+                                      minibatch_loss, padded_rows)
 
 log = logging.getLogger(__name__)
 Tensor = torch.Tensor
@@ -104,7 +105,7 @@ class StepGraphs:
         self.params = [p for group in opt.param_groups for p in group["params"]]
         # the full minibatches' loss (compiled with compile_update); an epoch's short last one runs it as it is,
         # not to compile a second shape
-        self.loss = torch.compile(minibatch_loss) if cfg.compile_update else minibatch_loss
+        self.loss = compiled_loss() if cfg.compile_update else minibatch_loss
         self.key = None
         self.graph: torch.cuda.CUDAGraph | None = None
         self.grads: list[Tensor | None] = []

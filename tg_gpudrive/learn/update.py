@@ -18,6 +18,7 @@ live agents are the only other host syncs).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -166,13 +167,15 @@ def live_only(x: Tensor, w: Tensor) -> Tensor:
 
 def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
                    prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None,
-                   row_weight: Tensor | None = None) -> tuple[Tensor, dict]:
+                   row_weight: Tensor | None = None, autocast: bool = True) -> tuple[Tensor, dict]:
     """CCE-MAPPO loss of the groups `idx`: the actor on their live rows, the critics on the groups
     (attention over each group's slots) with their heads on the live rows only. `live`: the live rows as
     (position in idx, slot), in row-major order, when the caller has them (else found here, a host sync).
     `row_weight`: `live` is then rows of a fixed count (padded_rows), the live ones weighted 1 and fillers 0
     in every mean (the same losses and gradients, whatever the fillers read): shapes that do not depend on
-    the minibatch's live rows, as a CUDA graph needs (graphs.StepGraphs)."""
+    the minibatch's live rows, as a CUDA graph needs (graphs.StepGraphs). `autocast`: the networks' forward
+    passes under nets.autocast here; False: the caller runs the whole loss under it (compiled_loss), and what
+    follows the networks is the same float32 arithmetic either way."""
     mi = b.mask[idx]
     weight, w = 1.0, row_weight
     if w is not None:
@@ -194,7 +197,7 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
         lam_rows = lam[c] if cfg.per_agent_lambda else lam
     obs = pick(b.obs)
     flat = g * mi.shape[1] + c
-    with nets.autocast(cache=w is None):
+    with nets.autocast(cache=w is None) if autocast else contextlib.nullcontext():
         out = nets.actor(obs, c, None if b.hist is None else pick(b.hist))
         v, q = nets.critic(b.obs[idx], mi, None if weight == 0.0 else flat, head_rows=flat, row_weight=w)
     out, v, q = nets.float_out(out), v.float(), q.float()
@@ -204,8 +207,12 @@ def minibatch_loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: 
     old_out = pick(b.old) if head.discrete else (pick(b.old[0]), pick(b.old[1]))
     if cfg.eta1 <= 0:  # plain MAPPO: no magnet to evaluate
         kl_prior = torch.zeros_like(logp)
-    else:  # the discrete magnet's logits are stored; the continuous one is rebuilt from its context
-        prior_out = pick(b.prior) if head.discrete else prior.distribution(pick(b.prior), obs.float())
+    else:
+        if head.discrete:  # the discrete magnet's logits are stored
+            prior_out = pick(b.prior)
+        else:  # the continuous one is rebuilt from its context, in float32 even under a caller's autocast
+            with torch.autocast("cuda", enabled=False):
+                prior_out = prior.distribution(pick(b.prior), obs.float())
         kl_prior = head.kl(out, prior_out)
         if b.prior_weight is not None:  # the magnet of a share of the rows (magnet_fraction)
             kl_prior = kl_prior * pick(b.prior_weight)
@@ -265,11 +272,32 @@ def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) 
     opt.step()
 
 
+def _loss_under_callers_autocast(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
+                                 prior: BehaviourPrior, live: tuple[Tensor, Tensor] | None = None,
+                                 row_weight: Tensor | None = None) -> tuple[Tensor, dict]:
+    return minibatch_loss(cfg, b, idx, lam, nets, prior, live, row_weight, autocast=False)
+
+
+def compiled_loss(dynamic: bool | None = None):
+    """minibatch_loss through torch.compile (compile_update; `dynamic` as torch.compile's), called with the networks'
+    autocast around the compiled graph rather than inside it: torch.compile's autograd cache, which spares a warm
+    start tracing the backward pass again (most of a warm first update's seconds), takes no graph that enters
+    autocast."""
+    fn = torch.compile(_loss_under_callers_autocast, dynamic=dynamic)
+
+    def loss(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks, prior: BehaviourPrior,
+             live: tuple[Tensor, Tensor] | None = None, row_weight: Tensor | None = None) -> tuple[Tensor, dict]:
+        with nets.autocast(cache=row_weight is None):
+            return fn(cfg, b, idx, lam, nets, prior, live, row_weight)
+
+    return loss
+
+
 @functools.cache
 def compiled_live_loss():
-    """minibatch_loss through torch.compile (compile_update), the live rows' count a dynamic size: compiled
-    on the first minibatch, then reused whatever the count (cached on disk across runs)."""
-    return torch.compile(minibatch_loss, dynamic=True)
+    """compiled_loss for the live rows, their count a dynamic size: compiled on the first minibatch, then reused
+    whatever the count (cached on disk across runs)."""
+    return compiled_loss(dynamic=True)
 
 
 def eager_steps(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torch.optim.Optimizer,
