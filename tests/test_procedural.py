@@ -182,8 +182,8 @@ def check_kinematics(sc, tag=""):
     t = sc.num_steps
     ref = min(10, t - 1)
     assert (dist[:, ref:].sum(1) > 5.0 * (t - 1 - ref) / 80).all(), tag
-    if t == 91:
-        assert np.mean(dist.sum(1) > 15.0) >= 0.6, tag
+    if t == 91:  # most vehicles drive through; starts from rest stand up to 5 s of the 9 at their stop line
+        assert np.mean(dist.sum(1) > 15.0) >= (0.4 if sc.metadata["params"].get("rest_starts") else 0.6), tag
 
 
 def check_routes_and_goals(sc, tag=""):
@@ -461,6 +461,36 @@ def test_long_vehicles_keep_every_invariant():
     assert np.array_equal(plain.log_pos, off.log_pos) and np.array_equal(plain.length, off.length)
     with pytest.raises(ValueError, match="long_vehicles"):
         ProceduralParams(long_vehicles=1.5)
+
+
+def test_rest_starts_pull_away_from_the_stop_line_with_every_invariant():
+    """With rest_starts, the front vehicles of yielding approaches stand at rest at the init step (1 s),
+    as 13 % of the real dev candidates do, and pull away later, with every invariant kept and logs the audit
+    finds nothing in; without it no candidate is at rest at the init step, and the scene is the same."""
+    from tg_gpudrive.data.log_audit import audit, candidates
+
+    def starts(params):
+        at_rest = pulled = n = 0
+        for kind in JUNCTIONS:
+            for seed in range(2):
+                sc = generate_scene(kind, seed, params)
+                if params.rest_starts:
+                    check_all(sc, f"rest starts {kind} seed {seed}")
+                    assert audit(sc, 10, 2.0) == {}, (kind, seed)
+                cand = np.flatnonzero(candidates(sc, 10, 2.0))
+                still = np.linalg.norm(sc.log_pos[cand, 11] - sc.log_pos[cand, 10], axis=-1) < 0.1  # < 1 m/s
+                travel = np.linalg.norm(np.diff(sc.log_pos[cand, 10:], axis=1), axis=-1).sum(1)
+                at_rest, pulled, n = at_rest + still.sum(), pulled + (still & (travel >= 5.0)).sum(), n + len(cand)
+        return at_rest, pulled, n
+
+    at_rest, pulled, n = starts(ProceduralParams(rest_starts=1.0, stop_lines=0.5))
+    assert at_rest >= 0.1 * n and pulled >= 0.5 * at_rest, (at_rest, pulled, n)
+    assert starts(ProceduralParams())[0] == 0
+    plain = generate_scene("t_junction", 4)
+    off = generate_scene("t_junction", 4, ProceduralParams(rest_starts=0.0))
+    np.testing.assert_array_equal(plain.log_pos, off.log_pos)
+    with pytest.raises(ValueError, match="rest_starts"):
+        ProceduralParams(rest_starts=1.5)
 
 
 def test_street_knobs_are_deterministic_and_off_by_default():

@@ -81,6 +81,64 @@ def test_closing_speed_of_a_fast_car_behind_a_slow_one():
     np.testing.assert_allclose(got[13:], 9.0, atol=1e-3)
 
 
+def _pull_out(t_start: float, cross_speed: float, cross_at: float, T: int = 101):
+    """A car at rest at (0, -10.2) that pulls away north at 5 m/s from `t_start`, and a car driving east along
+    y = 0 at `cross_speed` that passes x = 0 at `cross_at` seconds."""
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    pos[0, :, 1] = -10.2 + 5 * np.maximum(t - t_start, 0.0)
+    pos[1, :, 0] = cross_speed * (t - cross_at)
+    yaw = np.stack([np.full(T, np.pi / 2), np.zeros(T)])
+    return make_scene(pos, yaw, roads=[(RoadType.LANE, [[-100, 0], [100, 0]])])
+
+
+@pytest.mark.parametrize("t_start, cross_speed, cross_at, n, pet", [
+    # the mover enters the crosser's path (comes within CONFLICT_M of y = 0) at y = -1.7, t = 3.7 s
+    (2.0, 10.0, 3.0, 1, [0.7]),  # the crosser passes x = 0 0.7 s before it
+    (2.0, 10.0, 6.5, 1, [2.8]),  # 2.8 s after it
+    (2.0, 10.0, 9.5, 0, [5.8]),  # 5.8 s after it: a crossing too far apart in time to conflict
+    (2.0, 6.0, 3.0, 0, []),  # crossing traffic slower than FAST_MPS
+    (0.0, 10.0, 3.0, 0, []),  # the car is moving at init_step (1 s): not a pull from rest
+])
+def test_rest_crossings_of_a_car_pulling_out_across_traffic(t_start, cross_speed, cross_at, n, pet):
+    f = scene_features(_pull_out(t_start, cross_speed, cross_at))
+    assert f["rest_starts"][0] == (0.5 if t_start > 1.0 else 0.0)  # of the two candidates, the mover at rest
+    assert f["rest_crossings"][0] == n
+    np.testing.assert_allclose(f["rest_crossing_pet"], pet, atol=1e-6)
+
+
+def test_a_car_merging_from_rest_into_fast_traffic():
+    """The mover pulls away at 5 m/s on a 45-degree diagonal from (-10, -10) towards the eastbound lane y = 0
+    and turns onto it, as a car merging from a side road. It enters the lane's path (within CONFLICT_M of
+    y = 0) at t = 4.3 s, at x = -1.87, 45 degrees from the lane; the car on the lane at 10 m/s is nearest
+    that point (x = -1.8 at t = 3.0 s): PET 1.3 s."""
+    T = 101
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    s_ = 5 * np.maximum(t - 2.0, 0.0)
+    diag = np.minimum(s_, 10 * np.sqrt(2))
+    pos[0, :, 0] = -10 + diag / np.sqrt(2) + (s_ - diag)
+    pos[0, :, 1] = -10 + diag / np.sqrt(2)
+    pos[1, :, 0] = 10 * (t - 3.0) - 1.8
+    yaw = np.zeros((2, T))
+    yaw[0] = np.where(s_ < 10 * np.sqrt(2), np.pi / 4, 0.0)
+    f = scene_features(make_scene(pos, yaw, roads=[(RoadType.LANE, [[-100, 0], [100, 0]])]))
+    assert f["rest_crossings"][0] == 1
+    np.testing.assert_allclose(f["rest_crossing_pet"], [1.3], atol=1e-6)
+
+
+def test_a_car_following_the_mover_does_not_cross_it():
+    """A fast car that drives north on the mover's own path, behind it, follows; it does not cross."""
+    T = 81
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    pos[0, :, 1] = -10 + 5 * np.maximum(t - 2.0, 0.0)
+    pos[1, :, 1] = -80 + 9 * t
+    yaw = np.full((2, T), np.pi / 2)
+    f = scene_features(make_scene(pos, yaw, roads=[(RoadType.LANE, [[0, -100], [0, 100]])]))
+    assert f["rest_crossings"][0] == 0 and len(f["rest_crossing_pet"]) == 0
+
+
 def test_lateral_shift_of_a_lane_change_and_not_of_a_turn():
     """A car that moves one lane (3.5 m) left after init_step ends 3.5 m to the side of its init heading;
     one that turns a corner is not a straight path and gives no sample."""

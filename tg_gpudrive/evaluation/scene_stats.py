@@ -27,6 +27,21 @@ Every feature is computed from a Scene alone (logs and map), for real and genera
                                                             whose log heading at its last valid step is within
                                                             STRAIGHT_DEG of the init one and whose goal is at
                                                             least STRAIGHT_MIN_M away
+    rest_starts        -        scenes                      candidates at rest at init_step (path speed below
+                                                            REST_MPS) over candidates
+    rest_crossings     -        scenes                      pulls from rest into or across fast traffic: pairs
+                                                            of a candidate at rest at init_step (path speed
+                                                            below REST_MPS) that then travels MOVE_M or more,
+                                                            and another vehicle whose log passes the mover's
+                                                            entry point (its first moving step within
+                                                            CONFLICT_M of that log) at FAST_MPS or more, at a
+                                                            heading ENTRY_DEG or more from the mover's there
+                                                            (crossing or merging, not following), within
+                                                            PET_MAX_S of the mover: the junction conflict where
+                                                            a driver must yield
+    rest_crossing_pet  s        such pairs, any PET         post-encroachment time of those pairs: the time
+                                                            between the mover at its entry point and the other
+                                                            vehicle at its nearest step to that point
     agents             -        scenes                      agents valid at some step
     controlled         -        scenes                      the rule's eligible vehicles (engine.control)
     pedestrians        -        scenes                      pedestrians valid at some step
@@ -64,11 +79,12 @@ from tg_gpudrive.scene import Scene
 from tg_gpudrive.enums import AgentType, RoadType
 
 FEATURES = ("speed", "accel", "curvature", "closing_speed", "goal_distance", "vehicle_length", "route_length",
-            "lateral_shift", "agents", "controlled", "pedestrians", "pedestrians_on_lanes", "pedestrian_lane_speed",
-            "cyclists", "parked_share", "edge_density", "lane_width", "lanes")
+            "lateral_shift", "rest_starts", "rest_crossings", "rest_crossing_pet", "agents", "controlled",
+            "pedestrians", "pedestrians_on_lanes", "pedestrian_lane_speed", "cyclists", "parked_share",
+            "edge_density", "lane_width", "lanes")
 UNITS = {"speed": "m/s", "accel": "m/s^2", "curvature": "1/m", "closing_speed": "m/s", "goal_distance": "m",
-         "vehicle_length": "m", "route_length": "m", "lateral_shift": "m", "pedestrian_lane_speed": "m/s",
-         "edge_density": "m/ha", "lane_width": "m"}
+         "vehicle_length": "m", "route_length": "m", "lateral_shift": "m", "rest_crossing_pet": "s",
+         "pedestrian_lane_speed": "m/s", "edge_density": "m/ha", "lane_width": "m"}
 PARKED_M = 1.0  # m: a vehicle whose log moves less than this in all is parked
 EDGE_REACH_M = 50.0  # m around the candidates' init positions where road-edge density is measured
 LANE_SIDE_M = 4.0  # m: a lane's bounding line or edge lies within this of its centre
@@ -77,6 +93,12 @@ STRAIGHT_MIN_M = 15.0  # m: the goal of a straight log counted for lateral_shift
 AHEAD_M = 30.0  # m: how far ahead of a candidate closing_speed looks for a leader ...
 CORRIDOR_M = 2.0  # m: ... and how far to its side
 LANE_HALF_M = 1.75  # m: a pedestrian this near a lane centre line stands in the lane
+REST_MPS = 1.0  # m/s: a vehicle slower than this at init_step is at rest ...
+MOVE_M = 5.0  # m: ... and pulls away if its log then travels this far
+FAST_MPS = 8.0  # m/s: a crossing vehicle at least this fast is fast traffic
+CONFLICT_M = 2.0  # m: two paths that pass this near cross (a step at 15 m/s is 1.5 m)
+ENTRY_DEG = 10.0  # deg: a mover entering another's path at least this far from its heading crosses or merges into it
+PET_MAX_S = 5.0  # s: a crossing within this of the mover's passing is a conflict
 
 
 def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:
@@ -104,6 +126,46 @@ def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:
         unit = (pos[j, t] - pos[m, t]) / dist[np.nonzero(has)[0], lead[has]][:, None]
         out.append(((vel[m, t] - vel[j, t]) * unit).sum(-1))
     return np.concatenate(out) if out else np.zeros(0)
+
+
+def _rest_crossings(scene: Scene, rows: np.ndarray, init: int) -> tuple[float, int, np.ndarray]:
+    """rest_starts, rest_crossings and rest_crossing_pet of the module docstring, for the candidates `rows`."""
+    pos, dt = scene.log_pos.astype(np.float64), scene.dt
+    steps = np.arange(scene.num_steps)
+    vehicles = np.flatnonzero(scene.agent_type == AgentType.VEHICLE)
+    tracks = {}
+    for i in vehicles:
+        ok = steps[init:][scene.log_valid[i, init:]]
+        if len(ok) >= 2:
+            step = np.diff(pos[i, ok], axis=0)
+            speed = np.linalg.norm(step, axis=-1) / (np.diff(ok) * dt)
+            tracks[i] = (ok[1:], pos[i, ok[1:]], np.arctan2(step[:, 1], step[:, 0]), speed)
+    n, pets, at_rest = 0, [], 0
+    for a in rows:
+        if a not in tracks or tracks[a][0][0] != init + 1 or tracks[a][3][0] >= REST_MPS:
+            continue
+        at_rest += 1
+        ta, pa, ha, va = tracks[a]
+        moving = va >= REST_MPS  # the mover's heading means something only once it rolls
+        if (va * np.diff(np.concatenate([[init], ta])) * dt).sum() < MOVE_M or not moving.any():
+            continue
+        ta, pa, ha = ta[moving], pa[moving], ha[moving]
+        for b, (tb, pb, hb, vb) in tracks.items():
+            if b == a:
+                continue
+            d = np.linalg.norm(pa[:, None] - pb[None], axis=-1)
+            near = np.flatnonzero(d.min(1) <= CONFLICT_M)
+            if len(near) == 0:
+                continue
+            k = near[0]  # the mover's entry point into b's path, and b's step nearest to it
+            j = int(np.argmin(d[k]))
+            angle = np.degrees(abs(np.angle(np.exp(1j * (ha[k] - hb[j])))))
+            if angle < ENTRY_DEG or vb[j] < FAST_MPS:
+                continue
+            pet = abs(int(ta[k]) - int(tb[j])) * dt
+            pets.append(pet)
+            n += pet <= PET_MAX_S
+    return at_rest / max(len(rows), 1), n, np.asarray(pets)
 
 
 def _kinematics(scene: Scene, rows: np.ndarray, init: int) -> dict[str, np.ndarray]:
@@ -208,6 +270,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     cand = np.nonzero(candidates(scene, init, cfg.goal_radius))[0]
     out = _kinematics(scene, cand, init)
     out["closing_speed"] = _closing_speeds(scene, cand, init)
+    rest_share, rest_n, out["rest_crossing_pet"] = _rest_crossings(scene, cand, init)
     goal_d, route, shift = [], [], []
     for i in cand:
         ok = np.nonzero(scene.log_valid[i, init:])[0] + init
@@ -226,6 +289,8 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     moved = np.array([np.ptp(scene.log_pos[i][scene.log_valid[i]], axis=0).max() if present[i] else 0.0
                       for i in range(scene.num_agents)])
     per_scene = {
+        "rest_starts": rest_share if len(cand) else float("nan"),
+        "rest_crossings": rest_n,
         "agents": present.sum(),
         "controlled": control.eligible(scene, cfg).sum(),
         "pedestrians": (present & (scene.agent_type == AgentType.PEDESTRIAN)).sum(),

@@ -57,6 +57,7 @@ WALKER_SPEED = (0.8, 1.6)  # m/s of those who walk
 WALKER_STAND = 0.3  # share who stand still
 WALKER_LANE_CLEAR = 2.5  # m a pedestrian keeps from every lane centre line
 _CROSSING_STREAM = 0xC055  # third seed word of the crossing pedestrians' stream
+_REST_STREAM = 0x5E57  # third seed word of the starts from rest
 CROSS_SPEED = (1.0, 1.6)  # m/s of most pedestrians crossing the road ...
 # ... and (share, m/s) of those who hurry or run: on the lanes of real WOMD training scenes, pedestrians'
 # speeds have percentiles 10 / 50 / 90 / 99 of 1.0 / 1.3 / 1.9 / 6.5 m/s
@@ -131,6 +132,11 @@ class ProceduralParams:
                     5.5-14 m long, 2.0-2.6 m wide) instead of a car (4-5.5 m), where the longer box fits
                     at its start and sweeps no curb along its route. 8 % of real WOMD dev-scene
                     candidates are longer than 5.5 m; procedural ones none by default.
+    rest_starts     probability that the front vehicle of a yielding approach starts at rest at its stop
+                    line, stands there 1.5-5 s (traffic.py REST_HOLD) and then pulls into or across the
+                    junction's traffic when it may (it gives way as every vehicle does). 13 % of the real
+                    WOMD dev training candidates are at rest at the init step, most of them pulling away
+                    later; procedural ones none by default.
 
     Street furniture (parking, stop lines, kerb stops, lane offsets) is drawn from its own random
     stream, pedestrians, crossings, lane changes and long vehicles from one each: with parking = 0,
@@ -164,6 +170,7 @@ class ProceduralParams:
     crossings: float = 0.0
     lane_changes: float = 0.0
     long_vehicles: float = 0.0
+    rest_starts: float = 0.0
 
     def __post_init__(self):
         checks = [
@@ -180,8 +187,8 @@ class ProceduralParams:
             (0 < self.max_accel <= 2.5 and 0 < self.comfort_decel <= 3.5, "max_accel <= 2.5, comfort_decel <= 3.5"),
             (self.spawn_range >= 10.0, "spawn_range must be >= 10 m"),
             (all(0.0 <= x <= 1.0 for x in (self.parking, self.stop_lines, self.kerb_stops, self.lane_changes,
-                                           self.long_vehicles)),
-             "parking, stop_lines, kerb_stops, lane_changes and long_vehicles must be in [0, 1]"),
+                                           self.long_vehicles, self.rest_starts)),
+             "parking, stop_lines, kerb_stops, lane_changes, long_vehicles and rest_starts must be in [0, 1]"),
             (0 <= self.max_parked <= 128, "max_parked must be in [0, 128]"),
             (0.0 <= self.lane_offset <= 1.0, "lane_offset must be in [0, 1] m"),
             (0.0 <= self.park_reach <= 2.0, "park_reach must be in [0, 2] m"),
@@ -227,7 +234,7 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
     hold = bool(street.random() < p.stop_lines)
     lanes = None if p.num_lanes is None else int(np.clip(p.num_lanes, *cfg.lanes))
     boost = 1.0
-    for _ in range(12):
+    for attempt in range(12):
         try:
             m = cfg.build(rng, p.lane_width, p.size_scale, lanes, p.crosswalks, p.parking, street)
         except geo.GeometryError:
@@ -236,7 +243,9 @@ def generate_scene(scenario_type: str, seed: int, params: ProceduralParams | Non
         veh = spawn(tm, rng, density=p.density * cfg.density * boost, speed_mean=p.speed_mean * cfg.speed,
                     speed_std=p.speed_std, spawn_range=p.spawn_range * cfg.spawn_range * p.size_scale,
                     headway=p.time_headway, min_gap=p.min_gap, a_max=p.max_accel, b_comf=p.comfort_decel,
-                    max_vehicles=p.max_vehicles)
+                    max_vehicles=p.max_vehicles, rest_front=p.rest_starts,
+                    rest_rng=np.random.default_rng([SCENARIO_TYPES.index(scenario_type), int(seed) % (1 << 64),
+                                                    _REST_STREAM, attempt]))
         if len(veh) < p.min_vehicles:
             boost *= 1.5
             continue

@@ -52,6 +52,7 @@ GAP_ACCEPT = 1.0  # s, time a minor-road vehicle wants between clearing and the 
 MIN_MOVE_AFTER_10 = 5.5  # m, a vehicle must travel this far after step 10 or be dropped
 CROSS_STOP = 2.5  # m short of a crossing pedestrian's path where a yielding vehicle holds its front
 CROSS_LEAD = 1.0  # s before a pedestrian steps off the kerb that vehicles start yielding to it
+REST_HOLD = (1.5, 5.0)  # s a vehicle started from rest stands at its stop line (at rest at a 1 s init step)
 
 
 @dataclass(frozen=True)
@@ -319,9 +320,14 @@ class Vehicles:
     change_len: np.ndarray | None = None  # m
     change_off: np.ndarray | None = None  # m
     change_lane: np.ndarray | None = None  # lane index, -1: none
+    # a start from rest (`spawn(rest_front=...)`): the vehicle stands at its stop line until hold_t s, as a
+    # driver makes a full stop before pulling into the junction, then gives way as every vehicle does
+    hold_t: np.ndarray | None = None  # s, 0: no hold
 
     def __post_init__(self):
         n = len(self.routes)
+        if self.hold_t is None:
+            self.hold_t = np.zeros(n)
         if self.bias is None:
             self.bias = np.zeros(n)
         if self.stop_s is None:
@@ -346,7 +352,8 @@ class Vehicles:
         idx = np.flatnonzero(keep)
         return Vehicles([self.routes[i] for i in idx], *(getattr(self, f)[idx] for f in (
             "s0", "v0", "v_des", "length", "width", "height", "headway", "min_gap", "a_max", "b_comf",
-            "stop_s", "ramp_len", "kerb_off", "bias", "change_s", "change_len", "change_off", "change_lane")))
+            "stop_s", "ramp_len", "kerb_off", "bias", "change_s", "change_len", "change_off", "change_lane",
+            "hold_t")))
 
     def kerb_lateral(self, i: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(offset to the right of the lane centre, its derivative along s) of vehicle i's kerb stop at
@@ -388,8 +395,12 @@ class Vehicles:
 
 def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_mean: float,
           speed_std: float, spawn_range: float, headway: float, min_gap: float, a_max: float,
-          b_comf: float, max_vehicles: int) -> Vehicles:
-    """Queue vehicles upstream of each spawn lane's reference point."""
+          b_comf: float, max_vehicles: int, rest_front: float = 0.0,
+          rest_rng: np.random.Generator | None = None) -> Vehicles:
+    """Queue vehicles upstream of each spawn lane's reference point. With `rest_front` > 0, the front vehicle
+    of a yielding approach (a lane of negative priority) stands at rest 0.5-2 m short of its stop line with
+    that probability, held there for REST_HOLD s (`Vehicles.hold_t`); `rest_rng` draws those choices, so a
+    scene without them draws what it drew before."""
     m = tm.map
     by_lane: dict[int, list[list[int]]] = {}
     for r in m.routes:
@@ -401,6 +412,9 @@ def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_m
         if not cands:
             continue
         d_front = float(rng.uniform(1.0, 15.0))
+        hold = 0.0
+        if rest_front > 0 and m.lanes[lane].prio < 0 and rest_rng.random() < rest_front:
+            d_front, hold = float(rest_rng.uniform(0.5, 2.0)), float(rest_rng.uniform(*REST_HOLD))
         lane_len = m.lanes[lane].path.length
         ahead_speed, ahead_rear = None, None
         while True:
@@ -415,14 +429,16 @@ def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_m
             v = min(v, float(np.interp(s_c, np.arange(len(r.vcap)) * DS, r.vcap)))
             if m.lanes[lane].prio < 0:  # approaching a junction: able to stop comfortably
                 v = min(v, math.sqrt(2 * 2.5 * max(d_front - 1.0, 0.0)) + 1.0)
+            if hold > 0:
+                v = 0.0
             if ahead_rear is not None:
                 gap = ahead_rear - (s_c + L / 2)
                 v = min(v, max(0.0, (gap - min_gap) / headway), ahead_speed + 1.0)
             rows.append((d_front, lane, route, s_c, v, v_des, L, float(rng.uniform(1.8, 2.2)),
                          float(rng.uniform(1.4, 1.9)), headway * float(rng.uniform(0.8, 1.25)),
                          min_gap * float(rng.uniform(0.8, 1.25)), a_max * float(rng.uniform(0.8, 1.2)),
-                         b_comf * float(rng.uniform(0.8, 1.2))))
-            ahead_speed, ahead_rear = v, s_c - L / 2
+                         b_comf * float(rng.uniform(0.8, 1.2)), hold))
+            ahead_speed, ahead_rear, hold = v, s_c - L / 2, 0.0
             gap = min_gap + headway * v + float(rng.exponential(25.0 / max(density * weight, 1e-3)))
             d_front += L + gap
     rows.sort(key=lambda r: (r[0], r[1]))
@@ -430,7 +446,7 @@ def spawn(tm: TrafficModel, rng: np.random.Generator, *, density: float, speed_m
     if not rows:
         return Vehicles([], *(np.zeros(0) for _ in range(10)))
     cols = list(zip(*rows))
-    return Vehicles(list(cols[2]), *(np.array(c, np.float64) for c in cols[3:]))
+    return Vehicles(list(cols[2]), *(np.array(c, np.float64) for c in cols[3:13]), hold_t=np.array(cols[13]))
 
 
 # (share, m) of the lengths of vehicles drawn long (vans and pickups, trucks, buses), and their widths: the real
@@ -919,6 +935,7 @@ def drive(tm: TrafficModel, veh: Vehicles, num_steps: int, dt: float, hold_at_st
         if crossings:
             _yield_to_pedestrians(t * dt, st, vt, half, s_cross, window, g_obs)
         a = _acceleration(veh, rt, st, vt, dv, g_lead, g_obs, a_prev, sqrt_ab)
+        a = np.where(t * dt < veh.hold_t, np.minimum(a, 0.0), a)  # a start from rest: still at its stop line
         vn = np.maximum(vt + a * dt, 0.0)
         a_prev = (vn - vt) / dt
         v[:, t + 1] = vn
