@@ -8,10 +8,12 @@ import numpy as np
 import pytest
 
 from tg_gpudrive.config import AugmentConfig, ConfigError, EngineConfig
-from tg_gpudrive.data.augment import augment_scene, mirror, perturb_start, rotate, shift_start, subset_mask
+from tg_gpudrive.data.augment import (augment_scene, delay_agents, mirror, perturb_start, rotate, shift_start,
+                                     subset_mask)
 from tg_gpudrive.data.log_audit import infeasible_mask
 from tg_gpudrive.data.procedural import generate_scene
 from tg_gpudrive.engine.simulator import Simulator
+from tg_gpudrive.scene import make_scene
 from tg_gpudrive.agents.builtin import expert_policy
 from tg_gpudrive.rollout import run_rollout
 
@@ -103,12 +105,54 @@ def test_control_subsets_keep_at_least_one():
     assert (subset_mask(mask, 1.0, rng) == mask).all() and not subset_mask(np.zeros(3, bool), 0.5, rng).any()
 
 
+def test_a_delayed_vehicle_replays_its_own_log_later(scene):
+    """Each delayed candidate's row reads the source's log d steps earlier (d from the cut steps of the start
+    shift), invalid before the source's first step, with its goal at the delayed log's end; the others keep
+    theirs."""
+    k = 10
+    shifted = shift_start(scene, k)
+    out = delay_agents(shifted, scene, k, 10, 2.0, 1.0, 15, np.random.default_rng(3))
+    delays = out.metadata["agent_delays"]
+    assert delays and all(1 <= d <= 15 for d in delays.values())
+    t = np.arange(out.num_steps)
+    for i in range(out.num_agents):
+        d = delays.get(i, 0)
+        src = t + k - d
+        ok = (src >= 0) & scene.log_valid[i, np.clip(src, 0, None)]
+        np.testing.assert_array_equal(out.log_valid[i], ok)
+        np.testing.assert_array_equal(out.log_pos[i][ok], scene.log_pos[i, src[ok]])
+        np.testing.assert_array_equal(out.log_yaw[i][ok], scene.log_yaw[i, src[ok]])
+        if d:
+            np.testing.assert_array_equal(out.goal[i], out.log_pos[i, np.flatnonzero(ok)[-1]])
+        else:
+            np.testing.assert_array_equal(out.goal[i], shifted.goal[i])
+    assert np.array_equal(shifted.log_pos, shift_start(scene, k).log_pos)  # the input is not changed
+
+
+def test_a_delay_that_would_meet_another_box_is_not_taken():
+    """A car at 5 m/s with a pedestrian-typed box of the same size 6.2 m behind it in step: a delay of d steps
+    brings it 0.5 d m back, so 3 steps leave 0.2 m between the boxes and 4 or more make them meet."""
+    T = 61
+    t = np.arange(T) * 0.1
+    pos = np.zeros((2, T, 2))
+    pos[0, :, 0] = 5 * t
+    pos[1, :, 0] = 5 * t - 6.2
+    sc = make_scene(pos, np.zeros((2, T)), agent_type=np.array([1, 2]))
+    taken = set()
+    for seed in range(40):
+        out = delay_agents(shift_start(sc, 10), sc, 10, 10, 2.0, 1.0, 8, np.random.default_rng(seed))
+        taken |= set(out.metadata["agent_delays"].values())
+    assert taken == {1, 2, 3}
+
+
 def test_augment_scene_off_is_the_identity_and_knobs_are_checked(scene):
     rng = np.random.default_rng(0)
     assert augment_scene(scene, AugmentConfig(), 10, 2.0, rng) is scene
     on = augment_scene(scene, AugmentConfig(mirror=1.0, rotate=True, start_shift=5), 10, 2.0, rng)
     assert on is not scene and on.num_steps >= scene.num_steps - 5
-    for bad in (dict(mirror=1.5), dict(control_fraction=0.0), dict(start_shift=-1)):
+    delayed = augment_scene(scene, AugmentConfig(start_shift=20, delay_share=1.0, max_delay=25), 10, 2.0, rng)
+    assert delayed.metadata["agent_delays"] and max(delayed.metadata["agent_delays"].values()) <= 25
+    for bad in (dict(mirror=1.5), dict(control_fraction=0.0), dict(start_shift=-1), dict(delay_share=1.5)):
         with pytest.raises(ConfigError):
             AugmentConfig(**bad)
 

@@ -206,10 +206,13 @@ class AugmentConfig:
     perturb_pos: float = 0.0  # m, std of an offset of each candidate vehicle's warm-up positions
     perturb_yaw: float = 0.0  # rad, std of a turn of each candidate vehicle's warm-up headings
     control_fraction: float = 1.0  # each policy agent stays the policy's with this probability
+    delay_share: float = 0.0  # each candidate vehicle's whole log runs later with this probability ...
+    max_delay: int = 20  # ... by up to this many steps
 
     def __post_init__(self):
         check_ranges(self, {"mirror": "[0, 1]", "control_fraction": "(0, 1]", "start_shift": "[0, 10000]",
-                            "perturb_pos": "[0, 100]", "perturb_yaw": "[0, 6.3]"})
+                            "perturb_pos": "[0, 100]", "perturb_yaw": "[0, 6.3]", "delay_share": "[0, 1]",
+                            "max_delay": "[0, 10000]"})
 
 
 @dataclasses.dataclass(frozen=True)

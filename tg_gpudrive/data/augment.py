@@ -13,13 +13,21 @@ the sampler drew, never changing the source's own:
     perturb_pos       m: Gaussian noise on each candidate vehicle's position over the warm-up steps up to
                       init_step (one offset per vehicle, so its warm-up motion is kept)
     perturb_yaw       rad: the same for its heading (velocities turn with it)
+    delay_share       each candidate vehicle is delayed with this probability: its whole log runs
+                      1 to `max_delay` steps later than the scene's (drawn per vehicle, taken from the
+                      steps before the scene's start that a start shift cuts, so a delay of k + init_step
+                      steps at most), the steps before its log begins invalid and its goal the end of its
+                      delayed log. The real geometry then meets new timings: a car that crossed before
+                      another pulled out arrives while it might. A delay that would make its box meet
+                      another's over the DELAY_CLEAR_STEPS up to init_step is not taken.
+    max_delay         the longest delay, in steps
     control_fraction  (applied to the control masks, `subset_mask`): each of the policy's agents stays
                       the policy's with this probability, the others replay their logs; at least one
                       stays
 
 The control rule's log audit travels with the copies: mirror and rotate preserve it, a start shift
 takes the source's audit at the later init step (cached on the source, so each shift is audited once),
-and the perturbations keep the unperturbed log's (the rule's exclusions are those of the real log; a
+and the perturbations and delays keep the unperturbed log's (the rule's exclusions are those of the real log; a
 perturbation that makes two warm-up boxes meet is a collision the policy meets in training). Must not:
 touch the engine, or mutate its input.
 """
@@ -30,9 +38,12 @@ import numpy as np
 
 from tg_gpudrive.config import AugmentConfig
 from tg_gpudrive.data.log_audit import MIN_PLAY_STEPS, candidates, carry_audit
+from tg_gpudrive.data.procedural.checks import box_box_overlap
 from tg_gpudrive.scene import Scene
 
-__all__ = ["augment_scene", "mirror", "rotate", "shift_start", "perturb_start", "subset_mask"]
+__all__ = ["augment_scene", "mirror", "rotate", "shift_start", "perturb_start", "delay_agents", "subset_mask"]
+
+DELAY_CLEAR_STEPS = 6  # steps up to init_step over which a delayed vehicle's box must meet nobody's
 
 _XY_FIELDS = ("log_pos", "log_vel", "goal", "road_points", "tl_stop_point")
 
@@ -101,14 +112,61 @@ def perturb_start(scene: Scene, init_step: int, goal_radius: float, pos_std: flo
     return s
 
 
+def delay_agents(scene: Scene, source: Scene, k: int, init_step: int, goal_radius: float, share: float,
+                 max_delay: int, rng: np.random.Generator) -> Scene:
+    """`scene` (`source` with its first `k` steps cut, `shift_start`) with each candidate vehicle delayed with
+    probability `share` by 1 to `max_delay` steps (module docstring): row i of the logs reads the source's at
+    step t + k - d, invalid before the source's first step."""
+    if share <= 0 or max_delay <= 0:
+        return scene
+    init = min(init_step, scene.num_steps - 1)
+    rows = np.flatnonzero(candidates(scene, init, goal_radius))
+    chosen = rows[rng.random(len(rows)) < share]
+    if len(chosen) == 0:
+        return scene
+    s = scene.copy()
+    t = np.arange(s.num_steps)
+    window = np.arange(max(init - DELAY_CLEAR_STEPS + 1, 0), init + 1)
+    delays = {}
+    for i, d in zip(chosen, rng.integers(1, max_delay + 1, len(chosen))):
+        d = int(min(d, init + k))
+        src_t = t + k - d
+        ok = (src_t >= 0) & source.log_valid[i, np.clip(src_t, 0, None)]
+        if not ok[window].all():
+            continue
+        pos = np.where(ok[:, None], source.log_pos[i, np.clip(src_t, 0, None)], 0.0)
+        yaw = np.where(ok, source.log_yaw[i, np.clip(src_t, 0, None)], 0.0)
+        if _meets_anyone(s, i, pos, yaw, window):
+            continue
+        s.log_pos[i], s.log_yaw[i], s.log_valid[i] = pos, yaw, ok
+        s.log_vel[i] = np.where(ok[:, None], source.log_vel[i, np.clip(src_t, 0, None)], 0.0)
+        s.goal[i] = pos[np.flatnonzero(ok)[-1]]
+        delays[int(i)] = d
+    s.metadata["agent_delays"] = delays
+    return s
+
+
+def _meets_anyone(s: Scene, i: int, pos: np.ndarray, yaw: np.ndarray, steps: np.ndarray) -> bool:
+    """Would vehicle i at `pos`, `yaw` meet another agent's box of `s` at any of `steps`?"""
+    others = np.flatnonzero(np.arange(s.num_agents) != i)
+    for t in steps:
+        there = others[s.log_valid[others, t]]
+        if len(there) and box_box_overlap(pos[t], yaw[t], s.length[i] / 2, s.width[i] / 2, s.log_pos[there, t],
+                                          s.log_yaw[there, t], s.length[there] / 2, s.width[there] / 2).any():
+            return True
+    return False
+
+
 def augment_scene(scene: Scene, cfg: AugmentConfig, init_step: int, goal_radius: float,
                   rng: np.random.Generator) -> Scene:
     """One augmented copy of `scene` (the scene itself when every knob is off)."""
-    out = scene
+    out, k = scene, 0
     if cfg.start_shift > 0:
         room = scene.num_steps - (init_step + 1 + MIN_PLAY_STEPS)
         top = min(cfg.start_shift, max(room, 0))
-        out = shift_start(out, int(rng.integers(0, top + 1)), init_step, goal_radius, top)
+        k = int(rng.integers(0, top + 1))
+        out = shift_start(out, k, init_step, goal_radius, top)
+    out = delay_agents(out, scene, k, init_step, goal_radius, cfg.delay_share, cfg.max_delay, rng)
     if cfg.mirror > 0 and rng.random() < cfg.mirror:
         out = mirror(out)
     if cfg.rotate:
