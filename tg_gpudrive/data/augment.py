@@ -131,15 +131,16 @@ def delay_agents(scene: Scene, source: Scene, k: int, init_step: int, goal_radiu
     for i, d in zip(chosen, rng.integers(1, max_delay + 1, len(chosen))):
         d = int(min(d, init + k))
         src_t = t + k - d
-        ok = (src_t >= 0) & source.log_valid[i, np.clip(src_t, 0, None)]
+        at = np.maximum(src_t, 0)
+        ok = (src_t >= 0) & source.log_valid[i, at]
         if not ok[window].all():
             continue
-        pos = np.where(ok[:, None], source.log_pos[i, np.clip(src_t, 0, None)], 0.0)
-        yaw = np.where(ok, source.log_yaw[i, np.clip(src_t, 0, None)], 0.0)
+        pos = np.where(ok[:, None], source.log_pos[i, at], 0.0)
+        yaw = np.where(ok, source.log_yaw[i, at], 0.0)
         if _meets_anyone(s, i, pos, yaw, window):
             continue
         s.log_pos[i], s.log_yaw[i], s.log_valid[i] = pos, yaw, ok
-        s.log_vel[i] = np.where(ok[:, None], source.log_vel[i, np.clip(src_t, 0, None)], 0.0)
+        s.log_vel[i] = np.where(ok[:, None], source.log_vel[i, at], 0.0)
         s.goal[i] = pos[np.flatnonzero(ok)[-1]]
         delays[int(i)] = d
     s.metadata["agent_delays"] = delays
