@@ -128,8 +128,9 @@ def _closing_speeds(scene: Scene, rows: np.ndarray, init: int) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def _rest_crossings(scene: Scene, rows: np.ndarray, init: int) -> tuple[float, int, np.ndarray]:
-    """rest_starts, rest_crossings and rest_crossing_pet of the module docstring, for the candidates `rows`."""
+def _rest_crossings(scene: Scene, rows: np.ndarray, init: int) -> tuple[int, int, np.ndarray]:
+    """For the candidates `rows`: how many are at rest at init_step, and rest_crossings and rest_crossing_pet of
+    the module docstring."""
     pos, dt = scene.log_pos.astype(np.float64), scene.dt
     steps = np.arange(scene.num_steps)
     vehicles = np.flatnonzero(scene.agent_type == AgentType.VEHICLE)
@@ -138,19 +139,19 @@ def _rest_crossings(scene: Scene, rows: np.ndarray, init: int) -> tuple[float, i
         ok = steps[init:][scene.log_valid[i, init:]]
         if len(ok) >= 2:
             step = np.diff(pos[i, ok], axis=0)
-            speed = np.linalg.norm(step, axis=-1) / (np.diff(ok) * dt)
-            tracks[i] = (ok[1:], pos[i, ok[1:]], np.arctan2(step[:, 1], step[:, 0]), speed)
+            arc = np.linalg.norm(step, axis=-1)
+            tracks[i] = (ok[1:], pos[i, ok[1:]], np.arctan2(step[:, 1], step[:, 0]), arc / (np.diff(ok) * dt), arc)
     n, pets, at_rest = 0, [], 0
     for a in rows:
         if a not in tracks or tracks[a][0][0] != init + 1 or tracks[a][3][0] >= REST_MPS:
             continue
         at_rest += 1
-        ta, pa, ha, va = tracks[a]
+        ta, pa, ha, va, arc = tracks[a]
         moving = va >= REST_MPS  # the mover's heading means something only once it rolls
-        if (va * np.diff(np.concatenate([[init], ta])) * dt).sum() < MOVE_M or not moving.any():
+        if arc.sum() < MOVE_M or not moving.any():
             continue
         ta, pa, ha = ta[moving], pa[moving], ha[moving]
-        for b, (tb, pb, hb, vb) in tracks.items():
+        for b, (tb, pb, hb, vb, _) in tracks.items():
             if b == a:
                 continue
             d = np.linalg.norm(pa[:, None] - pb[None], axis=-1)
@@ -165,7 +166,7 @@ def _rest_crossings(scene: Scene, rows: np.ndarray, init: int) -> tuple[float, i
             pet = abs(int(ta[k]) - int(tb[j])) * dt
             pets.append(pet)
             n += pet <= PET_MAX_S
-    return at_rest / max(len(rows), 1), n, np.asarray(pets)
+    return at_rest, n, np.asarray(pets)
 
 
 def _kinematics(scene: Scene, rows: np.ndarray, init: int) -> dict[str, np.ndarray]:
@@ -270,7 +271,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     cand = np.nonzero(candidates(scene, init, cfg.goal_radius))[0]
     out = _kinematics(scene, cand, init)
     out["closing_speed"] = _closing_speeds(scene, cand, init)
-    rest_share, rest_n, out["rest_crossing_pet"] = _rest_crossings(scene, cand, init)
+    at_rest, rest_n, out["rest_crossing_pet"] = _rest_crossings(scene, cand, init)
     goal_d, route, shift = [], [], []
     for i in cand:
         ok = np.nonzero(scene.log_valid[i, init:])[0] + init
@@ -289,7 +290,7 @@ def scene_features(scene: Scene, cfg: EngineConfig | None = None, seed: int = 0)
     moved = np.array([np.ptp(scene.log_pos[i][scene.log_valid[i]], axis=0).max() if present[i] else 0.0
                       for i in range(scene.num_agents)])
     per_scene = {
-        "rest_starts": rest_share if len(cand) else float("nan"),
+        "rest_starts": at_rest / len(cand) if len(cand) else float("nan"),
         "rest_crossings": rest_n,
         "agents": present.sum(),
         "controlled": control.eligible(scene, cfg).sum(),
