@@ -272,6 +272,29 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     assert [r["graphs/update_captures"] for r in ra] == ["0"] * 3 and ra[-1]["graphs/update_fell_back"] == "0"
 
 
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device"))])
+def test_the_trainer_steps_one_fused_adam_on_the_gpu_and_its_state_resumes(tmp_path, device):
+    """On the GPU the optimiser is the fused Adam (one kernel for every parameter), elsewhere the multi-tensor
+    one; either way a resumed run's optimiser holds the state the saved one had."""
+    from test_train import tiny
+
+    from tg_gpudrive.learn.train import Trainer
+
+    tr = Trainer(tiny(tmp_path, device=device, updates=2), tmp_path, progress=False)
+    assert bool(tr.opt.defaults["fused"]) == (device == "cuda")
+    tr.train()
+    again = Trainer(tiny(tmp_path, device=device, updates=3), tmp_path, resume=tmp_path, progress=False)
+    assert bool(again.opt.defaults["fused"]) == (device == "cuda")
+    saved, loaded = tr.opt.state_dict()["state"], again.opt.state_dict()["state"]
+    assert saved.keys() == loaded.keys() and len(saved) == len(tr.params)
+    for k in saved:
+        for name in ("step", "exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(loaded[k][name].cpu(), saved[k][name].cpu(), rtol=0, atol=0)
+    again.train()
+    assert all(torch.isfinite(p).all() for p in again.params)
+
 ROLLOUT = {  # a world with fewer agents than the others: dead slots
     "discrete": dict(num_worlds=3, rollout_steps=24, magnet_fraction=0.25),  # the magnet on a quarter of the rows
     "continuous+history": dict(num_worlds=3, rollout_steps=24),  # the expert prior's context, the actor's window

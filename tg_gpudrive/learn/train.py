@@ -211,7 +211,9 @@ class Trainer:
         # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
         self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
         self.params = [*actor.parameters(), *critic.parameters()]
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
+        # on the GPU one fused kernel steps every parameter: the per-tensor step counters and launches of the
+        # multi-tensor Adam cost host time at each of an update's optimiser steps
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5, fused=self.sim.is_cuda)
         self.graphs = StepGraphs(cfg, self.nets, self.opt) if cfg.cuda_graphs else None
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         if cfg.lambda_per_vehicle:  # a row per scene of the whole source (every rank's shard in it)
