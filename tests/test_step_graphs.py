@@ -272,7 +272,6 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     assert [r["graphs/update_captures"] for r in ra] == ["0"] * 3 and ra[-1]["graphs/update_fell_back"] == "0"
 
 
-
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device"))])
 def test_the_trainer_steps_one_fused_adam_on_the_gpu_and_its_state_resumes(tmp_path, device):
@@ -294,6 +293,7 @@ def test_the_trainer_steps_one_fused_adam_on_the_gpu_and_its_state_resumes(tmp_p
             torch.testing.assert_close(loaded[k][name].cpu(), saved[k][name].cpu(), rtol=0, atol=0)
     again.train()
     assert all(torch.isfinite(p).all() for p in again.params)
+
 
 ROLLOUT = {  # a world with fewer agents than the others: dead slots
     "discrete": dict(num_worlds=3, rollout_steps=24, magnet_fraction=0.25),  # the magnet on a quarter of the rows
