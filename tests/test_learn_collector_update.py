@@ -17,7 +17,7 @@ from tg_gpudrive.history import HIST_DIM, HistoryBuffer
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector
 from tg_gpudrive.learn.train import make_prior
-from tg_gpudrive.learn.update import flatten, advantages, ppo_update
+from tg_gpudrive.learn.update import advantages, flatten, make_optimizer, ppo_update
 
 from test_train import tiny
 
@@ -40,7 +40,7 @@ def _setup(tmp_path, case: str, device: str = "cpu", **kw):
     prior = make_prior(cfg, sim)
     sim.reset()
     collector = RolloutCollector(cfg, sim, nets, prior, gen, device, hist)
-    opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=cfg.lr, eps=1e-5)
+    opt = make_optimizer(cfg, [*actor.parameters(), *critic.parameters()], device == "cuda")
     lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, (cfg.env.max_agents,)).to(device)
     return cfg, sim, nets, collector, opt, lagrange, gen, prior
 

@@ -240,7 +240,7 @@ def test_compiled_steps_equal_eager_ones_on_cuda(tmp_path, graphs):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_replayed_steps_equal_eager_ones_on_cuda(tmp_path):
     graphed, lam_g, steps = _updates(tmp_path / "g", "cuda", graphs=True)
-    assert steps.graphed and steps.captures >= 1
+    assert steps.graphed and steps.captures >= 1 and steps.opt_captures >= 1  # clipping and Adam replayed too
     unreplayed, lam_u, plain = _updates(tmp_path / "u", "cuda", graphs=True, capture=False)
     assert not plain.graphed
     eager, lam_e, _ = _updates(tmp_path / "e", "cuda", graphs=False)
@@ -270,19 +270,21 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     assert ra[-1]["update"] == "3"
     # metrics.csv says whether the knob took: on the CPU nothing is captured, and nothing fell back
     assert [r["graphs/update_captures"] for r in ra] == ["0"] * 3 and ra[-1]["graphs/update_fell_back"] == "0"
+    assert [r["graphs/optimizer_captures"] for r in ra] == ["0"] * 3
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device"))])
 def test_the_trainer_steps_one_fused_adam_on_the_gpu_and_its_state_resumes(tmp_path, device):
-    """On the GPU the optimiser is the fused Adam (one kernel for every parameter), elsewhere the multi-tensor
-    one; either way a resumed run's optimiser holds the state the saved one had."""
+    """On the GPU the optimiser is the fused Adam (one kernel for every parameter) with its step counters on the
+    device (a CUDA graph can record its step), elsewhere the multi-tensor one; either way a resumed run's
+    optimiser holds the state the saved one had."""
     from test_train import tiny
 
     from tg_gpudrive.learn.train import Trainer
 
     tr = Trainer(tiny(tmp_path, device=device, updates=2), tmp_path, progress=False)
-    assert bool(tr.opt.defaults["fused"]) == (device == "cuda")
+    assert bool(tr.opt.defaults["fused"]) == bool(tr.opt.defaults["capturable"]) == (device == "cuda")
     tr.train()
     again = Trainer(tiny(tmp_path, device=device, updates=3), tmp_path, resume=tmp_path, progress=False)
     assert bool(again.opt.defaults["fused"]) == (device == "cuda")

@@ -9,9 +9,10 @@ do not shorten training. Here a step's loss runs over a fixed number of rows (up
 of any minibatch (update.padded_rows, StepGraphs.capacity), so the losses and gradients are those of the live
 rows and the shapes are fixed while the capacity holds. Its forward and backward pass are captured once and
 replayed for every minibatch, which reads its groups and rows through fixed buffers from fixed copies of the
-rollout. Finding the live rows costs a host sync an epoch, before its first step. What follows a replay
-runs eagerly, a few kernels over all the weights at once: the ranks' gradient average (an all-reduce of one
-flat buffer, as after a live-row step), clipping and Adam.
+rollout. Finding the live rows costs a host sync an epoch, before its first step. After a replay the ranks'
+gradients are averaged eagerly (an all-reduce of one flat buffer, as after a live-row step); the clipping and
+the fused Adam that follow (update.make_optimizer: its step counters on the device) are replayed from a graph of
+their own, recorded on the first replay after the step's capture, as both read the step's gradient buffers.
 
 A rollout's step is bound the same way (a few hundred small operators around the engine's own Warp graph);
 RolloutGraphs captures what comes before and after the engine's step.
@@ -39,8 +40,8 @@ from tg_gpudrive.agents.policy import BehaviourPrior
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import Networks
-from tg_gpudrive.learn.update import (Groups, clip_and_step, compiled_loss, eager_steps, epoch_live_rows,
-                                      minibatch_loss, padded_rows)
+from tg_gpudrive.learn.update import (Groups, clip_and_adam, clip_and_step, compiled_loss, eager_steps,
+                                      epoch_live_rows, minibatch_loss, padded_rows)
 
 log = logging.getLogger(__name__)
 Tensor = torch.Tensor
@@ -109,12 +110,15 @@ class StepGraphs:
         self.key = None
         self.graph: torch.cuda.CUDAGraph | None = None
         self.grads: list[Tensor | None] = []
+        self.opt_graph: torch.cuda.CUDAGraph | None = None  # the clipping and Adam after a replay
+        self.opt_capturable = bool(opt.defaults.get("capturable"))  # False too after a failed capture of them
         self.capturable = True  # whether to capture (False: the fixed-shape steps run eagerly)
         self.fallen_back = False  # a capture failed: the updates run update.eager_steps
         self.warm = 0
         self.cap = 0  # rows a step holds (capacity)
         self.rows: tuple[Tensor, Tensor, Tensor] = ()  # the step's rows: positions, slots, weights (padded_rows)
         self.captures = 0
+        self.opt_captures = 0
         self.stream = None  # the side stream of the warm-up steps and the capture
 
     @property
@@ -170,7 +174,8 @@ class StepGraphs:
         here or on another rank (`new`), or the rows a step holds (`cap`, from capacity) did."""
         dev = b.mask.device
         if new:
-            self.key, self.graph, self.grads, self.warm, self.cap = key, None, [], 0, 0
+            self._drop_graphs()
+            self.key, self.warm, self.cap = key, 0, 0
             self.b = Groups(**{f.name: _static(getattr(b, f.name)) for f in dataclasses.fields(b)})
             self.lam = lam.clone()
             self.idx = torch.zeros(mb, dtype=torch.long, device=dev)
@@ -181,7 +186,8 @@ class StepGraphs:
                 _fill(getattr(self.b, f.name), getattr(b, f.name))
             self.lam.copy_(lam)
         if cap != self.cap:  # new row buffers: the capture reads them
-            self.cap, self.graph, self.grads, self.warm = cap, None, [], 0
+            self._drop_graphs()
+            self.cap, self.warm = cap, 0
             self.rows = (torch.zeros(cap, dtype=torch.long, device=dev), torch.zeros(cap, dtype=torch.long, device=dev),
                          torch.zeros(cap, device=dev))
             if self.cfg.compile_update:  # the row count a symbolic size: a grown capacity is captured again,
@@ -221,7 +227,7 @@ class StepGraphs:
                 self.graph.replay()
             for p, g in zip(self.params, self.grads):  # an eager step in between set its own
                 p.grad = g
-            self._after_backward()
+            self._replay_optimiser()
             return
         if cuda:  # warm-up steps on the capture's side stream, as a capture wants
             self.opt.zero_grad(set_to_none=True)
@@ -230,6 +236,29 @@ class StepGraphs:
         else:
             self._eager(self.idx, loss_fn=self.loss)
         self.warm += 1
+
+    def _replay_optimiser(self) -> None:
+        """After a replay: the gradients' average over the ranks, then the clipping and Adam from their graph
+        (recorded now if not yet; eagerly where they cannot be)."""
+        with phase("update/optimizer"):
+            dist_util.average_gradients_(self.params)
+            if self.opt_graph is None and self.opt_capturable:
+                graph = torch.cuda.CUDAGraph()
+                try:
+                    capture(graph, lambda: clip_and_adam(self.cfg, self.nets, self.opt), self._side())
+                    self.opt_graph = graph
+                    self.opt_captures += 1
+                except RuntimeError as e:  # no collective inside: each rank may fall back alone
+                    log.warning("the update's clipping and Adam could not be captured as a CUDA graph (%s); they "
+                                "go on eagerly", e)
+                    self.opt_capturable = False
+            if self.opt_graph is not None:
+                self.opt_graph.replay()
+            else:
+                clip_and_adam(self.cfg, self.nets, self.opt)
+
+    def _drop_graphs(self) -> None:
+        self.graph, self.grads, self.opt_graph = None, [], None
 
     def _side(self) -> torch.cuda.Stream:
         self.stream = self.stream or torch.cuda.Stream(self.idx.device)
@@ -241,12 +270,13 @@ class StepGraphs:
         update."""
         self.capturable, self.fallen_back = False, True
         self.opt.zero_grad(set_to_none=True)
-        self.graph, self.grads = None, []
+        self._drop_graphs()
         release_cached_memory()
 
     def _capture(self) -> None:
         """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
+        self._drop_graphs()
         graph = torch.cuda.CUDAGraph()
         failed = None
         try:

@@ -46,7 +46,7 @@ from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
 from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
-from tg_gpudrive.learn.update import ppo_update
+from tg_gpudrive.learn.update import make_optimizer, ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
@@ -211,9 +211,7 @@ class Trainer:
         # the actor's own motion window (actor_history > 0): kept in step with the engine, stored per step
         self.actor_hist = HistoryBuffer(cfg.actor_history) if cfg.actor_history else None
         self.params = [*actor.parameters(), *critic.parameters()]
-        # on the GPU one fused kernel steps every parameter: the per-tensor step counters and launches of the
-        # multi-tensor Adam cost host time at each of an update's optimiser steps
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5, fused=self.sim.is_cuda)
+        self.opt = make_optimizer(cfg, self.params, self.sim.is_cuda)
         self.graphs = StepGraphs(cfg, self.nets, self.opt) if cfg.cuda_graphs else None
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         if cfg.lambda_per_vehicle:  # a row per scene of the whole source (every rank's shard in it)
@@ -427,6 +425,7 @@ class Trainer:
         row["ranks"] = self.world
         if self.graphs is not None:  # whether the speed knobs took: captures so far, and a fall-back to the live rows
             row["graphs/update_captures"] = self.graphs.captures
+            row["graphs/optimizer_captures"] = self.graphs.opt_captures
             row["graphs/update_fell_back"] = int(self.graphs.fallen_back)
             row["graphs/rollout_captures"] = self.collector.graphs.captures
         if self.cfg.compile_update:  # compilations so far: more than one or two per shape means recompiling

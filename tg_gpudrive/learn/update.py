@@ -262,14 +262,26 @@ def epoch_live_rows(mask: Tensor, mb: int) -> list[tuple[Tensor, Tensor]]:
     return list(zip((g % mb).split(counts), c.split(counts)))
 
 
-def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) -> None:
-    """The optimiser step on the gradients in place, after their average over the ranks (one all-reduce). Actor
-    and critic are clipped apart: one joint norm lets the critic's large early regression gradients scale the
-    policy's step down to nothing."""
-    dist_util.average_gradients_(p for group in opt.param_groups for p in group["params"])
+def make_optimizer(cfg: TrainConfig, params: list[Tensor], cuda: bool) -> torch.optim.Optimizer:
+    """The learner's Adam. On the GPU it is the fused one (one kernel steps every parameter; the multi-tensor
+    Adam's per-tensor step counters and launches cost host time at each optimiser step), with its step counters
+    on the device, so that a step holds no host sync and a CUDA graph can record it (graphs.StepGraphs). A
+    captured step keeps the learning rate it was recorded with: the rate is constant over a run."""
+    return torch.optim.Adam(params, lr=cfg.lr, eps=1e-5, fused=cuda, capturable=cuda)
+
+
+def clip_and_adam(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) -> None:
+    """The optimiser step on the gradients as they stand. Actor and critic are clipped apart: one joint norm lets
+    the critic's large early regression gradients scale the policy's step down to nothing."""
     torch.nn.utils.clip_grad_norm_(nets.actor.parameters(), cfg.max_grad_norm)
     torch.nn.utils.clip_grad_norm_(nets.critic.parameters(), cfg.max_grad_norm)
     opt.step()
+
+
+def clip_and_step(cfg: TrainConfig, nets: Networks, opt: torch.optim.Optimizer) -> None:
+    """clip_and_adam after the gradients' average over the ranks (one all-reduce, in place)."""
+    dist_util.average_gradients_(p for group in opt.param_groups for p in group["params"])
+    clip_and_adam(cfg, nets, opt)
 
 
 def _loss_under_callers_autocast(cfg: TrainConfig, b: Groups, idx: Tensor, lam: Tensor, nets: Networks,
