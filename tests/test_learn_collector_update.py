@@ -163,22 +163,29 @@ def test_magnet_fraction_computes_the_prior_on_that_share_of_live_rows_and_weigh
     assert float(groups.prior_weight[g, c].mean()) == pytest.approx(1.0, abs=0.25)
 
 
-@pytest.mark.parametrize("fraction", [1.0, 0.25])
-def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, fraction, monkeypatch):
+@pytest.mark.parametrize("fraction, compiled", [(1.0, False), (0.25, False), pytest.param(
+    0.25, True, marks=pytest.mark.slow, id="0.25-compile_rollout")])
+def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, fraction, compiled, monkeypatch):
     """The critic's values and the magnet's logits, computed from the stored observations and contexts
-    after the rollout (in batches cut small here), equal those of the state at each step: a second
-    simulator replays the rollout's actions, and at every step the critic and the prior run on its live
-    state."""
+    after the rollout (in batches cut small here; with compile_rollout through torch.compile, the batches'
+    row counts a dynamic size), equal those of the state at each step: a second simulator replays the
+    rollout's actions, and at every step the critic and the prior run on its live state, eagerly."""
+    import torch._dynamo
+
     import tg_gpudrive.learn.collector as collector_mod
     monkeypatch.setattr(collector_mod, "CRITIC_SLOTS", 3 * 16)  # a few steps per critic call
     monkeypatch.setattr(collector_mod, "MAGNET_ROWS", 7)
     CASES["replay"] = dict(magnet_fraction=fraction)
     try:
-        cfg, sim, nets, collector, *_, prior = _setup(tmp_path / "a", "replay")
+        cfg, sim, nets, collector, *_, prior = _setup(tmp_path / "a", "replay", compile_rollout=compiled)
         _, sim2, _, _, *_, prior2 = _setup(tmp_path / "b", "replay")
     finally:
         del CASES["replay"]
+    torch._dynamo.utils.counters.clear()
     batch = collector.collect()
+    if compiled:  # both passes went through the compiler
+        assert collector._compiled.keys() == {"critic", "magnet"}
+        assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 2
     T, C = cfg.rollout_steps, batch.mask.shape[-1]
     take = batch.mask if batch.prior_weight is None else batch.prior_weight > 0
     for t in range(T + 1):
