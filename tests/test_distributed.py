@@ -153,6 +153,46 @@ def test_two_rank_run_checkpoints_and_resumes_with_one(tmp_path, capsys):
     assert [(r["update"], r["rank"]) for r in timing][-1] == ("3", "0") and len(timing) == 5
 
 
+def _slow_lead_worker(rank, world, port, out, result):
+    """Two ranks, a checkpoint after every update whose writing takes the lead an extra 0.8 s."""
+    import time
+
+    from tg_gpudrive.learn import distributed
+    from tg_gpudrive.learn.train import Trainer
+
+    with distributed.process_group(rank, world, port, "cpu"):
+        tr = Trainer(dataclasses.replace(tiny_cfg(out), updates=3, checkpoint_every=1), out, progress=False)
+        save = tr.save
+
+        def slow_save():
+            path = save()
+            if rank == 0:
+                time.sleep(0.8)
+            return path
+
+        tr.save = slow_save
+        tr.train()
+        if rank == 0:
+            result.put((tr.wall, tr.elapsed))
+
+
+@pytest.mark.slow
+def test_the_lead_writing_a_checkpoint_stays_outside_the_other_ranks_clock(tmp_path):
+    """The update's clock (wall_s, the time-to-quality clock) counts rollout and update alone on every rank
+    count: the ranks start it together, so the lead's checkpoint writes between updates show in no rank's wait
+    for the slowest rollout."""
+    from tg_gpudrive.learn.distributed import free_port
+
+    ctx = mp.get_context("spawn")
+    result = ctx.SimpleQueue()
+    mp.spawn(_slow_lead_worker, args=(2, free_port(), tmp_path, result), nprocs=2, join=True)
+    wall, elapsed = result.get()
+    assert elapsed - wall > 1.6  # the two writes between the three updates, outside the clock
+    timing = list(csv.DictReader((tmp_path / "timing.csv").open()))
+    waits = [float(r["wait_s"]) for r in timing if r["update"] != "1"]
+    assert len(waits) == 4 and max(waits) < 0.4, waits  # 0.8 s each without the common start
+
+
 def test_shards_are_disjoint_cover_the_source_and_mix_scene_types():
     from tg_gpudrive.data.sources import resolve_scenes
     from tg_gpudrive.learn.distributed import ShardSource

@@ -124,6 +124,12 @@ def object_group():
     return _OBJECT_GROUP
 
 
+def barrier() -> None:
+    """Wait until every rank is here, over the host (the object group); nothing when not distributed."""
+    if is_dist():
+        dist.barrier(group=object_group())
+
+
 def gather_to_lead(obj) -> list | None:
     """Every rank's picklable `obj`, in rank order, on rank 0 (None on the others); [obj] when not
     distributed."""

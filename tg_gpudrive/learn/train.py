@@ -377,6 +377,10 @@ class Trainer:
 
     def _step(self, elapsed0: float, t_start: float) -> tuple[dict, dict]:
         """One update: collect, reduce the stats over the ranks, learn, count, log. (metrics row, stats)."""
+        # the ranks start the update's clock together: what a rank did between updates (the lead writing a
+        # checkpoint, a resampling of scenes) is then outside every rank's clock, as on one GPU, rather than
+        # inside the others' wait for the slowest rollout
+        dist_util.barrier()
         t0 = time.perf_counter()
         batch, stats = self.collect()
         self._sync()
