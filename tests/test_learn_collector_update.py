@@ -9,6 +9,7 @@ import math
 
 import pytest
 import torch
+import torch._dynamo
 
 from tg_gpudrive.agents.policy import PolicyHead, build_models
 from tg_gpudrive.data.sources import resolve_scenes
@@ -170,8 +171,6 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
     after the rollout (in batches cut small here; with compile_rollout through torch.compile, the batches'
     row counts a dynamic size), equal those of the state at each step: a second simulator replays the
     rollout's actions, and at every step the critic and the prior run on its live state, eagerly."""
-    import torch._dynamo
-
     import tg_gpudrive.learn.collector as collector_mod
     monkeypatch.setattr(collector_mod, "CRITIC_SLOTS", 3 * 16)  # a few steps per critic call
     monkeypatch.setattr(collector_mod, "MAGNET_ROWS", 7)
@@ -233,19 +232,22 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.0)
 
 
-def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path):
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow, id="compile_rollout")])
+def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled):
     """update.advantages computes its targets on the (world, slot) columns that act at some step: there they
     equal the targets of the whole (T, W, C) block, computed as losses.py states them (the quantiles sorted
     inside CVaR), and a column that never acts holds zeros. The critic's quantiles come sorted, which lets
-    CVaR skip its sort."""
+    CVaR skip its sort. With compile_rollout the column targets go through torch.compile."""
     cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", num_worlds=3)  # a world with fewer agents
     batch = collector.collect()
     assert bool((batch.quant.diff(dim=-1) >= 0).all())
     with torch.no_grad():  # a cost to propagate, and a critic with spread
         batch.cost.copy_(torch.rand(batch.cost.shape, generator=torch.Generator().manual_seed(3)) * batch.mask)
         batch.quant.add_(torch.linspace(0.0, 4.0, cfg.quantiles))
-    cfg = dataclasses.replace(cfg, cost_nstep=3)
+    cfg = dataclasses.replace(cfg, cost_nstep=3, compile_rollout=compiled)
+    torch._dynamo.utils.counters.clear()
     tg = advantages(cfg, batch)
+    assert (torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1) == compiled
     q = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
     adv_r, ret_r = L.gae(batch.reward, batch.value, batch.done, cfg.gamma, cfg.gae_lambda)
     adv_c, cvar = L.cvar_gae(batch.cost, q, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)

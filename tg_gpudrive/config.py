@@ -260,9 +260,9 @@ class TrainConfig:
     # the update's loss through torch.compile: its forward and backward fused into fewer kernels (with
     # cuda_graphs, the fixed-shape loss its replays launch); the first update pays the compilation, cached on disk
     compile_update: bool = False
-    # the rollout's passes over all its rows after the steps (the critic's values and cost quantiles, the discrete
-    # magnet's logits) through torch.compile, their elementwise work fused; compiled on the first rollout (cached
-    # on disk), the row counts a dynamic size
+    # the passes over all of a rollout's rows after its steps (the critic's values and cost quantiles, the discrete
+    # magnet's logits, the advantages and targets) through torch.compile, their elementwise work fused; compiled on
+    # the first rollout (cached on disk), the row counts a dynamic size
     compile_rollout: bool = False
     normalize_advantages: bool = True  # per minibatch (and per rank when distributed)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint

@@ -268,11 +268,9 @@ def cost_quantile_targets(
     acc = torch.zeros_like(cost)  # sum of discounted costs so far
     disc = torch.ones_like(cost)  # gamma^k while the episode goes on, 0 after it ended
     target = torch.zeros_like(quant[:-1])
-    for k in range(nstep):
+    for k in range(min(nstep, T)):  # an offset of T or more reaches no step of the rollout
         t_k = torch.arange(T, device=cost.device) + k  # step consumed by row t at offset k
         inside = t_k < T
-        if not bool(inside.any()):
-            break
         tk = t_k.clamp(max=T - 1)
         shape = (T,) + (1,) * (cost.dim() - 1)
         inside_f = inside.to(cost.dtype).reshape(shape)

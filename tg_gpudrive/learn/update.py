@@ -91,13 +91,27 @@ def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
         full[:, cols] = x
         return full.view(x.shape[0], W, C, *x.shape[2:])
 
-    cost, done = take(batch.cost), take(batch.done)
-    adv_r, ret_r = L.gae(take(batch.reward), take(batch.value), done, cfg.gamma, cfg.gae_lambda)
+    targets = compiled_column_targets() if cfg.compile_rollout else column_targets
+    out = targets(cfg, take(batch.reward), take(batch.value), take(batch.cost), take(batch.quant), take(batch.done))
+    return Targets(*(put(x) for x in out))
+
+
+def column_targets(cfg: TrainConfig, reward: Tensor, value: Tensor, cost: Tensor, quant: Tensor,
+                   done: Tensor) -> tuple[Tensor, ...]:
+    """Step 1 on the acting columns (T or T + 1 rows, columns): the Targets fields in their order."""
+    adv_r, ret_r = L.gae(reward, value, done, cfg.gamma, cfg.gae_lambda)
     # the cost critic is read inside the cost-to-go's support (targets, advantages, constraint)
-    quant = take(batch.quant).clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+    quant = quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
     adv_c, cvar = L.cvar_gae(cost, quant, done, cfg.alpha, cfg.gamma, cfg.gae_lambda, presorted=True)
     q_target = L.cost_quantile_targets(cost, quant, done, cfg.gamma, cfg.cost_nstep)
-    return Targets(*(put(x) for x in (adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1))))
+    return adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1)
+
+
+@functools.cache
+def compiled_column_targets():
+    """column_targets through torch.compile (compile_rollout): the recursions over the rollout's steps unrolled
+    and fused, the column count a dynamic size."""
+    return torch.compile(column_targets, dynamic=True)
 
 
 def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
