@@ -208,6 +208,31 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
     assert int(take.sum()) > 0
 
 
+def test_a_pass_whose_compilation_fails_runs_as_it_is_and_says_so_once(caplog):
+    """compile_rollout's passes (compiling.Compiled): a compiler failure is logged once and the pass runs without
+    compilation from then on, with its own results; an error of the pass itself still reaches the caller."""
+    from tg_gpudrive.learn.compiling import Compiled
+
+    def double(x):
+        if x.shape[0] == 0:
+            raise ValueError("no rows")
+        return 2 * x
+
+    def compiler_failure(*args, **kwargs):
+        raise RuntimeError("InductorError: AssertionError\nits stack")
+
+    p = Compiled(double, "test pass")
+    p.compiled = compiler_failure
+    with caplog.at_level("WARNING"):
+        for _ in range(3):
+            torch.testing.assert_close(p(torch.ones(4)), torch.full((4,), 2.0))
+    warned = [r.getMessage() for r in caplog.records if "could not be compiled" in r.getMessage()]
+    assert len(warned) == 1 and "test pass" in warned[0] and "InductorError: AssertionError" in warned[0]
+    assert p.compiled is None
+    with pytest.raises(ValueError, match="no rows"):
+        p(torch.ones(0))
+
+
 @pytest.mark.parametrize("groups, mb", [(10, 3), (12, 4), (5, 8)])
 def test_epoch_live_rows_are_each_minibatchs_own(groups, mb):
     """The live rows found once an epoch are, minibatch by minibatch, those its own mask gives (uneven last

@@ -27,6 +27,7 @@ from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead
 from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer, hist_dim
+from tg_gpudrive.learn.compiling import Compiled
 from tg_gpudrive.rollout import timed_out
 
 Tensor = torch.Tensor
@@ -245,12 +246,12 @@ class RolloutCollector:
 
     def _maybe_compiled(self, name: str, owner, fn):
         """`fn` (a pass of `owner`, the critic or the magnet) as it is, or with compile_rollout through
-        torch.compile, compiled once per owner (a new magnet gets its own)."""
+        torch.compile (compiling.Compiled), compiled once per owner (a new magnet gets its own)."""
         if not self.cfg.compile_rollout:
             return fn
         hit = self._compiled.get(name)
         if hit is None or hit[0] is not owner:
-            hit = self._compiled[name] = (owner, torch.compile(fn, dynamic=True))
+            hit = self._compiled[name] = (owner, Compiled(fn, f"rollout's {name} pass"))
         return hit[1]
 
     def _act(self, buf: Rollout, t: int, C: int, dense: bool = False) -> Tensor:

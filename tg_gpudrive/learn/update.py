@@ -31,6 +31,7 @@ from tg_gpudrive.config import TrainConfig
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.collector import ByName, Networks, NonFinite, Rollout
+from tg_gpudrive.learn.compiling import Compiled
 
 if TYPE_CHECKING:
     from tg_gpudrive.learn.graphs import StepGraphs
@@ -92,7 +93,8 @@ def advantages(cfg: TrainConfig, batch: Rollout) -> Targets:
         return full.view(x.shape[0], W, C, *x.shape[2:])
 
     targets = compiled_column_targets() if cfg.compile_rollout else column_targets
-    out = targets(cfg, take(batch.reward), take(batch.value), take(batch.cost), take(batch.quant), take(batch.done))
+    out = targets(cfg, take(batch.reward), take(batch.value), take(batch.cost), take(batch.quant),
+                  take(batch.done) != 0)
     return Targets(*(put(x) for x in out))
 
 
@@ -109,9 +111,9 @@ def column_targets(cfg: TrainConfig, reward: Tensor, value: Tensor, cost: Tensor
 
 @functools.cache
 def compiled_column_targets():
-    """column_targets through torch.compile (compile_rollout): the recursions over the rollout's steps unrolled
-    and fused, the column count a dynamic size."""
-    return torch.compile(column_targets, dynamic=True)
+    """column_targets through torch.compile (compile_rollout, compiling.Compiled): the recursions over the
+    rollout's steps unrolled and fused, the column count a dynamic size."""
+    return Compiled(column_targets, "advantages and targets")
 
 
 def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,

@@ -1,0 +1,34 @@
+"""The passes that `compile_rollout` sends through torch.compile, with the pass as it is behind them.
+
+A compilation is a speed-up, never a condition of training: the compiler fails on some shapes and backends
+(inductor's CPU code generator has rejected a dynamic-size pass that the GPU's compiles), and such a failure
+is logged once, after which the pass runs as it is for the rest of the run. An error of the pass itself then
+comes from its plain run, with its own message.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+
+log = logging.getLogger(__name__)
+
+
+class Compiled:
+    """`fn` through torch.compile (dynamic sizes), or `fn` itself once a compiled call has failed."""
+
+    def __init__(self, fn, name: str):
+        self.fn, self.name = fn, name
+        self.compiled = torch.compile(fn, dynamic=True)
+
+    def __call__(self, *args, **kwargs):
+        if self.compiled is not None:
+            try:
+                return self.compiled(*args, **kwargs)
+            except Exception as e:  # noqa: BLE001 - any compiler failure; the plain run below re-raises real errors
+                reason = (str(e).strip().splitlines() or [""])[0][:200]
+                log.warning("the %s could not be compiled (%s: %s); it runs without compilation from now on",
+                            self.name, type(e).__name__, reason)
+                self.compiled = None
+        return self.fn(*args, **kwargs)
