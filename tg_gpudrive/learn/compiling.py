@@ -16,14 +16,19 @@ log = logging.getLogger(__name__)
 
 
 class Compiled:
-    """`fn` through torch.compile (dynamic sizes), or `fn` itself once a compiled call has failed."""
+    """`fn` through torch.compile, or `fn` itself once a compiled call has failed. `dynamic`: the (argument,
+    dimension) pairs whose sizes change from call to call (an argument by position or keyword), compiled as
+    symbolic sizes from the first call; every other size, and every Python number, is compiled as a constant,
+    which keeps the tracing short (a fully dynamic compile traces each graph twice, to undo its symbolic floats)."""
 
-    def __init__(self, fn, name: str):
-        self.fn, self.name = fn, name
-        self.compiled = torch.compile(fn, dynamic=True)
+    def __init__(self, fn, name: str, dynamic: tuple[tuple[int | str, int], ...] = ()):
+        self.fn, self.name, self.dynamic = fn, name, dynamic
+        self.compiled = torch.compile(fn)
 
     def __call__(self, *args, **kwargs):
         if self.compiled is not None:
+            for key, dim in self.dynamic:
+                torch._dynamo.maybe_mark_dynamic(args[key] if isinstance(key, int) else kwargs[key], dim)
             try:
                 return self.compiled(*args, **kwargs)
             except Exception as e:  # noqa: BLE001 - any compiler failure; the plain run below re-raises real errors

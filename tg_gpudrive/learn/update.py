@@ -112,8 +112,8 @@ def column_targets(cfg: TrainConfig, reward: Tensor, value: Tensor, cost: Tensor
 @functools.cache
 def compiled_column_targets():
     """column_targets through torch.compile (compile_rollout, compiling.Compiled): the recursions over the
-    rollout's steps unrolled and fused, the column count a dynamic size."""
-    return Compiled(column_targets, "advantages and targets")
+    rollout's steps unrolled and fused, the column count (dimension 1 of the five tensors) a dynamic size."""
+    return Compiled(column_targets, "advantages and targets", tuple((i, 1) for i in range(1, 6)))
 
 
 def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
