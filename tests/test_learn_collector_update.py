@@ -210,7 +210,8 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
 
 def test_a_pass_whose_compilation_fails_runs_as_it_is_and_says_so_once(caplog):
     """compile_rollout's passes (compiling.Compiled): a compiler failure is logged once and the pass runs without
-    compilation from then on, with its own results; an error of the pass itself still reaches the caller."""
+    compilation from then on, with its own results; an error of the pass itself, or the device running out of
+    memory, still reaches the caller."""
     from tg_gpudrive.learn.compiling import Compiled
 
     def double(x):
@@ -231,6 +232,15 @@ def test_a_pass_whose_compilation_fails_runs_as_it_is_and_says_so_once(caplog):
     assert p.compiled is None
     with pytest.raises(ValueError, match="no rows"):
         p(torch.ones(0))
+
+    def out_of_memory(*args, **kwargs):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory")
+
+    q = Compiled(double, "test pass")
+    q.compiled = out_of_memory  # the device's limit is no compiler failure: it reaches the caller, nothing falls back
+    with pytest.raises(torch.cuda.OutOfMemoryError):
+        q(torch.ones(4))
+    assert q.compiled is out_of_memory
 
 
 @pytest.mark.parametrize("groups, mb", [(10, 3), (12, 4), (5, 8)])

@@ -31,6 +31,8 @@ class Compiled:
                 torch._dynamo.maybe_mark_dynamic(args[key] if isinstance(key, int) else kwargs[key], dim)
             try:
                 return self.compiled(*args, **kwargs)
+            except torch.cuda.OutOfMemoryError:  # the device's limit, not the compiler's: the plain pass needs it too
+                raise
             except Exception as e:  # noqa: BLE001 - any compiler failure; the plain run below re-raises real errors
                 reason = (str(e).strip().splitlines() or [""])[0][:200]
                 log.warning("the %s could not be compiled (%s: %s); it runs without compilation from now on",
