@@ -224,7 +224,7 @@ class RolloutCollector:
         `quant`; 0 at the other rows, which no target reads (a row after a live one that is not live ends its
         episode, and the ends cut the bootstrap)."""
         rows = mask.reshape(-1).nonzero(as_tuple=True)[0]
-        critic = self._maybe_compiled("critic", self.nets.critic, self.nets.critic, (("rows", 0), ("head_rows", 0)))
+        critic = self._maybe_compiled("critic", self.nets.critic, (("rows", 0),))  # head_rows: the same tensor
         with self.nets.autocast():
             v, q = critic(obs, mask, rows=rows, head_rows=rows)
         value.zero_()
@@ -238,18 +238,19 @@ class RolloutCollector:
         the GPU; a fixed target, so computing them once per rollout rather than per minibatch and epoch)."""
         take = buf.mask if buf.prior_weight is None else buf.prior_weight > 0
         t, w, c = take.nonzero(as_tuple=True)  # the rollout's one host sync after its steps
-        magnet = self._maybe_compiled("magnet", self.prior, self.prior.distribution, ((0, 0), (1, 0)))
+        magnet = self._maybe_compiled("magnet", self.prior.distribution, ((0, 0), (1, 0)))
         with self.nets.autocast():
             for s in range(0, len(t), MAGNET_ROWS):
                 i = (t[s:s + MAGNET_ROWS], w[s:s + MAGNET_ROWS], c[s:s + MAGNET_ROWS])
                 buf.prior[i] = magnet(buf.prior_ctx[i], buf.obs[i]).float()
 
-    def _maybe_compiled(self, name: str, owner, fn, dynamic: tuple):
-        """`fn` (a pass of `owner`, the critic or the magnet) as it is, or with compile_rollout through
-        torch.compile (compiling.Compiled, `dynamic` its arguments' changing sizes), compiled once per owner (a
-        new magnet gets its own)."""
+    def _maybe_compiled(self, name: str, fn, dynamic: tuple):
+        """`fn` (the critic, or a method of the magnet) as it is, or with compile_rollout through torch.compile
+        (compiling.Compiled, `dynamic` its arguments' changing sizes), compiled once per owner (the module, or
+        the method's object: a new magnet gets its own)."""
         if not self.cfg.compile_rollout:
             return fn
+        owner = getattr(fn, "__self__", fn)
         hit = self._compiled.get(name)
         if hit is None or hit[0] is not owner:
             hit = self._compiled[name] = (owner, Compiled(fn, f"rollout's {name} pass", dynamic))
