@@ -164,9 +164,15 @@ def test_magnet_fraction_computes_the_prior_on_that_share_of_live_rows_and_weigh
     assert float(groups.prior_weight[g, c].mean()) == pytest.approx(1.0, abs=0.25)
 
 
-@pytest.mark.parametrize("fraction, compiled", [(1.0, False), (0.25, False), pytest.param(
-    0.25, True, marks=pytest.mark.slow, id="0.25-compile_rollout")])
-def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, fraction, compiled, monkeypatch):
+CUDA_ONLY = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+
+@pytest.mark.parametrize("fraction, compiled, device", [
+    (1.0, False, "cpu"), (0.25, False, "cpu"),
+    pytest.param(0.25, True, "cpu", marks=pytest.mark.slow, id="0.25-compile_rollout-cpu"),
+    pytest.param(0.25, True, "cuda", marks=CUDA_ONLY, id="0.25-compile_rollout-cuda")])
+def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, fraction, compiled, device,
+                                                                      monkeypatch):
     """The critic's values and the magnet's logits, computed from the stored observations and contexts
     after the rollout (in batches cut small here; with compile_rollout through torch.compile, the batches'
     row counts a dynamic size), equal those of the state at each step: a second simulator replays the
@@ -176,8 +182,8 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
     monkeypatch.setattr(collector_mod, "MAGNET_ROWS", 7)
     CASES["replay"] = dict(magnet_fraction=fraction)
     try:
-        cfg, sim, nets, collector, *_, prior = _setup(tmp_path / "a", "replay", compile_rollout=compiled)
-        _, sim2, _, _, *_, prior2 = _setup(tmp_path / "b", "replay")
+        cfg, sim, nets, collector, *_, prior = _setup(tmp_path / "a", "replay", device, compile_rollout=compiled)
+        _, sim2, _, _, *_, prior2 = _setup(tmp_path / "b", "replay", device)
     finally:
         del CASES["replay"]
     torch._dynamo.utils.counters.clear()
@@ -187,11 +193,12 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
         assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 2
     T, C = cfg.rollout_steps, batch.mask.shape[-1]
     take = batch.mask if batch.prior_weight is None else batch.prior_weight > 0
+    tol = dict(rtol=1e-5, atol=1e-5) if device == "cpu" else dict(rtol=1e-4, atol=1e-4)  # the GPU's own kernels
     for t in range(T + 1):
         obs, mask = sim2.obs[:, :C], sim2.active[:, :C] != 0
         value, quant = nets.critic(obs, mask)
-        torch.testing.assert_close(batch.value[t][mask], value[mask], rtol=1e-5, atol=1e-5)
-        torch.testing.assert_close(batch.quant[t][mask], quant[mask], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(batch.value[t][mask], value[mask], **tol)
+        torch.testing.assert_close(batch.quant[t][mask], quant[mask], **tol)
         # the heads run on the live rows alone: the others hold 0, which no target reads, since a live row
         # that does not end its episode is live at the next step (what the bootstrap reads)
         assert not batch.value[t][~mask].any() and not batch.quant[t][~mask].any()
@@ -201,8 +208,7 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
             break
         assert torch.equal(batch.mask[t], mask)
         ctx = prior2.context(sim2, C)
-        torch.testing.assert_close(batch.prior[t][take[t]], prior2.distribution(ctx[take[t]], obs[take[t]]),
-                                   rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(batch.prior[t][take[t]], prior2.distribution(ctx[take[t]], obs[take[t]]), **tol)
         sim2.actions_index[:, :C] = batch.act[t].to(torch.int32)
         sim2.step()
     assert int(take.sum()) > 0
@@ -267,18 +273,21 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.0)
 
 
-@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.slow, id="compile_rollout")])
-def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled):
+@pytest.mark.parametrize("compiled, device", [
+    (False, "cpu"), pytest.param(True, "cpu", marks=pytest.mark.slow, id="compile_rollout-cpu"),
+    pytest.param(True, "cuda", marks=CUDA_ONLY, id="compile_rollout-cuda")])
+def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled, device):
     """update.advantages computes its targets on the (world, slot) columns that act at some step: there they
     equal the targets of the whole (T, W, C) block, computed as losses.py states them (the quantiles sorted
     inside CVaR), and a column that never acts holds zeros. The critic's quantiles come sorted, which lets
     CVaR skip its sort. With compile_rollout the column targets go through torch.compile."""
-    cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", num_worlds=3)  # a world with fewer agents
+    cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", device, num_worlds=3)  # a world with fewer agents
     batch = collector.collect()
     assert bool((batch.quant.diff(dim=-1) >= 0).all())
     with torch.no_grad():  # a cost to propagate, and a critic with spread
-        batch.cost.copy_(torch.rand(batch.cost.shape, generator=torch.Generator().manual_seed(3)) * batch.mask)
-        batch.quant.add_(torch.linspace(0.0, 4.0, cfg.quantiles))
+        noise = torch.rand(batch.cost.shape, generator=torch.Generator().manual_seed(3)).to(device)
+        batch.cost.copy_(noise * batch.mask)
+        batch.quant.add_(torch.linspace(0.0, 4.0, cfg.quantiles, device=device))
     cfg = dataclasses.replace(cfg, cost_nstep=3, compile_rollout=compiled)
     torch._dynamo.utils.counters.clear()
     tg = advantages(cfg, batch)
