@@ -41,6 +41,18 @@ def device(request):
     return request.param
 
 
+@pytest.fixture(autouse=True)
+def _matmul_precision_of_its_own():
+    """Each test starts from torch's float32 matmuls: a Trainer turns TF32 on for the whole process, and a later
+    test's comparison with an eager float32 reference on the GPU would read it."""
+    import torch
+
+    tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    yield
+    torch.backends.cuda.matmul.allow_tf32 = tf32
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

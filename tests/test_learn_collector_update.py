@@ -180,7 +180,6 @@ def test_values_and_magnet_after_the_rollout_equal_those_of_each_step(tmp_path, 
     import tg_gpudrive.learn.collector as collector_mod
     monkeypatch.setattr(collector_mod, "CRITIC_SLOTS", 3 * 16)  # a few steps per critic call
     monkeypatch.setattr(collector_mod, "MAGNET_ROWS", 7)
-    monkeypatch.setattr(torch.backends.cuda.matmul, "allow_tf32", False)  # a Trainer made earlier turns it on
     CASES["replay"] = dict(magnet_fraction=fraction)
     try:
         # float32 throughout: under amp the GPU's rollout stores its observations in bf16, the replay reads them
