@@ -69,6 +69,17 @@ def capture(graph: torch.cuda.CUDAGraph, fn, stream: torch.cuda.Stream, pool=Non
     on_side_stream(record, stream)
 
 
+def try_capture(fn, stream: torch.cuda.Stream, pool=None) -> tuple[torch.cuda.CUDAGraph | None, RuntimeError | None]:
+    """`capture` into a new graph: (the graph, None), or (None, the error) where `fn`'s kernels could not be
+    recorded (memory, an operation that cannot be captured); the caller decides how to go on without it."""
+    graph = torch.cuda.CUDAGraph()
+    try:
+        capture(graph, fn, stream, pool)
+    except RuntimeError as e:
+        return None, e
+    return graph, None
+
+
 def release_cached_memory() -> None:
     """Give the caching allocator's free blocks back to the device (after a failed capture's pool is dropped)."""
     if torch.cuda.is_available():
@@ -243,14 +254,13 @@ class StepGraphs:
         with phase("update/optimizer"):
             dist_util.average_gradients_(self.params)
             if self.opt_graph is None and self.opt_capturable:
-                graph = torch.cuda.CUDAGraph()
-                try:
-                    capture(graph, lambda: clip_and_adam(self.cfg, self.nets, self.opt), self._side())
-                    self.opt_graph = graph
+                self.opt_graph, failed = try_capture(lambda: clip_and_adam(self.cfg, self.nets, self.opt),
+                                                     self._side())
+                if failed is None:
                     self.opt_captures += 1
-                except RuntimeError as e:  # no collective inside: each rank may fall back alone
+                else:  # no collective inside: each rank may fall back alone
                     log.warning("the update's clipping and Adam could not be captured as a CUDA graph (%s); they "
-                                "go on eagerly", e)
+                                "go on eagerly", failed)
                     self.opt_capturable = False
             if self.opt_graph is not None:
                 self.opt_graph.replay()
@@ -277,12 +287,7 @@ class StepGraphs:
         """Record the forward and backward pass of a step over the fixed buffers (nothing runs yet)."""
         self.opt.zero_grad(set_to_none=True)  # the captured backward allocates the gradients it refills
         self._drop_graphs()
-        graph = torch.cuda.CUDAGraph()
-        failed = None
-        try:
-            capture(graph, lambda: self._forward_backward(self.idx, self.loss), self._side())
-        except RuntimeError as e:
-            failed = e
+        graph, failed = try_capture(lambda: self._forward_backward(self.idx, self.loss), self._side())
         # the ranks fall back together, so that they go on taking the same steps
         if not dist_util.every_rank(failed is None, self.idx.device):
             log.warning("the update's step could not be captured as a CUDA graph (%s); the updates go on without "
@@ -331,13 +336,11 @@ class RolloutGraphs:
             graph.replay()
             return
         if name in self.seen and self.capturable and self.cuda:
-            graph = torch.cuda.CUDAGraph()
             self.stream = self.stream or torch.cuda.Stream()
-            try:
-                capture(graph, fn, self.stream, self.pool)
-            except RuntimeError as e:
+            graph, failed = try_capture(fn, self.stream, self.pool)
+            if failed is not None:
                 log.warning("a rollout step could not be captured as a CUDA graph (%s); the rollouts go on "
-                            "without graphs, on the live rows", e)
+                            "without graphs, on the live rows", failed)
                 self.capturable, self.graphs, self.pool = False, {}, None
                 release_cached_memory()
                 fn()
