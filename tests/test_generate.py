@@ -12,7 +12,7 @@ from tg_gpudrive import cli
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.evaluation.generate import FINE_TUNE, KNOBS_ALONE, TABLE
+from tg_gpudrive.evaluation.generate import FINE_TUNE, KNOBS_ALONE, TABLE, pick_scenarios
 
 
 @pytest.mark.parametrize("traffic", [[], ["--set", "control=nearest_conflict", "--set", "control_k=1",
@@ -34,6 +34,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     # most critical first: more collisions, then a shorter time to collision
     keys = [(-int(r["collisions"]), float(r["min_ttc_s"])) for r in rows]
     assert keys == sorted(keys)
+    assert len({r["scene_id"] for r in rows}) == len(rows)  # two scenes, two scenarios: one of each
     source = {s.scene_id for s in (lambda src: [src[i] for i in range(len(src))])(resolve_scenes("procedural:merge", n=2))}
     for r in rows:
         scene = load_gpudrive_json(out / r["file"])  # a scene GPUDrive and this tool read back
@@ -67,3 +68,14 @@ def test_generate_set_overrides_the_fine_tunes_config_and_names_a_bad_key():
     with pytest.raises(ConfigError, match="cost_horizn"):
         training_config(GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125,
                                         overrides=("env.cost_horizn=1",)))
+
+
+def test_scenarios_are_distinct_scenes_before_a_scene_repeats():
+    # ranked most critical first: scene a under three rollout seeds, then b, then c
+    ranked = [{"scene_id": sid, "episode": e} for e, sid in enumerate(["a", "a", "b", "a", "c"])]
+    pick = lambda num, one: [r["episode"] for r in pick_scenarios(ranked, num, one)]  # noqa: E731
+    assert pick(3, True) == [0, 2, 4]  # a, b, c: one each, in rank order
+    assert pick(4, True) == [0, 1, 2, 4]  # then a's second episode, kept in rank order
+    assert pick(5, True) == [0, 1, 2, 3, 4] and pick(9, True) == [0, 1, 2, 3, 4]
+    assert pick(3, False) == [0, 1, 2]  # --repeat-scenes: the ranking alone
+    assert pick(2, True) == [0, 2] and pick(0, True) == []

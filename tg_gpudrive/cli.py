@@ -340,6 +340,8 @@ def _generate_parser(sub) -> None:
     p.add_argument("--device", default="auto", help="auto (cuda when present), cpu, cuda or cuda:N")
     p.add_argument("--seed", type=int, default=d.seed, help="training, scene and rollout seed")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF of each scenario")
+    p.add_argument("--repeat-scenes", action="store_true",
+                   help="rank every episode alike (default: each scene's most critical episode before any second one)")
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "
@@ -638,7 +640,8 @@ def cmd_generate(args) -> int:
     opts = GenerateOptions(scenes=args.scenes, beta=args.beta, alpha=args.alpha, num=args.num, out=args.out,
                            seconds=args.seconds, num_scenes=args.num_scenes, num_worlds=args.worlds or 0,
                            rollout_seeds=args.rollout_seeds, max_hellinger=args.max_hellinger, device=args.device,
-                           seed=args.seed, gif=not args.no_gif, overrides=tuple(args.set))
+                           seed=args.seed, gif=not args.no_gif, overrides=tuple(args.set),
+                           one_per_scene=not args.repeat_scenes)
     res = generate(opts)
     if args.json:
         print(json.dumps({k: v for k, v in res.items() if k != "rows"} | {"rows": res["rows"]}, default=str))

@@ -4,7 +4,7 @@ Given scenes (real or procedural), the distance constraint `beta`, the risk leve
 budget, it fine-tunes the shipped policy on those scenes under those knobs (CCE-MAPPO, the shipped
 policy's own training settings otherwise), rolls the result out on the same scenes, and writes the `num`
 most safety-critical episodes (most collisions, then the shortest time to collision, the smallest gap,
-the most hard brakes; evaluation/risk.py) as:
+the most hard brakes; evaluation/risk.py; one per scene before any scene's second) as:
 
     OUT/scenarios/<name>.json   GPUDrive processed JSON: `--scenes OUT/scenarios` plays them back
     OUT/scenarios/<name>.gif    each scenario replayed (every agent on its generated track)
@@ -56,6 +56,7 @@ class GenerateOptions:
     seed: int = 0
     gif: bool = True
     overrides: tuple[str, ...] = ()  # train-config KEY=VALUE, applied last (e.g. env.cost_horizon=1)
+    one_per_scene: bool = True  # distinct scenes before a second episode of any scene (pick_scenarios)
 
     def __post_init__(self):
         # the knobs and sizes are checked with the training config (training_config); these two are not in it
@@ -109,14 +110,27 @@ def episode_hellinger(logged, generated) -> np.ndarray:
     return hellinger_of_sums(histograms(logged), sums)
 
 
-def critical_scenarios(logged, generated, num: int, max_hellinger: float) -> list[dict]:
-    """The `num` most critical episodes whose distance to the logs is at most `max_hellinger`, with
-    their risk, who collided and that distance."""
+def pick_scenarios(ranked: list[dict], num: int, one_per_scene: bool) -> list[dict]:
+    """`num` rows of `ranked` (most critical first), in its order. With `one_per_scene` the most critical
+    episode of each scene comes before any second episode of a scene: five scenarios are five situations
+    as long as there are five scenes, not one conflict under two rollout seeds."""
+    if not one_per_scene:
+        return ranked[:num]
+    seen: set = set()
+    firsts = [i for i, r in enumerate(ranked) if not (r["scene_id"] in seen or seen.add(r["scene_id"]))]
+    repeats = [i for i in range(len(ranked)) if i not in set(firsts)]
+    return [ranked[i] for i in sorted((firsts + repeats)[:num])]
+
+
+def critical_scenarios(logged, generated, num: int, max_hellinger: float, one_per_scene: bool = True) -> list[dict]:
+    """The `num` most critical episodes whose distance to the logs is at most `max_hellinger`
+    (pick_scenarios: distinct scenes first), with their risk, who collided and that distance."""
     risk = episode_risk(generated)
     far = episode_hellinger(logged, generated)
     partners = collision_partners(generated)
-    rows = [r for r in rank_scenarios(generated, risk, top=generated.num_episodes)
-            if not far[r["episode"]] > max_hellinger][:num]
+    ranked = [r for r in rank_scenarios(generated, risk, top=generated.num_episodes)
+              if not far[r["episode"]] > max_hellinger]
+    rows = pick_scenarios(ranked, num, one_per_scene)
     for r in rows:
         r["involved"] = _involved(partners, r["episode"])
         r["hellinger_to_logs"] = float(far[r["episode"]])
@@ -164,7 +178,7 @@ def generate(opts: GenerateOptions, progress: bool = True) -> dict:
     logged = logged_episodes(opened.sim)
     generated = record_rollouts(opened.sim, opened.act, range(opts.seed, opts.seed + opts.rollout_seeds),
                                 label=f"beta{opts.beta:g}_alpha{opts.alpha:g}")
-    rows = critical_scenarios(logged, generated, opts.num, opts.max_hellinger)
+    rows = critical_scenarios(logged, generated, opts.num, opts.max_hellinger, opts.one_per_scene)
     files = export_episodes(generated, [r["episode"] for r in rows], out / "scenarios", rows)
     for r, f in zip(rows, files):
         r["file"] = str(f.relative_to(out))
