@@ -53,6 +53,8 @@ def main(argv=None) -> int:
     p.add_argument("--control", default=None, choices=CONTROL_CHOICES,
                    help="the agents the policies drive (default: each run's own training control; the rest "
                         "replay their logs); vehicles compares runs trained on different controls")
+    p.add_argument("--temperature", type=float, default=None,
+                   help="the trained runs' acting temperature (default: each checkpoint's act_temperature)")
     args = p.parse_args(argv)
 
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
@@ -72,11 +74,13 @@ def main(argv=None) -> int:
             opened = open_policy(run, scenes, args.device, engine=base.env, collision_mode=mode,
                                  control=args.control or (base.control if run in BUILTIN else None),
                                  control_k=base.control_k if run in BUILTIN else None, seed=args.seed,
-                                 option="--runs")
+                                 temperature=args.temperature, option="--runs")
             sim = opened.sim
             # the same sampling draws for every run and mode
             out = run_rollout(sim, opened.policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
+                   "temperature": None if run in BUILTIN else (
+                       trained.act_temperature if args.temperature is None else args.temperature),
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",
                                           "device")},

@@ -211,7 +211,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     p.add_argument("--episodes", type=positive_int, default=64, help="scene episodes to run (worlds x rounds)")
     p.add_argument("--worlds", type=positive_int, default=None, help="parallel worlds (default: min(episodes, 256))")
-    p.add_argument("--deterministic", action="store_true", help="greedy actions instead of sampling")
+    _temperature_args(p)
     p.add_argument("--per-scene", default=None, metavar="FILE.csv",
                    help="write one row per scene (and collision mode): agent-episodes, goal / collision / off-road "
                         "/ score rates with 95 %% bootstrap intervals, worst scenes first (default: none)")
@@ -221,6 +221,13 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
 
+def _temperature_args(p) -> None:
+    p.add_argument("--temperature", type=float, default=None, metavar="T",
+                   help="checkpoint policies: sample their actions sharpened by T (logits / T), 0 takes the mode "
+                        "(default: the checkpoint's act_temperature, 1 unless its run set one; shipped: 0.5)")
+    p.add_argument("--deterministic", action="store_true", help="checkpoint policies: the mode (--temperature 0)")
+
+
 def _render_parser(sub) -> None:
     p = sub.add_parser("render", help="draw one world of an episode: .gif / .mp4, or its last frame as .png")
     _scene_args(p)
@@ -228,7 +235,7 @@ def _render_parser(sub) -> None:
     p.add_argument("--policy", default="expert",
                    help="expert | random | constant | shipped (the packaged policy; shipped_v4 to shipped_v1: the ones before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
-    p.add_argument("--deterministic", action="store_true", help="checkpoint policies: greedy actions")
+    _temperature_args(p)
     _background_args(p)
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
@@ -380,13 +387,25 @@ def _check_background_args(args) -> None:
         raise ValueError(f"--control-k: expected >= 1, got {args.control_k}")
 
 
+def _temperature(args) -> float | None:
+    """--temperature, 0 with --deterministic, None (the checkpoint's) without either."""
+    t = getattr(args, "temperature", None)
+    if getattr(args, "deterministic", False):
+        if t not in (None, 0):
+            raise ValueError(f"--deterministic is --temperature 0; got --temperature {t} as well")
+        return 0.0
+    if t is not None and not t >= 0:
+        raise ValueError(f"--temperature: expected a number >= 0, got {t}")
+    return t
+
+
 def _open(args, spec: str, scenes, *, engine, auto_reset: bool = True, option: str = "--checkpoint"):
     """`spec` in worlds of `scenes` with the command's options (agents.open_policy)."""
     opened = open_policy(spec, scenes, args.device, engine=engine, overrides=args.set,
                          collision_mode=args.collision_mode, control=getattr(args, "control", None),
                          control_k=getattr(args, "control_k", None), background=getattr(args, "background", "log"),
                          background_model=getattr(args, "background_model", None), seed=args.seed,
-                         deterministic=getattr(args, "deterministic", False), auto_reset=auto_reset, option=option)
+                         temperature=_temperature(args), auto_reset=auto_reset, option=option)
     if opened.background is not None and not bool((opened.sim.background != 0).any()):
         log.warning("--background %s: no background vehicle (the policy drives every eligible one); "
                     "choose fewer with --control nearest_conflict --control-k K", args.background)
@@ -535,6 +554,9 @@ def cmd_evaluate(args) -> int:
                           episodes_per_world=rounds, seed=args.seed)
         out["expert_replay"] = {k: ref[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate",
                                                      "score_rate", "timeout_rate")}
+    temperature = _temperature(args)
+    if opened.trained is not None:  # the acting temperature of a checkpoint policy, its own unless given
+        out["temperature"] = opened.trained.act_temperature if temperature is None else temperature
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, opened)})

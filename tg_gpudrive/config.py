@@ -252,6 +252,10 @@ class TrainConfig:
     # and of its nearest partners' motion over the same steps (the paper's h holds every agent's history): how
     # many of the observation's partner rows, nearest first (<= env.partner_k; needs actor_history > 0)
     actor_history_partners: int = 0
+    # how evaluate, render, report and generate act with the trained policy: its action distribution sharpened by
+    # this temperature (logits / T; the continuous head's standard deviation x T); 0 takes the mode. Training
+    # rollouts always sample at 1; a checkpoint's value is set after training, on its training scenes
+    act_temperature: float = 1.0
     amp: bool = True  # bf16 autocast of the networks on GPU
     # the rollout's steps and the update's optimiser steps replayed from CUDA graphs (learn/graphs.py): both act
     # on every slot, dead ones fed zeros and weighted 0 (the same actions and losses), so that their kernels
@@ -354,7 +358,8 @@ class TrainConfig:
             "epochs": "[1, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
-            "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "eta1": "[0, inf)", "eta2": "(0, inf]",
+            "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "act_temperature": "[0, inf)",
+            "eta1": "[0, inf)", "eta2": "(0, inf]",
             "magnet_fraction": "(0, 1]",
             "quantiles": "[2, 4096]", "prior_sigma_accel": "(0, inf)", "prior_sigma_curvature": "(0, inf)",
             "prior_floor": "[0, 1]", "time_limit_s": "[0, inf)", "target_goal_rate": "[0, 1]",

@@ -14,6 +14,8 @@ files and `agents.networks`; the exact KLs of its distributions live here. It mu
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import torch
@@ -153,21 +155,37 @@ def load_actor(path: str | Path, sim: Simulator) -> tuple[Actor, TrainConfig]:
     return actor.to(sim.device), cfg
 
 
-def load_policy(path: str | Path, sim: Simulator, deterministic: bool = False):
+def load_policy(path: str | Path, sim: Simulator, temperature: float | None = None):
     """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
 
     `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
-    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent."""
+    have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent.
+    `temperature`: see actor_policy; None takes the checkpoint's own (TrainConfig.act_temperature)."""
     actor, cfg = load_actor(path, sim)
-    return actor_policy(actor.eval(), sim, cfg.actor_history, deterministic)
+    return actor_policy(actor.eval(), sim, cfg.actor_history,
+                        cfg.act_temperature if temperature is None else temperature)
 
 
-def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: bool = False):
+def tempered(out, temperature: float):
+    """The actor's output with its distribution sharpened by `temperature` (> 0): logits / T, or the
+    continuous head's (mean, log-std + log T)."""
+    if temperature == 1:
+        return out
+    if isinstance(out, torch.Tensor):
+        return out / temperature
+    return out[0], out[1] + math.log(temperature)
+
+
+def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: float = 1.0):
     """A `policy(sim)` callable that drives every slot of `sim` with `actor` (seeing `history` steps of
-    its own motion), sampling its distribution, or taking its mode with `deterministic`. The actor's
-    output of the latest call stays on it as `policy.last_out` (logits, or (mean, log-std)): what a
-    best response to this profile corrects (evaluation.exploitability.SimGame)."""
+    its own motion), sampling its distribution sharpened by `temperature` (`tempered`), or taking its mode
+    at temperature 0. The actor's output of the latest call stays on it as `policy.last_out` (logits, or
+    (mean, log-std), untempered): what a best response to this profile corrects
+    (evaluation.exploitability.SimGame)."""
+    if not temperature >= 0:
+        raise ValueError(f"temperature: expected a number >= 0, got {temperature}")
     head = PolicyHead(sim.cfg.discrete)
+    deterministic = temperature == 0
     slots = torch.arange(sim.max_agents, device=sim.device)
     # an actor with a motion history keeps its window in step with the simulator it drives
     window = HistoryBuffer(history) if history else None
@@ -180,10 +198,10 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, deterministic: 
             hist = window.features(sim_, partners=getattr(actor, "history_partners", 0))
         out = policy.last_out = actor(sim_.obs, slots, hist)
         if head.discrete:
-            a = out.argmax(-1) if deterministic else head.dist(out).sample()
+            a = out.argmax(-1) if deterministic else head.dist(tempered(out, temperature)).sample()
             sim_.actions_index.copy_(a.to(torch.int32))
         else:
-            a = out[0] if deterministic else head.dist(out).sample()
+            a = out[0] if deterministic else head.dist(tempered(out, temperature)).sample()
             sim_.actions[..., : a.shape[-1]].copy_(a)
 
     policy.last_out = None

@@ -68,13 +68,14 @@ def _build(scenes, env, device, collision_mode, auto_reset, masks, background):
 
 def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfig | None = None,
                 overrides: Sequence[str] = (), collision_mode=None, control=None, control_k=None,
-                background: str = "log", background_model=None, seed: int = 0, deterministic: bool = False,
+                background: str = "log", background_model=None, seed: int = 0, temperature: float | None = None,
                 auto_reset: bool = True, option: str = "--checkpoint") -> Opened:
     """`spec` (expert, constant, random, or a checkpoint file, run directory or packaged name such as
     "shipped") in worlds of `scenes`. A built-in policy runs in `engine` (default: EngineConfig()), sized
     for the scenes; a trained one in its own engine (`trained_sim`; `overrides` are --set keys, checked
     against what its network fixes). `seed` seeds the built-in random policy and the world-model
-    background; `option` names the flag in errors."""
+    background; `temperature` is a trained policy's acting temperature (None: its checkpoint's;
+    policy.actor_policy); `option` names the flag in errors."""
     if spec in BUILTIN:
         env = sized_for(engine or EngineConfig(), scenes)
         sim, masks = _build(scenes, env, device, collision_mode, auto_reset,
@@ -86,6 +87,6 @@ def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfi
         sim, masks = trained_sim(trained, scenes, device, overrides=overrides, path=path,
                                  collision_mode=collision_mode, control=control, control_k=control_k,
                                  background=background, auto_reset=auto_reset)
-        policy = load_policy(path, sim, deterministic)
+        policy = load_policy(path, sim, temperature)
     driver = make_background_driver(sim, background, background_model, seed, "--background-model")
     return Opened(sim, policy, driver, masks, path, trained)

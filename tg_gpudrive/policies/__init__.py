@@ -7,7 +7,8 @@
 when the name is used. It drives real WOMD traffic: trained from scratch with
 configs/train/real_mix.yaml on real scenes mixed with urban procedural ones (crossing pedestrians among
 them), observing 16 partners and 64 road segments of roads simplified to 0.1 m (its `provenance` field says
-how it was made).
+how it was made). It acts at temperature 0.5 (its config's act_temperature), chosen after training on its
+training scenes.
 
 Earlier policies stay loadable by name (checkpoint.SHIPPED_EARLIER), for comparison:
 `shipped_v4.pt`, the policy shipped before (the same recipe without the crossing pedestrians and the
