@@ -15,7 +15,6 @@ files and `agents.networks`; the exact KLs of its distributions live here. It mu
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
 
 import torch
