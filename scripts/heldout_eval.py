@@ -79,8 +79,7 @@ def main(argv=None) -> int:
             # the same sampling draws for every run and mode
             out = run_rollout(sim, opened.policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
-                   "temperature": None if run in BUILTIN else (
-                       trained.act_temperature if args.temperature is None else args.temperature),
+                   "temperature": opened.temperature,
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",
                                           "device")},

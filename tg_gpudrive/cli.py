@@ -554,9 +554,8 @@ def cmd_evaluate(args) -> int:
                           episodes_per_world=rounds, seed=args.seed)
         out["expert_replay"] = {k: ref[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate",
                                                      "score_rate", "timeout_rate")}
-    temperature = _temperature(args)
-    if opened.trained is not None:  # the acting temperature of a checkpoint policy, its own unless given
-        out["temperature"] = opened.trained.act_temperature if temperature is None else temperature
+    if opened.temperature is not None:  # the acting temperature of a checkpoint policy, its own unless given
+        out["temperature"] = opened.temperature
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, opened)})

@@ -20,7 +20,7 @@ from tg_gpudrive.agents.builtin import BUILTIN, Policy, background_masks, builti
 class Opened:
     """A policy in worlds: the Simulator, the policy (`policy(sim)` writes its agents' actions), the
     background driver (None: log replay), the policy's agents per scene, and for a trained policy its
-    checkpoint and training config (None for a built-in)."""
+    checkpoint, training config and the temperature it acts at (None for a built-in)."""
 
     sim: Simulator
     policy: Policy
@@ -28,6 +28,7 @@ class Opened:
     masks: list | None
     checkpoint: Path | None = None
     trained: TrainConfig | None = None
+    temperature: float | None = None
 
     def act(self, sim: Simulator) -> None:
         """One step's actions: the policy's agents', then the background's (what `sim.step()` needs next)."""
@@ -87,6 +88,7 @@ def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfi
         sim, masks = trained_sim(trained, scenes, device, overrides=overrides, path=path,
                                  collision_mode=collision_mode, control=control, control_k=control_k,
                                  background=background, auto_reset=auto_reset)
+        temperature = trained.act_temperature if temperature is None else temperature
         policy = load_policy(path, sim, temperature)
     driver = make_background_driver(sim, background, background_model, seed, "--background-model")
-    return Opened(sim, policy, driver, masks, path, trained)
+    return Opened(sim, policy, driver, masks, path, trained, None if trained is None else temperature)

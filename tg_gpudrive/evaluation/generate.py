@@ -119,8 +119,10 @@ def pick_scenarios(ranked: list[dict], num: int, one_per_scene: bool) -> list[di
     if not one_per_scene:
         return ranked[:num]
     seen: set = set()
-    firsts = [i for i, r in enumerate(ranked) if not (r["scene_id"] in seen or seen.add(r["scene_id"]))]
-    repeats = [i for i in range(len(ranked)) if i not in set(firsts)]
+    firsts, repeats = [], []
+    for i, r in enumerate(ranked):
+        (repeats if r["scene_id"] in seen else firsts).append(i)
+        seen.add(r["scene_id"])
     return [ranked[i] for i in sorted((firsts + repeats)[:num])]
 
 
