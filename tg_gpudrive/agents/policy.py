@@ -177,10 +177,10 @@ def tempered(out, temperature: float):
 
 def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: float = 1.0):
     """A `policy(sim)` callable that drives every slot of `sim` with `actor` (seeing `history` steps of
-    its own motion), sampling its distribution sharpened by `temperature` (`tempered`), or taking its mode
-    at temperature 0. The actor's output of the latest call stays on it as `policy.last_out` (logits, or
-    (mean, log-std), untempered): what a best response to this profile corrects
-    (evaluation.exploitability.SimGame)."""
+    its own motion), sampling its distribution sharpened by `temperature` (`tempered`; kept on it as
+    `policy.temperature`), or taking its mode at temperature 0. The actor's output of the latest call stays
+    on it as `policy.last_out` (logits, or (mean, log-std), untempered): what a best response to this
+    profile corrects (evaluation.exploitability.SimGame)."""
     if not temperature >= 0:
         raise ValueError(f"temperature: expected a number >= 0, got {temperature}")
     head = PolicyHead(sim.cfg.discrete)
@@ -204,4 +204,5 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: fl
             sim_.actions[..., : a.shape[-1]].copy_(a)
 
     policy.last_out = None
+    policy.temperature = temperature
     return policy

@@ -88,7 +88,6 @@ def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfi
         sim, masks = trained_sim(trained, scenes, device, overrides=overrides, path=path,
                                  collision_mode=collision_mode, control=control, control_k=control_k,
                                  background=background, auto_reset=auto_reset)
-        temperature = trained.act_temperature if temperature is None else temperature
         policy = load_policy(path, sim, temperature)
     driver = make_background_driver(sim, background, background_model, seed, "--background-model")
-    return Opened(sim, policy, driver, masks, path, trained, None if trained is None else temperature)
+    return Opened(sim, policy, driver, masks, path, trained, getattr(policy, "temperature", None))
