@@ -55,6 +55,8 @@ def main(argv=None) -> int:
                         "replay their logs); vehicles compares runs trained on different controls")
     p.add_argument("--temperature", type=float, default=None,
                    help="the trained runs' acting temperature (default: each checkpoint's act_temperature)")
+    p.add_argument("--guard", type=float, default=None, metavar="S",
+                   help="the trained runs' safety guard horizon, s; 0: none (default: each checkpoint's act_guard_s)")
     args = p.parse_args(argv)
 
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
@@ -74,18 +76,21 @@ def main(argv=None) -> int:
             opened = open_policy(run, scenes, args.device, engine=base.env, collision_mode=mode,
                                  control=args.control or (base.control if run in BUILTIN else None),
                                  control_k=base.control_k if run in BUILTIN else None, seed=args.seed,
-                                 temperature=args.temperature, option="--runs")
+                                 temperature=args.temperature, guard_s=args.guard, option="--runs")
             sim = opened.sim
             # the same sampling draws for every run and mode
             out = run_rollout(sim, opened.policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
             row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
-                   "temperature": opened.temperature,
+                   "temperature": opened.temperature, "guard_s": opened.guard_s,
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",
                                           "device")},
                    "per_type": {t: {k: round(v[k], 4) for k in ("episodes", "goal_rate", "collision_rate",
                                                                 "offroad_rate")}
                                 for t, v in out.get("per_type", {}).items()}}
+            guard = getattr(opened.policy, "guard", None)
+            if guard is not None:  # the share of the run's actions its safety guard replaced
+                row["guard_replaced"] = round(guard.replaced / max(guard.checked, 1), 5)
             if "kerb_stops" in out:  # agents whose goal lies at the kerb (procedural kerb_stops)
                 row["kerb_stops"] = {k: round(out["kerb_stops"][k], 4) for k in ("episodes", "goal_rate",
                                                                                "collision_rate", "offroad_rate")}

@@ -27,6 +27,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
     assert (run["lr"], run["entropy_coef"]) == (FINE_TUNE["lr"], FINE_TUNE["entropy_coef"])  # not the shipped run's
     assert run["act_temperature"] == 1.0 != load_checkpoint("shipped", "shipped")["config"]["act_temperature"]
+    assert run["act_guard_s"] == 0.0  # its scenarios are not filtered by the shipped policy's guard
     shipped = load_checkpoint("shipped", "shipped")["config"]["env"]["reward"]
     assert shipped["ttc"] < 0 and run["env"]["reward"] == {**shipped, **KNOBS_ALONE}  # the knobs alone keep distance
     assert run["background"] == ("idm" if traffic else "log")

@@ -226,6 +226,9 @@ def _temperature_args(p) -> None:
                    help="checkpoint policies: sample their actions sharpened by T (logits / T), 0 takes the mode "
                         "(default: the checkpoint's act_temperature, 1 unless its run set one; shipped: 0.5)")
     p.add_argument("--deterministic", action="store_true", help="checkpoint policies: the mode (--temperature 0)")
+    p.add_argument("--guard", type=float, default=None, metavar="S",
+                   help="checkpoint policies: act behind the safety guard looking S seconds ahead (agents/guard.py), "
+                        "0 without it (default: the checkpoint's act_guard_s, 0 unless its run set one)")
 
 
 def _render_parser(sub) -> None:
@@ -399,13 +402,21 @@ def _temperature(args) -> float | None:
     return t
 
 
+def _guard(args) -> float | None:
+    """--guard (seconds >= 0), None (the checkpoint's) without it."""
+    s = getattr(args, "guard", None)
+    if s is not None and not 0 <= s <= 60:
+        raise ValueError(f"--guard: expected seconds in [0, 60], got {s}")
+    return s
+
+
 def _open(args, spec: str, scenes, *, engine, auto_reset: bool = True, option: str = "--checkpoint"):
     """`spec` in worlds of `scenes` with the command's options (agents.open_policy)."""
     opened = open_policy(spec, scenes, args.device, engine=engine, overrides=args.set,
                          collision_mode=args.collision_mode, control=getattr(args, "control", None),
                          control_k=getattr(args, "control_k", None), background=getattr(args, "background", "log"),
                          background_model=getattr(args, "background_model", None), seed=args.seed,
-                         temperature=_temperature(args), auto_reset=auto_reset, option=option)
+                         temperature=_temperature(args), guard_s=_guard(args), auto_reset=auto_reset, option=option)
     if opened.background is not None and not bool((opened.sim.background != 0).any()):
         log.warning("--background %s: no background vehicle (the policy drives every eligible one); "
                     "choose fewer with --control nearest_conflict --control-k K", args.background)
@@ -556,6 +567,9 @@ def cmd_evaluate(args) -> int:
                                                      "score_rate", "timeout_rate")}
     if opened.temperature is not None:  # the acting temperature of a checkpoint policy, its own unless given
         out["temperature"] = opened.temperature
+        out["guard_s"] = opened.guard_s
+        if policy.guard is not None:  # the share of the policy's actions its guard replaced
+            out["guard_replaced"] = policy.guard.replaced / max(policy.guard.checked, 1)
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, opened)})

@@ -256,6 +256,11 @@ class TrainConfig:
     # this temperature (logits / T; the continuous head's standard deviation x T); 0 takes the mode. Training
     # rollouts always sample at 1; a checkpoint's value is set after training, on its training scenes
     act_temperature: float = 1.0
+    # and behind this safety guard (agents/guard.py), if > 0: an action that would bring the agent's box within
+    # act_guard_margin (m) of an observed partner's within act_guard_s seconds, even braking hard after it, is
+    # replaced by a draw among the safe ones; 0: none. Training rollouts never use it
+    act_guard_s: float = 0.0
+    act_guard_margin: float = 0.0
     amp: bool = True  # bf16 autocast of the networks on GPU
     # the rollout's steps and the update's optimiser steps replayed from CUDA graphs (learn/graphs.py): both act
     # on every slot, dead ones fed zeros and weighted 0 (the same actions and losses), so that their kernels
@@ -359,6 +364,7 @@ class TrainConfig:
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "act_temperature": "[0, inf)",
+            "act_guard_s": "[0, 60]", "act_guard_margin": "[0, 10]",
             "eta1": "[0, inf)", "eta2": "(0, inf]",
             "magnet_fraction": "(0, 1]",
             "quantiles": "[2, 4096]", "prior_sigma_accel": "(0, inf)", "prior_sigma_curvature": "(0, inf)",

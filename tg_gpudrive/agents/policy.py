@@ -24,6 +24,7 @@ from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer
 import torch.nn.functional as F
+from tg_gpudrive.agents.guard import ActionGuard
 from tg_gpudrive.agents.networks import Actor, CentralCritic
 
 
@@ -154,15 +155,27 @@ def load_actor(path: str | Path, sim: Simulator) -> tuple[Actor, TrainConfig]:
     return actor.to(sim.device), cfg
 
 
-def load_policy(path: str | Path, sim: Simulator, temperature: float | None = None):
+def load_policy(path: str | Path, sim: Simulator, temperature: float | None = None,
+                guard_s: float | None = None):
     """A `policy(sim)` callable from a training checkpoint (used by evaluate, render and report).
 
     `path`: a checkpoint file, a run directory or "shipped" (checkpoint.checkpoint_path). `sim` may
     have more slots than the training engine (checkpoint.policy_engine_config): the actor is per agent.
-    `temperature`: see actor_policy; None takes the checkpoint's own (TrainConfig.act_temperature)."""
+    `temperature`: see actor_policy; None takes the checkpoint's own (TrainConfig.act_temperature).
+    `guard_s`: the safety guard's horizon (s, 0: none); None takes the checkpoint's (TrainConfig.act_guard_s)."""
     actor, cfg = load_actor(path, sim)
+    horizon = cfg.act_guard_s if guard_s is None else guard_s
     return actor_policy(actor.eval(), sim, cfg.actor_history,
-                        cfg.act_temperature if temperature is None else temperature)
+                        cfg.act_temperature if temperature is None else temperature,
+                        guard_for(sim, horizon, cfg.act_guard_margin) if horizon else None)
+
+
+def guard_for(sim: Simulator, horizon: float, margin: float = 0.0) -> ActionGuard:
+    """The safety guard (agents/guard.py) of `sim`'s discrete action grid, looking `horizon` seconds ahead."""
+    e = sim.cfg
+    if not e.discrete:
+        raise ValueError(f"the action guard needs a discrete action space; the simulator's is {e.action_space}")
+    return ActionGuard(action_grid(e, sim.device), e.partner_k, float(sim.model.dt), e.max_accel, horizon, margin)
 
 
 def tempered(out, temperature: float):
@@ -175,10 +188,12 @@ def tempered(out, temperature: float):
     return out[0], out[1] + math.log(temperature)
 
 
-def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: float = 1.0):
+def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: float = 1.0,
+                 guard: ActionGuard | None = None):
     """A `policy(sim)` callable that drives every slot of `sim` with `actor` (seeing `history` steps of
     its own motion), sampling its distribution sharpened by `temperature` (`tempered`; kept on it as
-    `policy.temperature`), or taking its mode at temperature 0. The actor's output of the latest call stays
+    `policy.temperature`), or taking its mode at temperature 0, behind `guard` if given (kept on it as
+    `policy.guard`: its counts of actions checked and replaced). The actor's output of the latest call stays
     on it as `policy.last_out` (logits, or (mean, log-std), untempered): what a best response to this
     profile corrects (evaluation.exploitability.SimGame)."""
     if not temperature >= 0:
@@ -198,6 +213,8 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: fl
         out = policy.last_out = actor(sim_.obs, slots, hist)
         if head.discrete:
             a = out.argmax(-1) if deterministic else head.dist(tempered(out, temperature)).sample()
+            if guard is not None:
+                a = guard(sim_.obs, out if deterministic else tempered(out, temperature), a, deterministic)
             sim_.actions_index.copy_(a.to(torch.int32))
         else:
             a = out[0] if deterministic else head.dist(tempered(out, temperature)).sample()
@@ -205,4 +222,5 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: fl
 
     policy.last_out = None
     policy.temperature = temperature
+    policy.guard = guard
     return policy

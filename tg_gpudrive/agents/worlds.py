@@ -20,7 +20,8 @@ from tg_gpudrive.agents.builtin import BUILTIN, Policy, background_masks, builti
 class Opened:
     """A policy in worlds: the Simulator, the policy (`policy(sim)` writes its agents' actions), the
     background driver (None: log replay), the policy's agents per scene, and for a trained policy its
-    checkpoint, training config and the temperature it acts at (None for a built-in)."""
+    checkpoint, training config, the temperature it acts at and its safety guard's horizon in s (0: none; both None
+    for a built-in)."""
 
     sim: Simulator
     policy: Policy
@@ -29,6 +30,7 @@ class Opened:
     checkpoint: Path | None = None
     trained: TrainConfig | None = None
     temperature: float | None = None
+    guard_s: float | None = None
 
     def act(self, sim: Simulator) -> None:
         """One step's actions: the policy's agents', then the background's (what `sim.step()` needs next)."""
@@ -70,13 +72,14 @@ def _build(scenes, env, device, collision_mode, auto_reset, masks, background):
 def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfig | None = None,
                 overrides: Sequence[str] = (), collision_mode=None, control=None, control_k=None,
                 background: str = "log", background_model=None, seed: int = 0, temperature: float | None = None,
-                auto_reset: bool = True, option: str = "--checkpoint") -> Opened:
+                guard_s: float | None = None, auto_reset: bool = True, option: str = "--checkpoint") -> Opened:
     """`spec` (expert, constant, random, or a checkpoint file, run directory or packaged name such as
     "shipped") in worlds of `scenes`. A built-in policy runs in `engine` (default: EngineConfig()), sized
     for the scenes; a trained one in its own engine (`trained_sim`; `overrides` are --set keys, checked
     against what its network fixes). `seed` seeds the built-in random policy and the world-model
     background; `temperature` is a trained policy's acting temperature (None: its checkpoint's;
-    policy.actor_policy); `option` names the flag in errors."""
+    policy.actor_policy) and `guard_s` its safety guard's horizon (None: its checkpoint's; policy.load_policy);
+    `option` names the flag in errors."""
     if spec in BUILTIN:
         env = sized_for(engine or EngineConfig(), scenes)
         sim, masks = _build(scenes, env, device, collision_mode, auto_reset,
@@ -88,6 +91,8 @@ def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfi
         sim, masks = trained_sim(trained, scenes, device, overrides=overrides, path=path,
                                  collision_mode=collision_mode, control=control, control_k=control_k,
                                  background=background, auto_reset=auto_reset)
-        policy = load_policy(path, sim, temperature)
+        policy = load_policy(path, sim, temperature, guard_s)
     driver = make_background_driver(sim, background, background_model, seed, "--background-model")
-    return Opened(sim, policy, driver, masks, path, trained, getattr(policy, "temperature", None))
+    guard = getattr(policy, "guard", None)
+    return Opened(sim, policy, driver, masks, path, trained, getattr(policy, "temperature", None),
+                  None if trained is None else (guard.horizon if guard is not None else 0.0))
