@@ -203,6 +203,13 @@ def test_evaluate_reports_the_guard_and_what_it_replaced(guarded_run, capsys):
     assert out["guard_s"] == 1.0 and 0.0 <= out["guard_replaced"] <= 1.0
 
 
+def test_the_shipped_policy_acts_behind_a_guard():
+    """The packaged policy's guard, chosen on its training scenes (BENCHMARKS.md, "A safety guard")."""
+    from tg_gpudrive.checkpoint import load_checkpoint
+
+    assert 0 < load_checkpoint("shipped", "shipped")["config"]["act_guard_s"] <= 2
+
+
 def test_bad_guards_are_one_line_errors(guarded_run, capsys):
     assert cli.main(["evaluate", "--checkpoint", str(guarded_run), "--scenes", "procedural:merge", "--episodes", "1",
                      "--device", "cpu", "--guard", "-1"]) == 2

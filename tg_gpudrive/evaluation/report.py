@@ -488,6 +488,9 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     if res["gap_curve"]:
         got.gap_curves[label] = res["gap_curve"]
     res["kind"] = run_kind(cfg)
+    # how its rollouts acted (policy.load_policy takes the checkpoint's own): runs fine-tuned from a sharper or
+    # guarded policy may act otherwise than the policy they are compared with
+    res["acting"] = f"T {cfg.act_temperature:g}" + (f", guard {cfg.act_guard_s:g} s" if cfg.act_guard_s else "")
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
     if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cell_runs:  # a cell's first training seed

@@ -84,14 +84,14 @@ def _comparison_section(results: list[dict]) -> list[str]:
     for r in results:
         f = r["fidelity"]["per_feature"]
         g = r.get("cce_gap")
-        rows.append([r["label"], r.get("kind", "baseline"), r["fidelity"]["realism_ours"],
+        rows.append([r["label"], r.get("kind", "baseline"), r.get("acting", "-"), r["fidelity"]["realism_ours"],
                      np.nanmean([v["hellinger"] for v in f.values()]), np.nanmean([v["kl"] for v in f.values()]),
                      _pm(g["mean_gap"], g["ci95"]) if g else "-", r["diversity"]["mean"],
                      r["risk"].get("collision_rate"), r["risk"].get("near_miss_rate"),
                      r["risk"].get("mean_min_ttc_s"), r["risk"].get("mean_min_gap_m"),
                      r["risk"].get("hard_brakes_per_agent")])
     return ["## Comparison against baselines\n",
-            _table(["policy", "kind", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI (agents)",
+            _table(["policy", "kind", "acts at", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI (agents)",
                     "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
                     "mean min gap [m]", "hard brakes / agent"], rows)]
 
