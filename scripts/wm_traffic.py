@@ -47,6 +47,8 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=256, help="scenes simulated at once")
     p.add_argument("--device", default="auto")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="engine config overrides")
+    p.add_argument("--guard", type=float, default=0.0, metavar="S",
+                   help="discrete world models: act behind the safety guard looking S seconds ahead (agents/guard.py)")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     device = resolve_device(args.device, flag="--device")
@@ -90,7 +92,8 @@ def main(argv=None) -> int:
             continue
         kw = {} if temp == "" else {"temperature": float(temp)}
         for seed in args.seeds:
-            run(lambda: WorldModelDriver(model, rows="background", seed=seed, **kw), spec, seed)
+            run(lambda: WorldModelDriver(model, rows="background", seed=seed, guard_s=args.guard, **kw),
+                spec + (f" guard {args.guard:g} s" if args.guard else ""), seed)
     return 0
 
 

@@ -207,6 +207,34 @@ def test_driver_writes_only_its_rows(shipped, heldout, wm_cfg):
     assert bool((sim.actions_index[~bg] == -7).all())
 
 
+def test_a_guarded_driver_leaves_no_action_its_guard_would_refuse(shipped, heldout, wm_cfg):
+    """Behind guard_s, every background action is safe by the guard's own test wherever a safe one exists,
+    over an episode of the two real scenes of tests/data, every vehicle driven by the world model."""
+    from tg_gpudrive.data.sources import resolve_scenes
+    from tg_gpudrive.engine.control import control_masks
+    from tg_gpudrive.engine.model import sized_for
+    from tg_gpudrive.engine.simulator import Simulator
+
+    src = resolve_scenes(str(Path(__file__).parent / "data"))
+    scenes = [src[i] for i in range(len(src))]
+    env = sized_for(wm_cfg.env, scenes)
+    veh = control_masks(scenes, env, "vehicles")
+    sim = Simulator(scenes, env, "cpu", controlled=[m & False for m in veh], background=veh)
+    sim.reset()
+    drv = WorldModelDriver(shipped, seed=0, guard_s=1.0)
+    for _ in range(sim.episode_length):
+        drv(sim)
+        rows = (sim.background != 0) & (sim.present != 0)
+        obs, act = sim.obs[rows], sim.actions_index[rows].long()
+        chosen = drv.guard.unsafe(obs, drv.guard.grid[act][:, None])[:, 0]
+        none_safe = drv.guard.unsafe(obs, drv.guard.grid.expand(len(obs), -1, -1)).all(-1)
+        assert not bool((chosen & ~none_safe).any())
+        sim.step()
+    assert drv.guard.replaced > 0  # the world model does drive into others, and the guard redraws those actions
+    with pytest.raises(ValueError, match="needs the discrete world model"):
+        WorldModelDriver(build_model(dataclasses.replace(_cont_cfg(wm_cfg), hidden=16)), guard_s=1.0)
+
+
 def test_action_space_mismatch_is_refused(shipped, heldout, wm_cfg):
     from tg_gpudrive.config import ConfigError
     from tg_gpudrive.engine.simulator import Simulator

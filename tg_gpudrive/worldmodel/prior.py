@@ -36,7 +36,7 @@ import torch
 from tg_gpudrive.checkpoint import WORLD_MODEL, check_kind, save_atomic
 from tg_gpudrive.engine.control import DRIVER_ROWS, driver_rows
 from tg_gpudrive.history import HIST_DIM, HistoryBuffer
-from tg_gpudrive.agents.policy import BehaviourPrior
+from tg_gpudrive.agents.policy import BehaviourPrior, guard_for
 from tg_gpudrive.worldmodel.mixture import LaplaceMixture
 from tg_gpudrive.worldmodel.model import WorldModel, check_action_space
 
@@ -179,7 +179,8 @@ class WorldModelDriver:
     `greedy`: the arg-max bin, or the location of the most probable mixture component.
     `temperature` divides the logits (and, continuous, multiplies the Laplace scales:
     `LaplaceMixture.sample`); 0 is greedy. None (the default) is 1 for the discrete head and
-    `CONTINUOUS_TEMPERATURE` for the continuous one.
+    `CONTINUOUS_TEMPERATURE` for the continuous one. `guard_s` > 0 (discrete only) puts the safety guard
+    of agents/guard.py, looking that many seconds ahead, behind the sampled actions.
 
     Why the continuous default is not 1: per-step draws are independent, so at T = 1 the
     curvature noise (and the occasional pick of a minor component) random-walks the heading over
@@ -190,7 +191,7 @@ class WorldModelDriver:
     CONTINUOUS_TEMPERATURE = 0.1
 
     def __init__(self, model: WorldModel, rows: str = "background", temperature: float | None = None,
-                 greedy: bool = False, seed: int = 0):
+                 greedy: bool = False, seed: int = 0, guard_s: float = 0.0):
         if rows not in self.ROWS:
             raise ValueError(f"rows: expected one of {', '.join(self.ROWS)}, got {rows!r}")
         if temperature is None:
@@ -202,6 +203,9 @@ class WorldModelDriver:
         self.history = HistoryBuffer(model.history)
         self.seed = seed
         self.gen: torch.Generator | None = None
+        if guard_s and not model.discrete:
+            raise ValueError("guard_s: the action guard needs the discrete world model")
+        self.guard_s, self.guard = guard_s, None  # the guard, built for the first simulator driven
         # discrete: the rows the last call drove and the logits it sampled them from (kept as they are;
         # `last_out` spreads them over the world's slots only when a best response asks)
         self._last: tuple | None = None
@@ -244,4 +248,7 @@ class WorldModelDriver:
             act = out.argmax(-1)
         else:
             act = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[:, 0]
+        if self.guard_s:
+            self.guard = self.guard or guard_for(sim, self.guard_s)
+            act = self.guard(sim.obs[w, a], logits, act, self.greedy)
         sim.actions_index[w, a] = act.to(sim.actions_index.dtype)
