@@ -90,7 +90,7 @@ def main(argv=None) -> int:
                                 for t, v in out.get("per_type", {}).items()}}
             guard = getattr(opened.policy, "guard", None)
             if guard is not None:  # the share of the run's actions its safety guard replaced
-                row["guard_replaced"] = round(guard.replaced / max(guard.checked, 1), 5)
+                row["guard_replaced"] = round(guard.replaced_share, 5)
             if "kerb_stops" in out:  # agents whose goal lies at the kerb (procedural kerb_stops)
                 row["kerb_stops"] = {k: round(out["kerb_stops"][k], 4) for k in ("episodes", "goal_rate",
                                                                                "collision_rate", "offroad_rate")}

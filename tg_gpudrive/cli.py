@@ -211,7 +211,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--collision-mode", choices=COLLISION_MODES, default=None, help=COLLISION_HELP)
     p.add_argument("--episodes", type=positive_int, default=64, help="scene episodes to run (worlds x rounds)")
     p.add_argument("--worlds", type=positive_int, default=None, help="parallel worlds (default: min(episodes, 256))")
-    _temperature_args(p)
+    _acting_args(p)
     p.add_argument("--per-scene", default=None, metavar="FILE.csv",
                    help="write one row per scene (and collision mode): agent-episodes, goal / collision / off-road "
                         "/ score rates with 95 %% bootstrap intervals, worst scenes first (default: none)")
@@ -221,7 +221,7 @@ def _evaluate_parser(sub) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
 
 
-def _temperature_args(p) -> None:
+def _acting_args(p) -> None:
     p.add_argument("--temperature", type=float, default=None, metavar="T",
                    help="checkpoint policies: sample their actions sharpened by T (logits / T), 0 takes the mode "
                         "(default: the checkpoint's act_temperature, 1 unless its run set one; shipped: 0.5)")
@@ -238,7 +238,7 @@ def _render_parser(sub) -> None:
     p.add_argument("--policy", default="expert",
                    help="expert | random | constant | shipped (the packaged policy; shipped_v4 to shipped_v1: the ones before) | a training checkpoint "
                         "(checkpoint.pt or its run directory)")
-    _temperature_args(p)
+    _acting_args(p)
     _background_args(p)
     p.add_argument("--steps", type=positive_int, default=None, help="at most this many steps (default and most: one episode)")
     p.add_argument("--world", type=int, default=0, help="which world to draw")
@@ -569,7 +569,7 @@ def cmd_evaluate(args) -> int:
         out["temperature"] = opened.temperature
         out["guard_s"] = opened.guard_s
         if policy.guard is not None:  # the share of the policy's actions its guard replaced
-            out["guard_replaced"] = policy.guard.replaced / max(policy.guard.checked, 1)
+            out["guard_replaced"] = policy.guard.replaced_share
     out.update({"policy": str(args.checkpoint or args.policy), "collision_mode": str(cfg.collision_mode),
                 "scenes": args.scenes, "max_agents": sim.max_agents, **skipped,
                 **sim.report(), **_background_report(args, opened)})

@@ -54,6 +54,11 @@ class ActionGuard:
         self.horizon, self.margin = float(horizon), float(margin)
         self.checked = self.replaced = 0  # actions checked and replaced so far, for logs
 
+    @property
+    def replaced_share(self) -> float:
+        """The share of the actions checked so far that the guard replaced."""
+        return self.replaced / max(self.checked, 1)
+
     def ego_paths(self, speed: torch.Tensor, actions: torch.Tensor):
         """Centres and headings (..., T, 2) of the agent taking `actions` ((..., 2): accel, curvature) for one
         step, then braking at full rate on the same curvature, for T = `steps` steps (speed: (...))."""
@@ -118,8 +123,9 @@ class ActionGuard:
         (already tempered) over the safe actions, or their mode when `deterministic`. Leading dimensions
         (worlds, slots) are kept: obs (..., obs_dim), logits (..., A), sampled (...)."""
         shape = sampled.shape
-        obs, logits, sampled = obs.reshape(-1, obs.shape[-1]), logits.reshape(-1, logits.shape[-1]), sampled.reshape(-1)
-        return self._guard(obs, logits.float(), sampled, deterministic).reshape(shape)
+        flat = self._guard(obs.reshape(-1, obs.shape[-1]), logits.reshape(-1, logits.shape[-1]).float(),
+                           sampled.reshape(-1), deterministic)
+        return flat.reshape(shape)
 
     def _guard(self, obs, logits, sampled, deterministic):
         grid = self.grid.to(obs.device, obs.dtype)

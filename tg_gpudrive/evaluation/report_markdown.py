@@ -91,8 +91,8 @@ def _comparison_section(results: list[dict]) -> list[str]:
                      r["risk"].get("mean_min_ttc_s"), r["risk"].get("mean_min_gap_m"),
                      r["risk"].get("hard_brakes_per_agent")])
     return ["## Comparison against baselines\n",
-            _table(["policy", "kind", "acts at", "realism (ours)", "Hellinger (mean)", "KL (mean)", "CCE-gap ± 95% CI (agents)",
-                    "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
+            _table(["policy", "kind", "acts at", "realism (ours)", "Hellinger (mean)", "KL (mean)",
+                    "CCE-gap ± 95% CI (agents)", "diversity [m]", "collision rate", f"TTC < {rk.TTC_CRITICAL:g} s rate", "mean min TTC [s]",
                     "mean min gap [m]", "hard brakes / agent"], rows)]
 
 
