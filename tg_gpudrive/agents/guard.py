@@ -52,11 +52,11 @@ class ActionGuard:
         self.grid, self.partner_k, self.dt, self.max_accel = grid, partner_k, float(dt), float(max_accel)
         self.steps = max(1, round(horizon / dt))
         self.horizon, self.margin = float(horizon), float(margin)
-        self.checked = self.replaced = 0  # actions checked and replaced so far, for logs
+        self.checked = self.replaced = 0  # acting agents' actions checked and replaced so far, for logs
 
     @property
     def replaced_share(self) -> float:
-        """The share of the actions checked so far that the guard replaced."""
+        """The share of the acting agents' actions checked so far that the guard replaced."""
         return self.replaced / max(self.checked, 1)
 
     def ego_paths(self, speed: torch.Tensor, actions: torch.Tensor):
@@ -118,19 +118,21 @@ class ActionGuard:
         return out
 
     def __call__(self, obs: torch.Tensor, logits: torch.Tensor, sampled: torch.Tensor,
-                 deterministic: bool = False) -> torch.Tensor:
+                 deterministic: bool = False, acting: torch.Tensor | None = None) -> torch.Tensor:
         """The guarded action indices: `sampled` where safe or where nothing is; else a draw from `logits`
         (already tempered) over the safe actions, or their mode when `deterministic`. Leading dimensions
-        (worlds, slots) are kept: obs (..., obs_dim), logits (..., A), sampled (...)."""
+        (worlds, slots) are kept: obs (..., obs_dim), logits (..., A), sampled (...). `acting` (bool, like
+        `sampled`; None: all) says which rows are agents that act, for the counts alone."""
         shape = sampled.shape
+        acting = torch.ones_like(sampled, dtype=torch.bool) if acting is None else acting.bool()
         flat = self._guard(obs.reshape(-1, obs.shape[-1]), logits.reshape(-1, logits.shape[-1]).float(),
-                           sampled.reshape(-1), deterministic)
+                           sampled.reshape(-1), deterministic, acting.reshape(-1))
         return flat.reshape(shape)
 
-    def _guard(self, obs, logits, sampled, deterministic):
+    def _guard(self, obs, logits, sampled, deterministic, acting):
         grid = self.grid.to(obs.device, obs.dtype)
         bad = self.unsafe(obs, grid[sampled.long()][:, None])[:, 0]
-        self.checked += len(sampled)
+        self.checked += int(acting.sum())
         rows = bad.nonzero().squeeze(-1)
         if rows.numel() == 0:
             return sampled
@@ -142,5 +144,5 @@ class ActionGuard:
             logits=masked.masked_fill(~some_safe[:, None], 0.0), validate_args=False).sample()
         out = sampled.clone()
         out[rows[some_safe]] = pick[some_safe].to(out.dtype)
-        self.replaced += int(some_safe.sum())
+        self.replaced += int((some_safe & acting[rows]).sum())
         return out

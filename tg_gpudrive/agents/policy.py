@@ -214,7 +214,8 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: fl
         if head.discrete:
             a = out.argmax(-1) if deterministic else head.dist(tempered(out, temperature)).sample()
             if guard is not None:
-                a = guard(sim_.obs, out if deterministic else tempered(out, temperature), a, deterministic)
+                a = guard(sim_.obs, out if deterministic else tempered(out, temperature), a, deterministic,
+                          acting=(sim_.active != 0) & (sim_.background == 0))
             sim_.actions_index.copy_(a.to(torch.int32))
         else:
             a = out[0] if deterministic else head.dist(tempered(out, temperature)).sample()
