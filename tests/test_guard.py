@@ -149,6 +149,20 @@ def test_the_guard_redraws_unsafe_actions_among_the_safe_ones_by_the_policy_s_od
     assert int(guard(contact[None], logits[:1], torch.tensor([full]))) == full
 
 
+def test_redraws_from_a_generator_repeat_whatever_the_global_stream():
+    guard = ActionGuard(action_grid(ENV), 4, DT, ENV.max_accel, horizon=2.0)
+    obs = obs_row(10.0, [crossing_partner(12.0, 1.2)]).expand(500, -1)
+    full = (ENV.accel_bins - 1) * ENV.curvature_bins + ENV.curvature_bins // 2
+    logits, sampled = torch.zeros(500, len(guard.grid)), torch.full((500,), full)
+
+    def draw(global_seed):
+        torch.manual_seed(global_seed)
+        return guard(obs, logits, sampled, generator=torch.Generator().manual_seed(3))
+
+    first = draw(0)
+    assert torch.equal(first, draw(1)) and len(first.unique()) > 1
+
+
 def _drive(device, guarded: bool) -> int:
     """Every agent of the hand-made crossing asks for the no-op (constant speed, straight) from the first step;
     the number of agents that collided within 30 steps."""

@@ -78,27 +78,27 @@ class ActionGuard:
             heads.append(torch.stack((torch.cos(yaw), torch.sin(yaw)), -1))
         return torch.stack(centres, -2), torch.stack(heads, -2)
 
+    def observed(self, obs: torch.Tensor):
+        """The partner rows (rows, K, PARTNER_DIM) and each partner's velocity in the agent's frame (rows, K, 2)
+        (the observation holds it relative to the agent's own, (speed, 0))."""
+        p = obs[:, EGO_DIM: EGO_DIM + self.partner_k * PARTNER_DIM].reshape(-1, self.partner_k, PARTNER_DIM)
+        speed = obs[:, 0]
+        return p, p[..., 5:7] + torch.stack((speed, torch.zeros_like(speed)), -1).unsqueeze(1)
+
     def partners(self, obs: torch.Tensor):
         """Per observed partner (rows, K, ...): mask, centres over the horizon (rows, K, T, 2), heading, half
         extents."""
-        k = self.partner_k
-        p = obs[:, EGO_DIM: EGO_DIM + k * PARTNER_DIM].reshape(-1, k, PARTNER_DIM)
-        speed = obs[:, 0]
-        mask = p[..., 0] > 0.5
-        rel, head = p[..., 1:3], p[..., 3:5]
-        vel = p[..., 5:7] + torch.stack((speed, torch.zeros_like(speed)), -1).unsqueeze(1)
+        p, vel = self.observed(obs)
         t = torch.arange(1, self.steps + 1, dtype=obs.dtype, device=obs.device) * self.dt
-        centres = rel.unsqueeze(-2) + vel.unsqueeze(-2) * t[:, None]
-        return mask, centres, head, 0.5 * p[..., 7:9] + 0.5 * self.margin
+        centres = p[..., 1:3].unsqueeze(-2) + vel.unsqueeze(-2) * t[:, None]
+        return p[..., 0] > 0.5, centres, p[..., 3:5], 0.5 * p[..., 7:9] + 0.5 * self.margin
 
     def within_reach(self, obs: torch.Tensor) -> torch.Tensor:
         """(rows,) bool: rows with an observed partner that either box could reach within the horizon under any
         action (a bound on both paths' lengths); the rest have no unsafe action."""
-        k, h = self.partner_k, self.steps * self.dt
-        p = obs[:, EGO_DIM: EGO_DIM + k * PARTNER_DIM].reshape(-1, k, PARTNER_DIM)
-        speed = obs[:, 0]
-        own = (speed + self.max_accel * self.dt) * h + 0.5 * obs[:, 1:3].norm(dim=-1) + self.margin
-        vel = p[..., 5:7] + torch.stack((speed, torch.zeros_like(speed)), -1).unsqueeze(1)
+        h = self.steps * self.dt
+        p, vel = self.observed(obs)
+        own = (obs[:, 0] + self.max_accel * self.dt) * h + 0.5 * obs[:, 1:3].norm(dim=-1) + self.margin
         theirs = vel.norm(dim=-1) * h + 0.5 * p[..., 7:9].norm(dim=-1)
         return ((p[..., 0] > 0.5) & (p[..., 1:3].norm(dim=-1) <= own[:, None] + theirs)).any(-1)
 
@@ -118,18 +118,20 @@ class ActionGuard:
         return out
 
     def __call__(self, obs: torch.Tensor, logits: torch.Tensor, sampled: torch.Tensor,
-                 deterministic: bool = False, acting: torch.Tensor | None = None) -> torch.Tensor:
+                 deterministic: bool = False, acting: torch.Tensor | None = None,
+                 generator: torch.Generator | None = None) -> torch.Tensor:
         """The guarded action indices: `sampled` where safe or where nothing is; else a draw from `logits`
         (already tempered) over the safe actions, or their mode when `deterministic`. Leading dimensions
         (worlds, slots) are kept: obs (..., obs_dim), logits (..., A), sampled (...). `acting` (bool, like
-        `sampled`; None: all) says which rows are agents that act, for the counts alone."""
+        `sampled`; None: all) says which rows are agents that act, for the counts alone; `generator` draws the
+        redraws (None: torch's global one), so that a driver with its own stream stays reproducible."""
         shape = sampled.shape
         acting = torch.ones_like(sampled, dtype=torch.bool) if acting is None else acting.bool()
         flat = self._guard(obs.reshape(-1, obs.shape[-1]), logits.reshape(-1, logits.shape[-1]).float(),
-                           sampled.reshape(-1), deterministic, acting.reshape(-1))
+                           sampled.reshape(-1), deterministic, acting.reshape(-1), generator)
         return flat.reshape(shape)
 
-    def _guard(self, obs, logits, sampled, deterministic, acting):
+    def _guard(self, obs, logits, sampled, deterministic, acting, generator):
         grid = self.grid.to(obs.device, obs.dtype)
         bad = self.unsafe(obs, grid[sampled.long()][:, None])[:, 0]
         self.checked += int(acting.sum())
@@ -140,8 +142,14 @@ class ActionGuard:
         unsafe = self.unsafe(sub, grid.expand(len(rows), *grid.shape))
         some_safe = ~unsafe.all(-1)
         masked = logits[rows].masked_fill(unsafe, float("-inf"))
-        pick = masked.argmax(-1) if deterministic else torch.distributions.Categorical(
-            logits=masked.masked_fill(~some_safe[:, None], 0.0), validate_args=False).sample()
+        if deterministic:
+            pick = masked.argmax(-1)
+        elif generator is None:
+            pick = torch.distributions.Categorical(logits=masked.masked_fill(~some_safe[:, None], 0.0),
+                                                   validate_args=False).sample()
+        else:
+            probs = torch.softmax(masked.masked_fill(~some_safe[:, None], 0.0), -1)
+            pick = torch.multinomial(probs, 1, generator=generator)[:, 0]
         out = sampled.clone()
         out[rows[some_safe]] = pick[some_safe].to(out.dtype)
         self.replaced += int((some_safe & acting[rows]).sum())

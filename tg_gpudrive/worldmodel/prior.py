@@ -205,7 +205,7 @@ class WorldModelDriver:
         self.gen: torch.Generator | None = None
         if guard_s and not model.discrete:
             raise ValueError("guard_s: the action guard needs the discrete world model")
-        self.guard_s, self.guard = guard_s, None  # the guard, built for the first simulator driven
+        self.guard_s, self.guard = guard_s, None  # the guard, built for the layout of the simulator driven
         # discrete: the rows the last call drove and the logits it sampled them from (kept as they are;
         # `last_out` spreads them over the world's slots only when a best response asks)
         self._last: tuple | None = None
@@ -249,6 +249,8 @@ class WorldModelDriver:
         else:
             act = torch.multinomial(torch.softmax(logits, -1), 1, generator=self.gen)[:, 0]
         if self.guard_s:
-            self.guard = self.guard or guard_for(sim, self.guard_s)
-            act = self.guard(sim.obs[w, a], logits, act, self.greedy)
+            g, layout = self.guard, (sim.cfg.partner_k, float(sim.model.dt), sim.obs.device)
+            if g is None or (g.partner_k, g.dt, g.grid.device) != layout:
+                self.guard = guard_for(sim, self.guard_s)
+            act = self.guard(sim.obs[w, a], logits, act, self.greedy, generator=self.gen)
         sim.actions_index[w, a] = act.to(sim.actions_index.dtype)
