@@ -48,6 +48,11 @@ class NonFinite(RuntimeError):
         self.what, self.detail = what, detail
 
 
+class TrainingError(RuntimeError):
+    """Training cannot go on (a non-finite policy output or loss): stopped without saving, so the
+    checkpoint on disk stays the last good one."""
+
+
 class ByName:
     """Read access by field name, `batch["mask"]`, and `dict(batch, prior=...)` copies, for the scripts
     and tests that handle a batch as a mapping; `of` turns such a mapping back into the dataclass."""

@@ -30,8 +30,23 @@ import torch.distributed as dist
 from tg_gpudrive.engine.simulator import cuda_available
 
 
+_ALONE = False  # inside `alone()`
+
+
 def is_dist() -> bool:
-    return dist.is_available() and dist.is_initialized()
+    return not _ALONE and dist.is_available() and dist.is_initialized()
+
+
+@contextlib.contextmanager
+def alone():
+    """Inside it this process is on its own: the helpers here act as without a process group (rank 0 of 1),
+    so an update's collectives do not wait for a process that does not update (a pipeline's learner)."""
+    global _ALONE
+    was, _ALONE = _ALONE, True
+    try:
+        yield
+    finally:
+        _ALONE = was
 
 
 def rank() -> int:

@@ -36,6 +36,11 @@ class StopRequest:
         print("\ntg-gpudrive train: Ctrl-C: finishing this update, then saving a checkpoint "
               "(Ctrl-C again stops at once, keeping the last saved one)", file=sys.stderr)
 
+    @property
+    def mine(self) -> bool:
+        """Whether this process was asked to stop (no collective)."""
+        return self._flag
+
     def requested(self, device) -> bool:
         """Whether a stop was asked for, on any rank (every rank must leave at the same update)."""
         if dist_util.world_size() == 1:

@@ -40,7 +40,8 @@ from tg_gpudrive.engine.simulator import Simulator
 from tg_gpudrive.history import HistoryBuffer
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
-from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector
+from tg_gpudrive.learn import pipeline
+from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector, TrainingError
 from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
@@ -54,11 +55,6 @@ from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_mod
 
 log = logging.getLogger(__name__)
 SMALL_MINIBATCH = 16  # world-steps: a minibatch with fewer is warned about
-
-
-class TrainingError(RuntimeError):
-    """Training cannot go on (a non-finite policy output or loss): stopped without saving, so the
-    checkpoint on disk stays the last good one."""
 
 
 def make_prior(cfg: TrainConfig, sim: Simulator) -> BehaviourPrior:
@@ -138,6 +134,14 @@ class Trainer:
         self.out = Path(out_dir or cfg.out_dir)
         self.rank, self.world = dist_util.rank(), dist_util.world_size()
         self.lead = self.rank == 0  # logs and checkpoints
+        if cfg.pipeline and self.world != pipeline.PROCESSES:
+            raise ConfigError(f"pipeline: true needs {pipeline.PROCESSES} processes (--nproc 2), one that acts and "
+                              f"one that learns; this run has {self.world} (--set pipeline=false runs without it)")
+        # which stream of scenes and random draws this process's worlds follow: its rank, or with `pipeline` the
+        # one stream the acting process plays (the learning one builds the same worlds and never steps them)
+        self.stream = 0 if cfg.pipeline else self.rank
+        self.reported = None  # with `pipeline`, on the learner: the acting process's scene counters (source_counts)
+        self.pipe_keys = None  # ... and the scene keys of its last batch's worlds (world_keys)
         if self.lead:
             self.out.mkdir(parents=True, exist_ok=True)
         self.progress = progress and self.lead
@@ -151,9 +155,9 @@ class Trainer:
                         cfg.minibatches, per_mb, cfg.num_worlds, cfg.rollout_steps, cfg.minibatches)
         torch.backends.cuda.matmul.allow_tf32 = True
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
-        self._seed(cfg.seed + self.rank)
+        self._seed(cfg.seed + self.stream)
         # exact resume needs the same process count: engine states and samplers are per rank
-        mine = saved_rank_state(ck, self.rank, self.world)
+        mine = saved_rank_state(ck, self.rank, self.world, cfg.pipeline)
         self._build_worlds(mine)
         self._build_learner(ck)
         self.update = 0
@@ -161,7 +165,7 @@ class Trainer:
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
         self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
         self.window = RateWindow()  # the last RATE_WINDOW updates' episodes: the bar, the final line, the stop
-        self.heldout = HeldoutCheck(cfg, self.device, self.lead)  # target_heldout
+        self.heldout = HeldoutCheck(cfg, self.device, self.lead, share=not cfg.pipeline)  # target_heldout
         self.runlog = RunLog(self.out, self.lead)
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
@@ -180,9 +184,9 @@ class Trainer:
         over the scenes of the checkpoint `ck` an exact resume continues."""
         cfg = self.cfg
         self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
-        if self.world > 1:
+        if self.world > 1 and not cfg.pipeline:
             self.source = dist_util.ShardSource(self.source, self.rank, self.world)
-        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.rank)
+        self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.stream)
         if ck is not None:
             self.sampler.load_state_dict(ck["sampler"])
             self.sampler.last_indices = np.asarray(ck["scene_indices"], np.int64)
@@ -218,13 +222,13 @@ class Trainer:
             shape = (len(getattr(self.source, "source", self.source)), cfg.env.max_agents)
         self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
         self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
-        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.rank)
+        self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.stream)
         self.collector = RolloutCollector(cfg, self.sim, self.nets, prior, self.gen, self.device, self.actor_hist)
         if cfg.cuda_graphs:
             self.collector.graphs = RolloutGraphs(self.device)
         # the vehicles the policy does not drive: None (they replay their logs) or a driver of their rows
         model = (cfg.prior_model or None) if cfg.background == "world_model" else None
-        self.collector.background = make_background_driver(self.sim, cfg.background, model, cfg.seed + self.rank,
+        self.collector.background = make_background_driver(self.sim, cfg.background, model, cfg.seed + self.stream,
                                                            "prior_model")
 
     def _init_weights(self, source: str) -> None:
@@ -256,7 +260,7 @@ class Trainer:
         agent a slot (`sized_for`). The draws are seeded by the sampler's position, so a resumed run
         rebuilds the same worlds."""
         c, aug = self.cfg, self.cfg.augment
-        rng = np.random.default_rng([c.seed, self.rank, self.sampler.draws])
+        rng = np.random.default_rng([c.seed, self.stream, self.sampler.draws])
         scenes = [augment_scene(s, aug, c.env.init_steps, c.env.goal_radius, rng) for s in drawn]
         masks, left = [], 0
         for scene, m in zip(scenes, control_masks(scenes, c.env, c.control, c.control_k, c.control_ids)):
@@ -301,7 +305,10 @@ class Trainer:
 
     def world_keys(self) -> torch.Tensor:
         """Each world's scene as an index into the whole source (a rank's shard maps its own indices
-        back): the row of its vehicles in the per-vehicle multiplier table."""
+        back; with `pipeline`, on the learner, those of the batch it learns on): the row of its vehicles in the
+        per-vehicle multiplier table."""
+        if self.pipe_keys is not None:
+            return self.pipe_keys
         idx = np.asarray(self.sampler.last_indices, np.int64)
         if isinstance(self.source, dist_util.ShardSource):
             idx = self.source.indices[idx]
@@ -343,37 +350,50 @@ class Trainer:
 
     def _loop(self, bar, stop: StopRequest, t_start: float, elapsed0: float) -> dict:
         """Updates until cfg.updates, the time limit, the quality target or a Ctrl-C (which ends the
-        update under way and saves it); the last update's metrics row."""
+        update under way and saves it); the last update's metrics row. With `pipeline` each of the two
+        processes runs its own part (learn/pipeline.py)."""
+        if self.cfg.pipeline:
+            return pipeline.run(self, bar, stop, t_start, elapsed0)
         cfg = self.cfg
         last = {}
         while self.update < cfg.updates:
             if cfg.resample_every and self.update > 0 and self.update % cfg.resample_every == 0:
                 self._resample()
             last, stats = self._step(elapsed0, t_start)
-            self.window.add(stats)  # the window of rates the bar shows and the stop reads
-            reached = self.window.reached(cfg)
-            self._show(bar, last)
-            if reached and cfg.target_heldout:
-                reached = self._heldout_check(bar)
-            out_of_time = 0 < cfg.time_limit_s <= self.wall
-            interrupted = stop.requested(self.device)
-            if (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached or out_of_time
-                    or interrupted):
+            save, end = self.verdict(bar, last, stats, stop.requested(self.device))
+            if save:
                 self.save()  # every rank: each hands its own state to the lead, which writes
-            if interrupted:
-                last["interrupted"] = True
-                break
-            if self.lead and cfg.keep_policy_every and self.update % cfg.keep_policy_every == 0:
-                self.save_policy()
-            if out_of_time and not reached:
-                if bar is not None:
-                    bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}")
-                break
-            if reached:
-                last["target_reached_s"] = self.wall
-                self._record_target(bar)
+            self.keep_policy(last)
+            if end:
                 break
         return last
+
+    def verdict(self, bar, last: dict, stats: dict, interrupted: bool) -> tuple[bool, bool]:
+        """After an update: its episodes into the window of rates, the bar, the quality target (with the
+        held-out check) and the time limit; (whether to save a checkpoint, whether to stop here)."""
+        cfg = self.cfg
+        self.window.add(stats)  # the window of rates the bar shows and the stop reads
+        reached = self.window.reached(cfg)
+        self._show(bar, last)
+        if reached and cfg.target_heldout:
+            reached = self._heldout_check(bar)
+        out_of_time = 0 < cfg.time_limit_s <= self.wall
+        save = (self.update % cfg.checkpoint_every == 0 or self.update == cfg.updates or reached or out_of_time
+                or interrupted)
+        if interrupted:
+            last["interrupted"] = True
+        elif out_of_time and not reached and bar is not None:
+            bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}")
+        if reached and not interrupted:
+            last["target_reached_s"] = self.wall
+            self._record_target(bar)
+        return save, interrupted or out_of_time or reached
+
+    def keep_policy(self, last: dict) -> None:
+        """policies/update_NNNNNN.pt every keep_policy_every updates (not on a Ctrl-C's last one)."""
+        every = self.cfg.keep_policy_every
+        if self.lead and every and self.update % every == 0 and not last.get("interrupted"):
+            self.save_policy()
 
     def _step(self, elapsed0: float, t_start: float) -> tuple[dict, dict]:
         """One update: collect, reduce the stats over the ranks, learn, count, log. (metrics row, stats)."""
@@ -398,6 +418,12 @@ class Trainer:
         row.update({"time/rollout_s": t_own, "time/rollout_slowest_s": max(p[0] for p in phases),
                     "time/wait_s": t_roll - t_own, "time/update_s": dt - t_roll})
         self.wall += max(sum(p) for p in phases)  # the slowest rank's: every rank reads the same clock
+        return self.count(row, batch, stats, phases, dt, t_roll, elapsed0, t_start), stats
+
+    def count(self, row: dict, batch: Rollout, stats: dict, phases: list, dt: float, t_roll: float,
+              elapsed0: float, t_start: float) -> dict:
+        """The update just learnt counted and logged: its agent-steps, the metrics row (`row` completed) and
+        each rank's `phases` (timing.csv). The row."""
         self.elapsed = elapsed0 + time.perf_counter() - t_start
         steps = int(stats["alive"])
         self.agent_steps += steps
@@ -405,7 +431,7 @@ class Trainer:
         row.update(self._row(batch, stats, steps, dt, t_roll))
         self.runlog.metrics(row)
         self.runlog.timing(self.update, phases)
-        return row, stats
+        return row
 
     def _row(self, batch: Rollout, stats: dict, steps: int, dt: float, t_roll: float) -> dict:
         """The counters, rates, reward terms and throughput of the update just done (metrics.csv)."""
@@ -419,8 +445,7 @@ class Trainer:
             "offroad_rate": per("offroad"), "timeout_rate": per("timeout"), "mean_min_distance": per("min_dist"),
             "cost": float(batch.cost.sum() / max(int(batch.mask.sum()), 1)),
             "mean_speed": float(stats["speed"]) / max(steps, 1),
-            "scenes_visited": self.sampler.visited,
-            **source_report(self.source),  # files that do not load, scenes that cannot be played
+            **self.source_counts(),
         }
         per_term = stats["terms"] / max(steps, 1)
         for name, v in zip(self.sim.reward_term_names, per_term.tolist()):
@@ -437,6 +462,13 @@ class Trainer:
         if self.sim.is_cuda:
             row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
         return row
+
+    def source_counts(self) -> dict:
+        """The scenes visited so far, and the files that do not load and scenes that cannot be played; with
+        `pipeline` the acting process's, as its last batch reported them (`reported`)."""
+        if self.reported is not None:
+            return dict(self.reported)
+        return {"scenes_visited": self.sampler.visited, **source_report(self.source)}
 
     def _show(self, bar, row: dict) -> None:
         """The progress bar after an update: throughput, the window's rates, lambda. The first update of a
@@ -540,7 +572,7 @@ class Trainer:
         if mine is None:
             # another process count: weights, optimiser, lambda and counters carry over; episodes
             # start afresh on each rank's own scene shard
-            self.gen.manual_seed(self.cfg.seed + self.rank + 7919 * self.update)
+            self.gen.manual_seed(self.cfg.seed + self.stream + 7919 * self.update)
             self.runlog.trim(self.update)
             return
         rng = mine["rng"]
@@ -554,14 +586,20 @@ class Trainer:
         self.prior.load_state_dict(self.sim, mine.get("prior", {}))
         if self.actor_hist is not None:
             self.actor_hist.load_state_dict(self.sim, mine.get("actor_history", {}))
+        if "acting" in mine:  # the acting process of a pipeline: the weights it acted with, an update behind
+            self.actor.load_state_dict(mine["acting"]["actor"])
+            self.critic.load_state_dict(mine["acting"]["critic"])
         self.runlog.trim(self.update)
 
 
-def saved_rank_state(ck: dict | None, rank: int, world: int) -> dict | None:
+def saved_rank_state(ck: dict | None, rank: int, world: int, pipelined: bool = False) -> dict | None:
     """Rank `rank`'s own state in the checkpoint `ck` (Trainer.rank_state), when an exact resume can
-    continue it: the checkpoint was written by `world` processes and holds every rank's state. None
-    otherwise (no checkpoint, another process count, or a multi-process checkpoint without them)."""
+    continue it: the checkpoint was written by `world` processes, as a pipeline or not as this run, and holds
+    every rank's state. None otherwise (no checkpoint, another process count or layout, or a multi-process
+    checkpoint without them)."""
     if ck is None or ck.get("world_size", 1) != world:
+        return None
+    if bool(ck.get("config", {}).get("pipeline", False)) != pipelined:
         return None
     others = ck.get("other_ranks", [])
     if len(others) != world - 1:

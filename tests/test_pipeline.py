@@ -1,0 +1,101 @@
+"""The acting and the learning process of `pipeline: true` (learn/pipeline.py), on the CPU with gloo: the two
+processes end on the weights of a one-process reference that collects each batch with the weights from one
+update before, an early stop and its resume continue exactly, and the run's files say where the time went."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+
+import pytest
+import torch
+import torch.multiprocessing as mp
+
+from tg_gpudrive.config import REPO_CONFIGS, ConfigError, TrainConfig, load_config
+
+UPDATES = 4
+STOP_AT = 2  # the early stop of the interrupted run
+
+
+def tiny_cfg(out, **kw) -> TrainConfig:
+    """Four updates of a few merges, a resampling of the scenes after the second."""
+    cfg = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
+    return dataclasses.replace(cfg, num_worlds=2, num_scenes=8, rollout_steps=4, hidden=16, quantiles=4, epochs=2,
+                               minibatches=2, updates=UPDATES, resample_every=2, checkpoint_every=100,
+                               out_dir=str(out), **kw)
+
+
+def _worker(rank, world, port, out, stop_at, resume, result):
+    from tg_gpudrive.learn import distributed
+    from tg_gpudrive.learn.train import Trainer
+
+    with distributed.process_group(rank, world, port, "cpu"):
+        tr = Trainer(tiny_cfg(out, pipeline=True), out, resume=resume, progress=False)
+        verdict = tr.verdict
+
+        def stop_early(*args):  # as a quality target met at update `stop_at` would: save and stop there
+            save, end = verdict(*args)
+            return (True, True) if tr.update == stop_at else (save, end)
+
+        tr.verdict = stop_early
+        tr.train()
+        if rank == 0:
+            result.put({k: v.numpy().copy() for k, v in tr.actor.state_dict().items()})  # tensors would not outlive it
+
+
+def pipelined(out, stop_at=0, resume=None) -> dict:
+    from tg_gpudrive.learn.distributed import free_port
+
+    result = mp.get_context("spawn").SimpleQueue()
+    mp.spawn(_worker, args=(2, free_port(), out, stop_at, resume, result), nprocs=2, join=True)
+    return {k: torch.from_numpy(v) for k, v in result.get().items()}
+
+
+def lagged_reference(out) -> dict:
+    """One process, one update at a time: batch i collected with the weights after update i - 1 (the first two
+    with the initial ones), from draws of a generator of its own, as the acting process makes them."""
+    from tg_gpudrive.learn.train import Trainer
+
+    tr = Trainer(tiny_cfg(out), out, progress=False)
+    tr.collector.gen = torch.Generator().manual_seed(tr.cfg.seed)
+    nets = (tr.actor, tr.critic)
+    weights = [[{k: v.clone() for k, v in m.state_dict().items()} for m in nets]]  # after 0, 1, ... updates
+    for i in range(UPDATES):
+        if i > 0 and i % tr.cfg.resample_every == 0:
+            tr._resample()
+        for m, w in zip(nets, weights[max(i - 1, 0)]):
+            m.load_state_dict(w)
+        batch, _ = tr.collect()
+        for m, w in zip(nets, weights[i]):
+            m.load_state_dict(w)
+        tr.learn(batch)
+        weights.append([{k: v.clone() for k, v in m.state_dict().items()} for m in nets])
+    return weights[-1][0]
+
+
+@pytest.mark.slow
+def test_the_pipeline_learns_one_update_behind_and_resumes_exactly(tmp_path):
+    whole = pipelined(tmp_path / "whole")
+    reference = lagged_reference(tmp_path / "reference")
+    for k, v in reference.items():
+        torch.testing.assert_close(whole[k], v, rtol=1e-5, atol=1e-6, msg=k)
+    # the two processes' clocks: the learner waits and updates, the actor rolls out and waits for weights
+    timing = list(csv.DictReader((tmp_path / "whole" / "timing.csv").open()))
+    assert [(r["update"], r["rank"]) for r in timing] == [(str(u), str(r)) for u in range(1, 5) for r in (0, 1)]
+    assert all(float(r["update_s"]) > 0 and float(r["rollout_s"]) == 0 for r in timing if r["rank"] == "0")
+    assert all(float(r["rollout_s"]) > 0 and float(r["update_s"]) == 0 for r in timing if r["rank"] == "1")
+    # stopped early with a batch in flight, then resumed: the same weights as the run that went through
+    stopped = pipelined(tmp_path / "part", stop_at=STOP_AT)
+    ck = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
+    assert ck["update"] == STOP_AT and ck["world_size"] == 2 and "acting" in ck["other_ranks"][0]
+    assert any(not torch.equal(stopped[k], whole[k]) for k in whole)
+    resumed = pipelined(tmp_path / "part", resume=tmp_path / "part")
+    for k, v in whole.items():
+        torch.testing.assert_close(resumed[k], v, rtol=0, atol=0, msg=k)
+
+
+def test_a_pipeline_needs_two_processes(tmp_path):
+    from tg_gpudrive.learn.train import Trainer
+
+    with pytest.raises(ConfigError, match="pipeline: true needs 2 processes"):
+        Trainer(tiny_cfg(tmp_path, pipeline=True), tmp_path, progress=False)

@@ -1,0 +1,227 @@
+"""Two processes as one that acts and one that learns (`pipeline: true` with `--nproc 2`): `run`.
+
+Without it every process rolls out its share of the worlds and then updates on it, so an update costs a
+rollout plus an optimisation, and splitting the worlds over more GPUs leaves most of both (their steps are
+bound by latency, not by the number of worlds). Here process 1, the actor, only rolls out, and process 0, the
+learner (logs, checkpoints, the progress bar), only updates, both at once: while the learner updates on batch
+i, the actor collects batch i + 1 with the weights from before that update. Each batch is then one update
+behind the weights it trains (PPO's ratio to the rollout's own log-probabilities, and its clip, are what
+bound that), and an update costs the longer of a rollout and an optimisation rather than their sum.
+
+The actor sends each batch (a header, the Rollout's tensors, its counters and times), the learner each
+update's weights with its word on them (finish, save, error), on two communicators of their own, so neither
+direction queues behind the other. Sends do not wait for their receiver; a buffer is written again only once
+its send has read it.
+
+Exact resume: before each batch the actor keeps its own state (engine, sampler, random streams, motion
+windows) with the weights it acts with. A checkpoint after update u holds the learner's state after u and
+the actor's from before batch u, so a resumed pipeline collects batch u again, with the same weights and
+draws, and goes on as the run would have.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import torch
+import torch.distributed as dist
+
+from tg_gpudrive.learn import distributed as dist_util
+from tg_gpudrive.learn.collector import STAT_KEYS, Rollout, TrainingError
+
+PROCESSES = 2
+LEARNER, ACTOR = 0, 1
+WORD = ("finish", "save", "error")  # what the learner says with each update's weights
+HEADER = ("slots", "error", "interrupt", "scenes_visited", "scene_files_skipped", "scenes_unplayable")
+TIMES = ("rollout_s", "wait_s")  # the actor's rollout of the batch, and its wait for the weights before it
+
+
+def run(tr, bar, stop, t_start: float, elapsed0: float) -> dict:
+    """This process's part of the pipeline for the Trainer `tr`: the learner's loop (its last metrics row) or
+    the actor's ({})."""
+    channel = Channel(tr)
+    if tr.rank == LEARNER:
+        last = learn_loop(tr, channel, bar, stop, t_start, elapsed0)
+    else:
+        last = act_loop(tr, channel, stop)
+    channel.settle()
+    return last
+
+
+def learn_loop(tr, channel: "Channel", bar, stop, t_start: float, elapsed0: float) -> dict:
+    """The learner: receive a batch, update on it, send the weights and the word on them, save when due.
+    Its clock runs from waiting for a batch to the update's end, so it counts whatever of the rollout the
+    update did not hide."""
+    cfg = tr.cfg
+    last = {}
+    channel.send_weights()  # the weights the actor's second batch is collected with (its first: its own)
+    while tr.update < cfg.updates:
+        t0 = time.perf_counter()
+        batch, stats, head, times = channel.recv_batch()
+        t_in = time.perf_counter() - t0
+        if head["error"]:
+            raise tr._spoilt(f"non-finite policy output during the rollout of update {tr.update}")
+        try:
+            with dist_util.alone():  # the update's collectives are the learner's own
+                row = tr.learn(batch)
+        except Exception:
+            channel.send_weights(error=True)  # the actor stops too rather than wait for weights
+            raise
+        tr._sync()
+        dt = time.perf_counter() - t0
+        row.update({"time/rollout_s": times["rollout_s"], "time/rollout_slowest_s": times["rollout_s"],
+                    "time/wait_s": t_in, "time/update_s": dt - t_in})
+        tr.wall += dt
+        phases = [[0.0, t_in, dt - t_in], [times["rollout_s"], times["wait_s"], 0.0]]  # timing.csv, per process
+        last = tr.count(row, batch, stats, phases, dt, times["rollout_s"], elapsed0, t_start)
+        save, end = tr.verdict(bar, last, stats, stop.mine or bool(head["interrupt"]))
+        finish = end or tr.update >= cfg.updates
+        channel.send_weights(finish=finish, save=save)
+        if save:
+            tr.save()  # the actor hands over its state from before this batch
+        tr.keep_policy(last)
+        if finish:
+            if tr.update < cfg.updates:
+                channel.recv_batch()  # the batch the actor collected meanwhile, which nobody learns
+            break
+    return last
+
+
+def act_loop(tr, channel: "Channel", stop) -> dict:
+    """The actor: collect a batch with the weights it has, send it, take the next weights (an update behind),
+    and hand its state over whenever the learner saves."""
+    cfg = tr.cfg
+    start = tr.update
+    kept = None
+    for i in range(start, cfg.updates + 2):
+        wait = 0.0
+        if i > start:
+            t0 = time.perf_counter()
+            word = channel.recv_weights()  # the weights after update i - 1, and the learner's word on them
+            wait = time.perf_counter() - t0
+            if word["save"]:
+                dist_util.gather_to_lead(kept)  # the checkpoint after update i - 1: this process before batch i - 1
+            if word["error"]:
+                raise RuntimeError("the learning process stopped on an error (its message says which)")
+            if word["finish"]:
+                break
+        tr.update = i
+        kept = {**tr.rank_state(), "acting": {"actor": clone(tr.actor.state_dict()),
+                                              "critic": clone(tr.critic.state_dict())}}
+        if i < cfg.updates:
+            if cfg.resample_every and i > 0 and i % cfg.resample_every == 0:
+                tr._resample()
+            collect(tr, channel, stop, wait)
+    return {}
+
+
+def collect(tr, channel: "Channel", stop, wait: float) -> None:
+    """One batch collected and sent; a non-finite rollout is sent with its error flag (so that the learner
+    stops rather than waits) and then raised."""
+    channel.settle()  # the last batch's sends have read the buffers this rollout overwrites
+    t0 = time.perf_counter()
+    error = None
+    try:
+        batch, stats = tr.collect()
+    except TrainingError as e:  # a non-finite policy output: the trainer's error names the update
+        error, batch, stats = e, tr.collector._buf, tr.collector._stats
+    tr._sync()
+    channel.send_batch(batch, stats, error is not None, stop.mine, (time.perf_counter() - t0, wait))
+    if error is not None:
+        channel.settle()
+        raise error
+
+
+def clone(state: dict) -> dict:
+    return {k: v.detach().clone() for k, v in state.items()}
+
+
+class Channel:
+    """The two directions between the processes: batches from the actor, weights from the learner, each on
+    a communicator of its own. The learner receives into its own rollout buffers (the collector's, of the
+    batch's shape), the actor into its networks' parameters (in place, so CUDA graphs that read them stay
+    valid)."""
+
+    def __init__(self, tr):
+        self.tr = tr
+        self.batches = dist.new_group([LEARNER, ACTOR])
+        self.weights = dist.new_group([LEARNER, ACTOR])
+        self._sending: list = []  # (work, tensor) of sends not yet known to have read their buffers
+        self._nets = [*tr.actor.parameters(), *tr.actor.buffers(), *tr.critic.parameters(), *tr.critic.buffers()]
+        if len({t.dtype for t in self._nets}) != 1:
+            raise TypeError("pipeline: the networks' tensors must share one dtype to travel as one buffer")
+        self._terms = len(tr.sim.reward_term_names)
+        self._worlds = tr.sim.num_worlds
+
+    def settle(self) -> None:
+        """Wait until this process's sends have read their buffers (on the GPU: the stream waits, not the host)."""
+        for work, _ in self._sending:
+            work.wait()
+        self._sending = []
+
+    def _send(self, tensors: list, group, dst: int) -> None:
+        self.settle()
+        self._sending = [(dist.isend(t, dst, group=group), t) for t in tensors]
+
+    @staticmethod
+    def _recv(tensors: list, group, src: int) -> None:
+        for t in tensors:
+            dist.irecv(t, src, group=group).wait()
+
+    # ------------------------------------------------------------ weights, learner -> actor
+    def send_weights(self, finish: bool = False, save: bool = False, error: bool = False) -> None:
+        word = torch.tensor([finish, save, error], dtype=torch.long, device=self.tr.device)
+        flat = torch._utils._flatten_dense_tensors([t.detach() for t in self._nets])
+        self._send([word, flat], self.weights, ACTOR)
+
+    def recv_weights(self) -> dict:
+        word = torch.zeros(len(WORD), dtype=torch.long, device=self.tr.device)
+        flat = torch.empty(sum(t.numel() for t in self._nets), dtype=self._nets[0].dtype, device=self.tr.device)
+        self._recv([word, flat], self.weights, LEARNER)
+        with torch.no_grad():
+            torch._foreach_copy_(self._nets, torch._utils._unflatten_dense_tensors(flat, self._nets))
+        return dict(zip(WORD, (bool(x) for x in word.tolist())))
+
+    # ------------------------------------------------------------ batches, actor -> learner
+    def send_batch(self, batch: Rollout, stats: dict, error: bool, interrupt: bool, times: tuple) -> None:
+        tr = self.tr
+        counts = tr.source_counts()
+        head = [batch.mask.shape[2], int(error), int(interrupt)] + [int(counts[k]) for k in HEADER[3:]]
+        keys = tr.world_keys().to(torch.long)
+        header = torch.cat([torch.tensor(head, dtype=torch.long, device=tr.device), keys])
+        flat = torch.cat([stats["terms"].double(), torch.stack([stats[k].double() for k in STAT_KEYS]),
+                          torch.tensor(times, dtype=torch.float64, device=tr.device)])
+        self._send([header, *rollout_tensors(batch), flat], self.batches, LEARNER)
+
+    def recv_batch(self) -> tuple[Rollout, dict, dict, dict]:
+        """(the batch, its counters, its header, the actor's times); on the learner, which takes the actor's
+        scene keys and counters as its own (Trainer.world_keys, Trainer.source_counts)."""
+        tr = self.tr
+        header = torch.zeros(len(HEADER) + self._worlds, dtype=torch.long, device=tr.device)
+        self._recv([header], self.batches, ACTOR)
+        values = header.tolist()
+        head = dict(zip(HEADER, values))
+        T = tr.cfg.rollout_steps
+        buf = tr.collector._buffers(T, self._worlds, head["slots"])
+        flat = torch.zeros(self._terms + len(STAT_KEYS) + len(TIMES), dtype=torch.float64, device=tr.device)
+        self._recv([*rollout_tensors(buf), flat], self.batches, ACTOR)
+        tr.pipe_keys = header[len(HEADER):]
+        tr.reported = {k: head[k] for k in HEADER[3:]}
+        stats = {"terms": flat[:self._terms].float(),
+                 **{k: flat[self._terms + j].float() for j, k in enumerate(STAT_KEYS)}}
+        times = dict(zip(TIMES, flat[-len(TIMES):].tolist()))
+        return dataclasses.replace(buf, stats=stats), stats, head, times
+
+
+def rollout_tensors(batch: Rollout) -> list[torch.Tensor]:
+    """The tensors of a Rollout in field order (a pair for a continuous policy's output), booleans as bytes:
+    the same list on both processes, which build their buffers from one config."""
+    out = []
+    for f in dataclasses.fields(Rollout):
+        value = getattr(batch, f.name)
+        if f.name == "stats" or value is None:
+            continue
+        for t in value if isinstance(value, tuple) else (value,):
+            out.append(t.view(torch.uint8) if t.dtype == torch.bool else t)
+    return out
