@@ -147,6 +147,14 @@ class Channel:
         self.tr = tr
         self.batches = dist.new_group([LEARNER, ACTOR])
         self.weights = dist.new_group([LEARNER, ACTOR])
+        # NCCL makes a communicator on a group's first send or receive, a step both processes take together: one
+        # token each way, in the same order on both, so that neither makes one while the other waits in another
+        token = torch.zeros(1, device=tr.device)
+        for group, src in ((self.batches, ACTOR), (self.weights, LEARNER)):
+            if tr.rank == src:
+                dist.send(token, 1 - src, group=group)
+            else:
+                dist.recv(token, src, group=group)
         self._sending: list = []  # (work, tensor) of sends not yet known to have read their buffers
         self._nets = [*tr.actor.parameters(), *tr.actor.buffers(), *tr.critic.parameters(), *tr.critic.buffers()]
         if len({t.dtype for t in self._nets}) != 1:
