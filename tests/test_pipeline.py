@@ -36,6 +36,7 @@ def tiny_cfg(out, **kw) -> TrainConfig:
 
 
 def _worker(rank, world, port, out, kind, stop_at, resume, result):
+    """One process of a pipeline of `world`; the learners put their final actor weights in `result`."""
     from tg_gpudrive.learn import distributed
     from tg_gpudrive.learn.train import Trainer
 
@@ -49,16 +50,22 @@ def _worker(rank, world, port, out, kind, stop_at, resume, result):
 
         tr.verdict = stop_early
         tr.train()
-        if rank == 0:
-            result.put({k: v.cpu().numpy().copy() for k, v in tr.actor.state_dict().items()})  # tensors would not outlive it
+        if rank < world // 2:  # a learner; numpy, as tensors would not outlive the process
+            result.put((rank, {k: v.cpu().numpy().copy() for k, v in tr.actor.state_dict().items()}))
 
 
-def pipelined(out, kind, stop_at=0, resume=None) -> dict:
+def pipelined(out, kind, stop_at=0, resume=None, processes=2) -> dict:
+    """The final actor weights of a pipeline run of `processes` processes, after checking that its learners
+    all end on them."""
     from tg_gpudrive.learn.distributed import free_port
 
     result = mp.get_context("spawn").SimpleQueue()
-    mp.spawn(_worker, args=(2, free_port(), out, kind, stop_at, resume, result), nprocs=2, join=True)
-    return {k: torch.from_numpy(v) for k, v in result.get().items()}
+    mp.spawn(_worker, args=(processes, free_port(), out, kind, stop_at, resume, result), nprocs=processes, join=True)
+    learners = dict(result.get() for _ in range(processes // 2))
+    for w in learners.values():
+        for k, v in w.items():
+            assert (v == learners[0][k]).all(), k  # the learners averaged their gradients
+    return {k: torch.from_numpy(v) for k, v in learners[0].items()}
 
 
 def reference(out, kind, lag: int) -> dict:
@@ -113,8 +120,27 @@ def test_the_pipeline_learns_one_update_behind_and_resumes_exactly(tmp_path, kin
     assert distance(resumed, whole) < 0.05 * distance(stopped, whole)
 
 
-def test_a_pipeline_needs_two_processes(tmp_path):
+@pytest.mark.slow
+def test_two_pairs_learn_together_and_resume_exactly(tmp_path):
+    """Four processes: two actors, two learners that average their gradients, count both actors' episodes and
+    stop together; stopped early and resumed, they end where the run that went through ends."""
+    whole = pipelined(tmp_path / "whole", "cpu", processes=4)
+    timing = list(csv.DictReader((tmp_path / "whole" / "timing.csv").open()))
+    assert [(r["update"], r["rank"]) for r in timing][:4] == [("1", str(r)) for r in range(4)]
+    assert all(float(r["rollout_s"]) > 0 for r in timing if r["rank"] in "23")
+    metrics = list(csv.DictReader((tmp_path / "whole" / "metrics.csv").open()))
+    slowest = max(float(r["rollout_s"]) for r in timing[2:4])  # the actors' rows
+    assert float(metrics[0]["time/rollout_slowest_s"]) == pytest.approx(slowest, abs=1e-6)
+    pipelined(tmp_path / "part", "cpu", stop_at=STOP_AT, processes=4)
+    ck = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)
+    assert ck["world_size"] == 4 and [("acting" in r) for r in ck["other_ranks"]] == [False, True, True]
+    resumed = pipelined(tmp_path / "part", "cpu", resume=tmp_path / "part", processes=4)
+    for k, v in whole.items():
+        torch.testing.assert_close(resumed[k], v, rtol=0, atol=0, msg=k)
+
+
+def test_a_pipeline_needs_an_even_number_of_processes(tmp_path):
     from tg_gpudrive.learn.train import Trainer
 
-    with pytest.raises(ConfigError, match="pipeline: true needs 2 processes"):
+    with pytest.raises(ConfigError, match="pipeline: true needs an even number of processes"):
         Trainer(tiny_cfg(tmp_path, pipeline=True), tmp_path, progress=False)

@@ -273,9 +273,10 @@ class TrainConfig:
     # magnet's logits, the advantages and targets) through torch.compile, their elementwise work fused; compiled on
     # the first rollout (cached on disk), the row counts a dynamic size
     compile_rollout: bool = False
-    # with 2 processes (--nproc 2): one acts (the rollouts) and one learns (the updates), at once, the rollouts one
-    # update behind the weights (learn/pipeline.py): an update then costs the longer of the two, not their sum.
-    # Off: every process does both, on its own share of the worlds
+    # processes in pairs (--nproc 2, 4, ...): in each pair one acts (the rollouts, num_worlds worlds) and one learns
+    # (the updates, the learners averaging their gradients), at once, the rollouts one update behind the weights
+    # (learn/pipeline.py): an update then costs the longer of the two, not their sum. Off: every process does both,
+    # on its own share of the scenes
     pipeline: bool = False
     normalize_advantages: bool = True  # per minibatch (and per rank when distributed)
     # TrafficGamer: magnet (eta1 KL to the prior), proximal (1/eta2 KL to the last policy), CVaR constraint

@@ -10,9 +10,10 @@ nothing at these networks' size (about a megabyte of gradients);
 the constraint estimate behind the Lagrange multiplier and the logged
 statistics are all-reduced, so lambda stays identical everywhere; rank 0 alone
 logs and writes checkpoints, holding every rank's own state (engine, sampler, random streams), so a
-relaunch with as many processes continues exactly. Launch with `tg-gpudrive train --nproc N` or with
-`torchrun --nproc_per_node N -m tg_gpudrive.cli train ...`, on several machines with torchrun's c10d
-rendezvous and `--auto-resume` (README, "Several machines"). NCCL's NVLink
+relaunch with as many processes continues exactly. With `pipeline` the processes pair up into actors and
+learners instead (learn/pipeline.py), and the learners' collectives run among them (`among`). Launch with
+`tg-gpudrive train --nproc N` or with `torchrun --nproc_per_node N -m tg_gpudrive.cli train ...`, on several
+machines with torchrun's c10d rendezvous and `--auto-resume` (README, "Several machines"). NCCL's NVLink
 multicast setting (NCCL_NVLS_ENABLE) is left as the environment has it.
 """
 
@@ -30,39 +31,44 @@ import torch.distributed as dist
 from tg_gpudrive.engine.simulator import cuda_available
 
 
-_ALONE = False  # inside `alone()`
+_SCOPE = None  # the group the collectives below run over (`among`); None: every process
 
 
 def is_dist() -> bool:
-    return not _ALONE and dist.is_available() and dist.is_initialized()
+    """Whether the collectives below reach another process: a process group, with more than this one in scope."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return False
+    return _SCOPE is None or dist.get_world_size(_SCOPE) > 1
 
 
 @contextlib.contextmanager
-def alone():
-    """Inside it this process is on its own: the helpers here act as without a process group (rank 0 of 1),
-    so an update's collectives do not wait for a process that does not update (a pipeline's learner)."""
-    global _ALONE
-    was, _ALONE = _ALONE, True
+def among(group):
+    """Inside it the collectives below (means, sums, gradient averages, agreements, gathers of floats) run over
+    `group` alone, and rank() and world_size() are this process's within it: a pipeline's learners update among
+    themselves while the processes that act do not wait in their collectives. The object group's helpers
+    (barrier, gather_to_lead) keep every process."""
+    global _SCOPE
+    was, _SCOPE = _SCOPE, group
     try:
         yield
     finally:
-        _ALONE = was
+        _SCOPE = was
 
 
 def rank() -> int:
-    return dist.get_rank() if is_dist() else 0
+    return dist.get_rank(_SCOPE) if is_dist() else 0
 
 
 def world_size() -> int:
-    return dist.get_world_size() if is_dist() else 1
+    return dist.get_world_size(_SCOPE) if is_dist() else 1
 
 
 def all_reduce_mean(x: torch.Tensor) -> torch.Tensor:
     if not is_dist():
         return x
     y = x.detach().clone()
-    dist.all_reduce(y, op=dist.ReduceOp.SUM)
-    return y / dist.get_world_size()
+    dist.all_reduce(y, op=dist.ReduceOp.SUM, group=_SCOPE)
+    return y / world_size()
 
 
 def every_rank(ok: bool, device) -> bool:
@@ -70,7 +76,7 @@ def every_rank(ok: bool, device) -> bool:
     if not is_dist():
         return ok
     flag = torch.tensor(float(ok), device=device)
-    dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    dist.all_reduce(flag, op=dist.ReduceOp.MIN, group=_SCOPE)
     return bool(flag > 0)
 
 
@@ -79,14 +85,14 @@ def max_over_ranks(values: list[int], device) -> list[int]:
     if not is_dist():
         return list(values)
     t = torch.tensor(values, dtype=torch.long, device=device)
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX, group=_SCOPE)
     return t.tolist()
 
 
 def all_reduce_sum_(tensors: dict) -> None:
     if is_dist():
         for t in tensors.values():
-            dist.all_reduce(t, op=dist.ReduceOp.SUM)
+            dist.all_reduce(t, op=dist.ReduceOp.SUM, group=_SCOPE)
 
 
 def average_gradients_(params) -> None:
@@ -101,13 +107,13 @@ def average_gradients_(params) -> None:
             p.grad = torch.zeros_like(p)
     grads = [p.grad for p in params]
     flat = torch._utils._flatten_dense_tensors(grads)
-    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
-    flat /= dist.get_world_size()
+    dist.all_reduce(flat, op=dist.ReduceOp.SUM, group=_SCOPE)
+    flat /= world_size()
     torch._foreach_copy_(grads, torch._utils._unflatten_dense_tensors(flat, grads))
 
 
 def broadcast_from_lead_(modules) -> None:
-    """The parameters and buffers of `modules` set to rank 0's on every rank."""
+    """The parameters and buffers of `modules` set to rank 0's on every rank (every process: not scoped)."""
     if is_dist():
         for m in modules:
             for t in (*m.parameters(), *m.buffers()):
@@ -119,8 +125,8 @@ def gather_floats(values: list[float], device) -> list[list[float]]:
     if not is_dist():
         return [list(values)]
     t = torch.tensor(values, dtype=torch.float64, device=device)
-    out = [torch.empty_like(t) for _ in range(dist.get_world_size())]
-    dist.all_gather(out, t)
+    out = [torch.empty_like(t) for _ in range(world_size())]
+    dist.all_gather(out, t, group=_SCOPE)
     return [o.tolist() for o in out]
 
 
@@ -141,14 +147,14 @@ def object_group():
 
 def barrier() -> None:
     """Wait until every rank is here, over the host (the object group); nothing when not distributed."""
-    if is_dist():
+    if dist.is_available() and dist.is_initialized():
         dist.barrier(group=object_group())
 
 
 def gather_to_lead(obj) -> list | None:
     """Every rank's picklable `obj`, in rank order, on rank 0 (None on the others); [obj] when not
     distributed."""
-    if not is_dist():
+    if not (dist.is_available() and dist.is_initialized()):
         return [obj]
     out = [None] * dist.get_world_size() if dist.get_rank() == 0 else None
     dist.gather_object(obj, out, dst=0, group=object_group())

@@ -1,21 +1,24 @@
-"""Two processes as one that acts and one that learns (`pipeline: true` with `--nproc 2`): `run`.
+"""Processes in pairs of one that acts and one that learns (`pipeline: true`, `--nproc 2`, 4, ...): `run`.
 
 Without it every process rolls out its share of the worlds and then updates on it, so an update costs a
 rollout plus an optimisation, and splitting the worlds over more GPUs leaves most of both (their steps are
-bound by latency, not by the number of worlds). Here process 1, the actor, only rolls out, and process 0, the
-learner (logs, checkpoints, the progress bar), only updates, both at once: while the learner updates on batch
-i, the actor collects batch i + 1 with the weights from before that update. Each batch is then one update
-behind the weights it trains (PPO's ratio to the rollout's own log-probabilities, and its clip, are what
-bound that), and an update costs the longer of a rollout and an optimisation rather than their sum.
+bound by latency, not by the number of worlds). Here, of 2k processes, the k actors (ranks k .. 2k - 1) only
+roll out and the k learners (ranks 0 .. k - 1; rank 0 logs, checkpoints and shows the progress bar) only
+update, both at once: while learner r updates on batch i, its actor r + k collects batch i + 1 with the
+weights from before that update. Each batch is then one update behind the weights it trains (PPO's ratio to
+the rollout's own log-probabilities, and its clip, are what bound that), and an update costs the longer of a
+rollout and an optimisation rather than their sum. The learners average their gradients, sum their actors'
+counters and agree on every stop among themselves (distributed.among), as the ranks of a run without the
+pipeline do.
 
-The actor sends each batch (a header, the Rollout's tensors, its counters and times), the learner each
-update's weights with its word on them (finish, save, error), on two communicators of their own, so neither
-direction queues behind the other. Sends do not wait for their receiver; a buffer is written again only once
-its send has read it.
+Each actor sends its batches (a header, the Rollout's tensors, its counters and times) to its learner, which
+sends back each update's weights with its word on them (finish, save, error), on two communicators per pair,
+so neither direction queues behind the other. Sends do not wait for their receiver; a buffer is written again
+only once its send has read it.
 
-Exact resume: before each batch the actor keeps its own state (engine, sampler, random streams, motion
-windows) with the weights it acts with. A checkpoint after update u holds the learner's state after u and
-the actor's from before batch u, so a resumed pipeline collects batch u again, with the same weights and
+Exact resume: before each batch an actor keeps its own state (engine, sampler, random streams, motion
+windows) with the weights it acts with. A checkpoint after update u holds the learners' states after u and
+the actors' from before batch u, so a resumed pipeline collects batch u again, with the same weights and
 draws, and goes on as the run would have.
 """
 
@@ -30,18 +33,16 @@ import torch.distributed as dist
 from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import STAT_KEYS, Rollout, TrainingError
 
-PROCESSES = 2
-LEARNER, ACTOR = 0, 1
 WORD = ("finish", "save", "error")  # what the learner says with each update's weights
 HEADER = ("slots", "error", "interrupt", "scenes_visited", "scene_files_skipped", "scenes_unplayable")
 TIMES = ("rollout_s", "wait_s")  # the actor's rollout of the batch, and its wait for the weights before it
 
 
 def run(tr, bar, stop, t_start: float, elapsed0: float) -> dict:
-    """This process's part of the pipeline for the Trainer `tr`: the learner's loop (its last metrics row) or
-    the actor's ({})."""
+    """This process's part of the pipeline for the Trainer `tr`: a learner's loop (its last metrics row) or an
+    actor's ({})."""
     channel = Channel(tr)
-    if tr.rank == LEARNER:
+    if channel.learning:
         last = learn_loop(tr, channel, bar, stop, t_start, elapsed0)
     else:
         last = act_loop(tr, channel, stop)
@@ -50,9 +51,9 @@ def run(tr, bar, stop, t_start: float, elapsed0: float) -> dict:
 
 
 def learn_loop(tr, channel: "Channel", bar, stop, t_start: float, elapsed0: float) -> dict:
-    """The learner: receive a batch, update on it, send the weights and the word on them, save when due.
-    Its clock runs from waiting for a batch to the update's end, so it counts whatever of the rollout the
-    update did not hide."""
+    """A learner: receive a batch, update on it, send the weights and the word on them, save when due. Its
+    clock runs from waiting for a batch to the update's end, so it counts whatever of the rollout the update
+    did not hide; with several learners the slowest one's counts."""
     cfg = tr.cfg
     last = {}
     channel.send_weights()  # the weights the actor's second batch is collected with (its first: its own)
@@ -62,30 +63,41 @@ def learn_loop(tr, channel: "Channel", bar, stop, t_start: float, elapsed0: floa
         t_in = time.perf_counter() - t0
         if head["error"]:
             raise tr._spoilt(f"non-finite policy output during the rollout of update {tr.update}")
-        try:
-            with dist_util.alone():  # the update's collectives are the learner's own
-                row = tr.learn(batch)
-        except Exception:
-            channel.send_weights(error=True)  # the actor stops too rather than wait for weights
-            raise
-        tr._sync()
-        dt = time.perf_counter() - t0
-        row.update({"time/rollout_s": times["rollout_s"], "time/rollout_slowest_s": times["rollout_s"],
-                    "time/wait_s": t_in, "time/update_s": dt - t_in})
-        tr.wall += dt
-        phases = [[0.0, t_in, dt - t_in], [times["rollout_s"], times["wait_s"], 0.0]]  # timing.csv, per process
-        last = tr.count(row, batch, stats, phases, dt, times["rollout_s"], elapsed0, t_start)
-        save, end = tr.verdict(bar, last, stats, stop.mine or bool(head["interrupt"]))
+        with dist_util.among(channel.learners):  # the update's collectives, the counters' and the verdict's
+            last = learn_one(tr, channel, batch, stats, (t0, t_in, times), elapsed0, t_start)
+            interrupted = not dist_util.every_rank(not (stop.mine or head["interrupt"]), tr.device)
+            save, end = tr.verdict(bar, last, stats, interrupted)
         finish = end or tr.update >= cfg.updates
         channel.send_weights(finish=finish, save=save)
         if save:
-            tr.save()  # the actor hands over its state from before this batch
+            tr.save()  # the actors hand over their states from before this batch
         tr.keep_policy(last)
         if finish:
             if tr.update < cfg.updates:
                 channel.recv_batch()  # the batch the actor collected meanwhile, which nobody learns
             break
     return last
+
+
+def learn_one(tr, channel: "Channel", batch, stats: dict, clock: tuple, elapsed0: float, t_start: float) -> dict:
+    """One update on `batch`, then the learners' counters summed (`stats`, in place), their clocks and their
+    actors' gathered (timing.csv: the learners' rows, then the actors'), and the update counted: its row."""
+    t0, t_in, times = clock
+    try:
+        row = tr.learn(batch)
+    except Exception:
+        channel.send_weights(error=True)  # the actor stops too rather than wait for weights
+        raise
+    tr._sync()
+    dt = time.perf_counter() - t0
+    dist_util.all_reduce_sum_(stats)  # every actor's episodes and steps
+    each = dist_util.gather_floats([0.0, t_in, dt - t_in, times["rollout_s"], times["wait_s"], 0.0], tr.device)
+    phases = [e[:3] for e in each] + [e[3:] for e in each]
+    span = max(sum(p) for p in phases[:len(each)])  # the slowest learner's
+    row.update({"time/rollout_s": times["rollout_s"], "time/rollout_slowest_s": max(e[3] for e in each),
+                "time/wait_s": t_in, "time/update_s": dt - t_in})
+    tr.wall += span
+    return tr.count(row, batch, stats, phases, span, times["rollout_s"], elapsed0, t_start)
 
 
 def act_loop(tr, channel: "Channel", stop) -> dict:
@@ -138,21 +150,26 @@ def clone(state: dict) -> dict:
 
 
 class Channel:
-    """The two directions between the processes: batches from the actor, weights from the learner, each on
-    a communicator of its own. The learner receives into its own rollout buffers (the collector's, of the
-    batch's shape), the actor into its networks' parameters (in place, so CUDA graphs that read them stay
-    valid)."""
+    """The two directions between a learner and its actor: batches from the actor, weights from the learner,
+    each on a communicator of its own; and the learners' group. The learner receives into its own rollout
+    buffers (the collector's, of the batch's shape), the actor into its networks' parameters (in place, so
+    CUDA graphs that read them stay valid)."""
 
     def __init__(self, tr):
         self.tr = tr
-        self.batches = dist.new_group([LEARNER, ACTOR])
-        self.weights = dist.new_group([LEARNER, ACTOR])
+        k = tr.streams  # pairs
+        self.learning = tr.rank < k
+        self.learner, self.actor = tr.stream, tr.stream + k  # this process's pair
+        # every process makes every group, in one order
+        self.learners = dist.new_group(list(range(k)))
+        pairs = [(dist.new_group([r, r + k]), dist.new_group([r, r + k])) for r in range(k)]
+        self.batches, self.weights = pairs[tr.stream]
         # NCCL makes a communicator on a group's first send or receive, a step both processes take together: one
-        # token each way, in the same order on both, so that neither makes one while the other waits in another
+        # token each way, in the same order in both, so that neither makes one while the other waits in another
         token = torch.zeros(1, device=tr.device)
-        for group, src in ((self.batches, ACTOR), (self.weights, LEARNER)):
+        for group, src, dst in ((self.batches, self.actor, self.learner), (self.weights, self.learner, self.actor)):
             if tr.rank == src:
-                dist.send(token, 1 - src, group=group)
+                dist.send(token, dst, group=group)
             else:
                 dist.recv(token, src, group=group)
         self._sending: list = []  # (work, tensor) of sends not yet known to have read their buffers
@@ -181,12 +198,12 @@ class Channel:
     def send_weights(self, finish: bool = False, save: bool = False, error: bool = False) -> None:
         word = torch.tensor([finish, save, error], dtype=torch.long, device=self.tr.device)
         flat = torch._utils._flatten_dense_tensors([t.detach() for t in self._nets])
-        self._send([word, flat], self.weights, ACTOR)
+        self._send([word, flat], self.weights, self.actor)
 
     def recv_weights(self) -> dict:
         word = torch.zeros(len(WORD), dtype=torch.long, device=self.tr.device)
         flat = torch.empty(sum(t.numel() for t in self._nets), dtype=self._nets[0].dtype, device=self.tr.device)
-        self._recv([word, flat], self.weights, LEARNER)
+        self._recv([word, flat], self.weights, self.learner)
         with torch.no_grad():
             torch._foreach_copy_(self._nets, torch._utils._unflatten_dense_tensors(flat, self._nets))
         return dict(zip(WORD, (bool(x) for x in word.tolist())))
@@ -200,20 +217,20 @@ class Channel:
         header = torch.cat([torch.tensor(head, dtype=torch.long, device=tr.device), keys])
         flat = torch.cat([stats["terms"].double(), torch.stack([stats[k].double() for k in STAT_KEYS]),
                           torch.tensor(times, dtype=torch.float64, device=tr.device)])
-        self._send([header, *rollout_tensors(batch), flat], self.batches, LEARNER)
+        self._send([header, *rollout_tensors(batch), flat], self.batches, self.learner)
 
     def recv_batch(self) -> tuple[Rollout, dict, dict, dict]:
         """(the batch, its counters, its header, the actor's times); on the learner, which takes the actor's
         scene keys and counters as its own (Trainer.world_keys, Trainer.source_counts)."""
         tr = self.tr
         header = torch.zeros(len(HEADER) + self._worlds, dtype=torch.long, device=tr.device)
-        self._recv([header], self.batches, ACTOR)
+        self._recv([header], self.batches, self.actor)
         values = header.tolist()
         head = dict(zip(HEADER, values))
         T = tr.cfg.rollout_steps
         buf = tr.collector._buffers(T, self._worlds, head["slots"])
         flat = torch.zeros(self._terms + len(STAT_KEYS) + len(TIMES), dtype=torch.float64, device=tr.device)
-        self._recv([*rollout_tensors(buf), flat], self.batches, ACTOR)
+        self._recv([*rollout_tensors(buf), flat], self.batches, self.actor)
         tr.pipe_keys = header[len(HEADER):]
         tr.reported = {k: head[k] for k in HEADER[3:]}
         stats = {"terms": flat[:self._terms].float(),

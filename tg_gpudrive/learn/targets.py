@@ -51,11 +51,11 @@ class RateWindow:
 
 class HeldoutCheck:
     """`target_heldout`: whether the current policy meets the bar on held-out scenes too. The lead rank plays
-    one episode in every held-out world (built once, on first use) and tells the others (`share`; a pipeline's
-    learner decides alone)."""
+    one episode in every held-out world (built once, on first use) and tells the others (those in scope:
+    distributed.among)."""
 
-    def __init__(self, cfg: TrainConfig, device: str, lead: bool, share: bool = True):
-        self.cfg, self.device, self.lead, self.share = cfg, device, lead, share
+    def __init__(self, cfg: TrainConfig, device: str, lead: bool):
+        self.cfg, self.device, self.lead = cfg, device, lead
         self.sim = None
         self.rates: dict | None = None  # the latest check's rates
 
@@ -72,8 +72,7 @@ class HeldoutCheck:
             ok = meets_quality(rates, cfg.target_goal_rate, cfg.target_max_collision, cfg.target_max_offroad)
             self.rates = {k: rates[k] for k in ("goal_rate", "collision_rate", "offroad_rate", "episodes")}
             met.fill_(float(ok))
-        if self.share:
-            dist_util.all_reduce_sum_({"met": met})  # the lead rank's answer to every rank
+        dist_util.all_reduce_sum_({"met": met})  # the lead rank's answer to every rank
         return bool(met > 0)
 
     def describe(self, update: int, ok: bool) -> str:

@@ -134,12 +134,14 @@ class Trainer:
         self.out = Path(out_dir or cfg.out_dir)
         self.rank, self.world = dist_util.rank(), dist_util.world_size()
         self.lead = self.rank == 0  # logs and checkpoints
-        if cfg.pipeline and self.world != pipeline.PROCESSES:
-            raise ConfigError(f"pipeline: true needs {pipeline.PROCESSES} processes (--nproc 2), one that acts and "
-                              f"one that learns; this run has {self.world} (--set pipeline=false runs without it)")
-        # which stream of scenes and random draws this process's worlds follow: its rank, or with `pipeline` the
-        # one stream the acting process plays (the learning one builds the same worlds and never steps them)
-        self.stream = 0 if cfg.pipeline else self.rank
+        if cfg.pipeline and self.world % 2:
+            raise ConfigError(f"pipeline: true needs an even number of processes (--nproc 2, 4, ...), half that act "
+                              f"and half that learn; this run has {self.world} (--set pipeline=false runs without it)")
+        # which stream of scenes and random draws this process's worlds follow (`streams` of them, disjoint shards of
+        # the source): its rank, or with `pipeline` its pair's (learner r and actor r + world / 2: the learner builds
+        # the actor's first worlds and never steps them)
+        self.streams = self.world // 2 if cfg.pipeline else self.world
+        self.stream = self.rank % self.streams
         self.reported = None  # with `pipeline`, on the learner: the acting process's scene counters (source_counts)
         self.pipe_keys = None  # ... and the scene keys of its last batch's worlds (world_keys)
         if self.lead:
@@ -165,7 +167,7 @@ class Trainer:
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
         self.elapsed = 0.0  # s of training as a user waits for it: resampling, checkpoints and logging too
         self.window = RateWindow()  # the last RATE_WINDOW updates' episodes: the bar, the final line, the stop
-        self.heldout = HeldoutCheck(cfg, self.device, self.lead, share=not cfg.pipeline)  # target_heldout
+        self.heldout = HeldoutCheck(cfg, self.device, self.lead)  # target_heldout
         self.runlog = RunLog(self.out, self.lead)
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
@@ -184,8 +186,8 @@ class Trainer:
         over the scenes of the checkpoint `ck` an exact resume continues."""
         cfg = self.cfg
         self.source = resolve_scenes(cfg.scenes, n=cfg.num_scenes, seed=cfg.seed)
-        if self.world > 1 and not cfg.pipeline:
-            self.source = dist_util.ShardSource(self.source, self.rank, self.world)
+        if self.streams > 1:
+            self.source = dist_util.ShardSource(self.source, self.stream, self.streams)
         self.sampler = SceneSampler(self.source, cfg.num_worlds, replacement=False, seed=cfg.seed + self.stream)
         if ck is not None:
             self.sampler.load_state_dict(ck["sampler"])
