@@ -142,7 +142,7 @@ class Trainer:
         # the actor's first worlds and never steps them)
         self.streams = self.world // 2 if cfg.pipeline else self.world
         self.stream = self.rank % self.streams
-        self.reported = None  # with `pipeline`, on the learner: the acting process's scene counters (source_counts)
+        self.reported = None  # with `pipeline`, on a learner: its actor's scene counters (source_counts)
         self.pipe_keys = None  # ... and the scene keys of its last batch's worlds (world_keys)
         if self.lead:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -352,8 +352,8 @@ class Trainer:
 
     def _loop(self, bar, stop: StopRequest, t_start: float, elapsed0: float) -> dict:
         """Updates until cfg.updates, the time limit, the quality target or a Ctrl-C (which ends the
-        update under way and saves it); the last update's metrics row. With `pipeline` each of the two
-        processes runs its own part (learn/pipeline.py)."""
+        update under way and saves it); the last update's metrics row. With `pipeline` each process runs its
+        part, acting or learning (learn/pipeline.py)."""
         if self.cfg.pipeline:
             return pipeline.run(self, bar, stop, t_start, elapsed0)
         cfg = self.cfg
@@ -467,7 +467,7 @@ class Trainer:
 
     def source_counts(self) -> dict:
         """The scenes visited so far, and the files that do not load and scenes that cannot be played; with
-        `pipeline` the acting process's, as its last batch reported them (`reported`)."""
+        `pipeline`, on a learner, its actor's, as its last batch reported them (`reported`)."""
         if self.reported is not None:
             return dict(self.reported)
         return {"scenes_visited": self.sampler.visited, **source_report(self.source)}
