@@ -109,6 +109,9 @@ def test_the_pipeline_learns_one_update_behind_and_resumes_exactly(tmp_path, kin
     assert [(r["update"], r["rank"]) for r in timing] == [(str(u), str(r)) for u in range(1, 5) for r in (0, 1)]
     assert all(float(r["update_s"]) > 0 and float(r["rollout_s"]) == 0 for r in timing if r["rank"] == "0")
     assert all(float(r["rollout_s"]) > 0 and float(r["update_s"]) == 0 for r in timing if r["rank"] == "1")
+    # the scenes visited are the actor's, which resampled after the second update (the learner never does)
+    visited = [int(r["scenes_visited"]) for r in csv.DictReader((tmp_path / "whole" / "metrics.csv").open())]
+    assert visited == [2, 2, 4, 4]
     # stopped early with a batch in flight, then resumed: the weights of the run that went through
     stopped = pipelined(tmp_path / "part", kind, stop_at=STOP_AT)
     ck = torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=False)

@@ -34,7 +34,8 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn.collector import STAT_KEYS, Rollout, TrainingError
 
 WORD = ("finish", "save", "error")  # what the learner says with each update's weights
-HEADER = ("slots", "error", "interrupt", "scenes_visited", "scene_files_skipped", "scenes_unplayable")
+HEADER = ("slots", "error", "interrupt", "left_to_replay", "scenes_visited", "scene_files_skipped",
+          "scenes_unplayable")
 TIMES = ("rollout_s", "wait_s")  # the actor's rollout of the batch, and its wait for the weights before it
 
 
@@ -212,7 +213,8 @@ class Channel:
     def send_batch(self, batch: Rollout, stats: dict, error: bool, interrupt: bool, times: tuple) -> None:
         tr = self.tr
         counts = tr.source_counts()
-        head = [batch.mask.shape[2], int(error), int(interrupt)] + [int(counts[k]) for k in HEADER[3:]]
+        head = [batch.mask.shape[2], int(error), int(interrupt), tr.left_to_replay]
+        head += [int(counts[k]) for k in HEADER[4:]]
         keys = tr.world_keys().to(torch.long)
         header = torch.cat([torch.tensor(head, dtype=torch.long, device=tr.device), keys])
         flat = torch.cat([stats["terms"].double(), torch.stack([stats[k].double() for k in STAT_KEYS]),
@@ -232,7 +234,8 @@ class Channel:
         flat = torch.zeros(self._terms + len(STAT_KEYS) + len(TIMES), dtype=torch.float64, device=tr.device)
         self._recv([*rollout_tensors(buf), flat], self.batches, self.actor)
         tr.pipe_keys = header[len(HEADER):]
-        tr.reported = {k: head[k] for k in HEADER[3:]}
+        tr.reported = {k: head[k] for k in HEADER[4:]}
+        tr.left_to_replay = head["left_to_replay"]
         stats = {"terms": flat[:self._terms].float(),
                  **{k: flat[self._terms + j].float() for j, k in enumerate(STAT_KEYS)}}
         times = dict(zip(TIMES, flat[-len(TIMES):].tolist()))
