@@ -2,10 +2,10 @@
 
 Without it every process rolls out its share of the worlds and then updates on it, so an update costs a
 rollout plus an optimisation, and splitting the worlds over more GPUs leaves most of both (their steps are
-bound by latency, not by the number of worlds). Here, of 2k processes, the k actors (ranks k .. 2k - 1) only
-roll out and the k learners (ranks 0 .. k - 1; rank 0 logs, checkpoints and shows the progress bar) only
-update, both at once: while learner r updates on batch i, its actor r + k collects batch i + 1 with the
-weights from before that update. Each batch is then one update behind the weights it trains (PPO's ratio to
+bound by latency, not by the number of worlds). Here the processes pair up, neighbours in rank order (so on
+one machine under torchrun's numbering): the even ranks are learners that only update (rank 0 logs,
+checkpoints and shows the progress bar), the odd ones actors that only roll out, both at once: while learner
+2p updates on batch i, its actor 2p + 1 collects batch i + 1 with the weights from before that update. Each batch is then one update behind the weights it trains (PPO's ratio to
 the rollout's own log-probabilities, and its clip, are what bound that), and an update costs the longer of a
 rollout and an optimisation rather than their sum. The learners average their gradients, sum their actors'
 counters and agree on every stop among themselves (distributed.among), as the ranks of a run without the
@@ -82,7 +82,7 @@ def learn_loop(tr, channel: "Channel", bar, stop, t_start: float, elapsed0: floa
 
 def learn_one(tr, channel: "Channel", batch, stats: dict, clock: tuple, elapsed0: float, t_start: float) -> dict:
     """One update on `batch`, then the learners' counters summed (`stats`, in place), their clocks and their
-    actors' gathered (timing.csv: the learners' rows, then the actors'), and the update counted: its row."""
+    actors' gathered (timing.csv: a row per process, in rank order), and the update counted: its row."""
     t0, t_in, times = clock
     try:
         row = tr.learn(batch)
@@ -93,8 +93,8 @@ def learn_one(tr, channel: "Channel", batch, stats: dict, clock: tuple, elapsed0
     dt = time.perf_counter() - t0
     dist_util.all_reduce_sum_(stats)  # every actor's episodes and steps
     each = dist_util.gather_floats([0.0, t_in, dt - t_in, times["rollout_s"], times["wait_s"], 0.0], tr.device)
-    phases = [e[:3] for e in each] + [e[3:] for e in each]
-    span = max(sum(p) for p in phases[:len(each)])  # the slowest learner's
+    phases = [row for e in each for row in (e[:3], e[3:])]  # learner 2p, then its actor 2p + 1
+    span = max(sum(e[:3]) for e in each)  # the slowest learner's
     row.update({"time/rollout_s": times["rollout_s"], "time/rollout_slowest_s": max(e[3] for e in each),
                 "time/wait_s": t_in, "time/update_s": dt - t_in})
     tr.wall += span
@@ -158,12 +158,11 @@ class Channel:
 
     def __init__(self, tr):
         self.tr = tr
-        k = tr.streams  # pairs
-        self.learning = tr.rank < k
-        self.learner, self.actor = tr.stream, tr.stream + k  # this process's pair
+        self.learning = tr.rank % 2 == 0
+        self.learner, self.actor = 2 * tr.stream, 2 * tr.stream + 1  # this process's pair
         # every process makes every group, in one order
-        self.learners = dist.new_group(list(range(k)))
-        pairs = [(dist.new_group([r, r + k]), dist.new_group([r, r + k])) for r in range(k)]
+        self.learners = dist.new_group(list(range(0, tr.world, 2)))
+        pairs = [(dist.new_group([2 * p, 2 * p + 1]), dist.new_group([2 * p, 2 * p + 1])) for p in range(tr.streams)]
         self.batches, self.weights = pairs[tr.stream]
         # NCCL makes a communicator on a group's first send or receive, a step both processes take together: one
         # token each way, in the same order in both, so that neither makes one while the other waits in another

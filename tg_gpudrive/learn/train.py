@@ -138,10 +138,10 @@ class Trainer:
             raise ConfigError(f"pipeline: true needs an even number of processes (--nproc 2, 4, ...), half that act "
                               f"and half that learn; this run has {self.world} (--set pipeline=false runs without it)")
         # which stream of scenes and random draws this process's worlds follow (`streams` of them, disjoint shards of
-        # the source): its rank, or with `pipeline` its pair's (learner r and actor r + world / 2: the learner builds
-        # the actor's first worlds and never steps them)
+        # the source): its rank, or with `pipeline` its pair's (learner 2p and actor 2p + 1: the learner builds the
+        # actor's first worlds and never steps them)
         self.streams = self.world // 2 if cfg.pipeline else self.world
-        self.stream = self.rank % self.streams
+        self.stream = self.rank // 2 if cfg.pipeline else self.rank
         self.reported = None  # with `pipeline`, on a learner: its actor's scene counters (source_counts)
         self.pipe_keys = None  # ... and the scene keys of its last batch's worlds (world_keys)
         if self.lead:
