@@ -52,7 +52,17 @@ class ActionGuard:
         self.grid, self.partner_k, self.dt, self.max_accel = grid, partner_k, float(dt), float(max_accel)
         self.steps = max(1, round(horizon / dt))
         self.horizon, self.margin = float(horizon), float(margin)
-        self.checked = self.replaced = 0  # acting agents' actions checked and replaced so far, for logs
+        self._counts = None  # acting agents' actions (checked, replaced) so far, summed on the device
+
+    @property
+    def checked(self) -> int:
+        """The acting agents' actions checked so far."""
+        return 0 if self._counts is None else int(self._counts[0])
+
+    @property
+    def replaced(self) -> int:
+        """... and those of them the guard replaced."""
+        return 0 if self._counts is None else int(self._counts[1])
 
     @property
     def replaced_share(self) -> float:
@@ -134,7 +144,9 @@ class ActionGuard:
     def _guard(self, obs, logits, sampled, deterministic, acting, generator):
         grid = self.grid.to(obs.device, obs.dtype)
         bad = self.unsafe(obs, grid[sampled.long()][:, None])[:, 0]
-        self.checked += int(acting.sum())
+        if self._counts is None:
+            self._counts = torch.zeros(2, dtype=torch.long, device=obs.device)
+        self._counts[0] += acting.sum()  # no host read: the counts are read when asked for
         rows = bad.nonzero().squeeze(-1)
         if rows.numel() == 0:
             return sampled
@@ -152,5 +164,5 @@ class ActionGuard:
             pick = torch.multinomial(probs, 1, generator=generator)[:, 0]
         out = sampled.clone()
         out[rows[some_safe]] = pick[some_safe].to(out.dtype)
-        self.replaced += int((some_safe & acting[rows]).sum())
+        self._counts[1] += (some_safe & acting[rows]).sum()
         return out

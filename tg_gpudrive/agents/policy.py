@@ -212,10 +212,10 @@ def actor_policy(actor: Actor, sim: Simulator, history: int = 0, temperature: fl
             hist = window.features(sim_, partners=getattr(actor, "history_partners", 0))
         out = policy.last_out = actor(sim_.obs, slots, hist)
         if head.discrete:
-            a = out.argmax(-1) if deterministic else head.dist(tempered(out, temperature)).sample()
+            logits = out if deterministic else tempered(out, temperature)
+            a = out.argmax(-1) if deterministic else head.dist(logits).sample()
             if guard is not None:
-                a = guard(sim_.obs, out if deterministic else tempered(out, temperature), a, deterministic,
-                          acting=(sim_.active != 0) & (sim_.background == 0))
+                a = guard(sim_.obs, logits, a, deterministic, acting=(sim_.active != 0) & (sim_.background == 0))
             sim_.actions_index.copy_(a.to(torch.int32))
         else:
             a = out[0] if deterministic else head.dist(tempered(out, temperature)).sample()
