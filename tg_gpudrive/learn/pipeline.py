@@ -5,9 +5,10 @@ rollout plus an optimisation, and splitting the worlds over more GPUs leaves mos
 bound by latency, not by the number of worlds). Here the processes pair up, neighbours in rank order (so on
 one machine under torchrun's numbering): the even ranks are learners that only update (rank 0 logs,
 checkpoints and shows the progress bar), the odd ones actors that only roll out, both at once: while learner
-2p updates on batch i, its actor 2p + 1 collects batch i + 1 with the weights from before that update. Each batch is then one update behind the weights it trains (PPO's ratio to
-the rollout's own log-probabilities, and its clip, are what bound that), and an update costs the longer of a
-rollout and an optimisation rather than their sum. The learners average their gradients, sum their actors'
+2p updates on batch i, its actor 2p + 1 collects batch i + 1 with the weights from before that update.
+Each batch is then one update behind the weights it trains (PPO's ratio to the rollout's own
+log-probabilities, and its clip, are what bound that), and an update costs the longer of a rollout and an
+optimisation rather than their sum. The learners average their gradients, sum their actors'
 counters and agree on every stop among themselves (distributed.among), as the ranks of a run without the
 pipeline do.
 
@@ -64,6 +65,9 @@ def learn_loop(tr, channel: "Channel", bar, stop, t_start: float, elapsed0: floa
         t_in = time.perf_counter() - t0
         if head["error"]:
             raise tr._spoilt(f"non-finite policy output during the rollout of update {tr.update}")
+        # the actor's worlds are the ones learnt on: their scene keys and the actor's counters stand for the learner's
+        tr.pipe_keys, tr.left_to_replay = head["keys"], head["left_to_replay"]
+        tr.reported = {k: head[k] for k in HEADER[4:]}
         with dist_util.among(channel.learners):  # the update's collectives, the counters' and the verdict's
             last = learn_one(tr, channel, batch, stats, (t0, t_in, times), elapsed0, t_start)
             interrupted = not dist_util.every_rank(not (stop.mine or head["interrupt"]), tr.device)
@@ -221,20 +225,16 @@ class Channel:
         self._send([header, *rollout_tensors(batch), flat], self.batches, self.learner)
 
     def recv_batch(self) -> tuple[Rollout, dict, dict, dict]:
-        """(the batch, its counters, its header, the actor's times); on the learner, which takes the actor's
-        scene keys and counters as its own (Trainer.world_keys, Trainer.source_counts)."""
+        """(the batch, its counters, its header with the worlds' scene `keys`, the actor's times)."""
         tr = self.tr
         header = torch.zeros(len(HEADER) + self._worlds, dtype=torch.long, device=tr.device)
         self._recv([header], self.batches, self.actor)
         values = header.tolist()
-        head = dict(zip(HEADER, values))
+        head = {**dict(zip(HEADER, values)), "keys": header[len(HEADER):]}
         T = tr.cfg.rollout_steps
         buf = tr.collector._buffers(T, self._worlds, head["slots"])
         flat = torch.zeros(self._terms + len(STAT_KEYS) + len(TIMES), dtype=torch.float64, device=tr.device)
         self._recv([*rollout_tensors(buf), flat], self.batches, self.actor)
-        tr.pipe_keys = header[len(HEADER):]
-        tr.reported = {k: head[k] for k in HEADER[4:]}
-        tr.left_to_replay = head["left_to_replay"]
         stats = {"terms": flat[:self._terms].float(),
                  **{k: flat[self._terms + j].float() for j, k in enumerate(STAT_KEYS)}}
         times = dict(zip(TIMES, flat[-len(TIMES):].tolist()))
