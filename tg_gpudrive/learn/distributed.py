@@ -34,9 +34,14 @@ from tg_gpudrive.engine.simulator import cuda_available
 _SCOPE = None  # the group the collectives below run over (`among`); None: every process
 
 
+def initialized() -> bool:
+    """Whether a process group is up (every process, whatever the scope)."""
+    return dist.is_available() and dist.is_initialized()
+
+
 def is_dist() -> bool:
     """Whether the collectives below reach another process: a process group, with more than this one in scope."""
-    if not (dist.is_available() and dist.is_initialized()):
+    if not initialized():
         return False
     return _SCOPE is None or dist.get_world_size(_SCOPE) > 1
 
@@ -147,14 +152,14 @@ def object_group():
 
 def barrier() -> None:
     """Wait until every rank is here, over the host (the object group); nothing when not distributed."""
-    if dist.is_available() and dist.is_initialized():
+    if initialized():
         dist.barrier(group=object_group())
 
 
 def gather_to_lead(obj) -> list | None:
     """Every rank's picklable `obj`, in rank order, on rank 0 (None on the others); [obj] when not
     distributed."""
-    if not (dist.is_available() and dist.is_initialized()):
+    if not initialized():
         return [obj]
     out = [None] * dist.get_world_size() if dist.get_rank() == 0 else None
     dist.gather_object(obj, out, dst=0, group=object_group())
