@@ -273,6 +273,42 @@ def test_a_trainer_with_cuda_graphs_trains_and_resumes_exactly(tmp_path):
     assert [r["graphs/optimizer_captures"] for r in ra] == ["0"] * 3
 
 
+@pytest.mark.slow
+def test_a_compiling_trainer_loads_the_compiler_while_it_builds_and_counts_only_its_own_graphs(tmp_path):
+    """compile_update: the trainer has compiled a tiny function (the compiler's start-up) before its first
+    update, on a thread that has ended by then; metrics.csv's compile/graphs counts the loss's graphs alone. A
+    trainer that compiles nothing starts no preload."""
+    import torch._dynamo
+    from test_train import rows, tiny
+
+    from tg_gpudrive.learn.train import Trainer
+
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    Trainer(tiny(tmp_path / "plain", updates=1), tmp_path / "plain", progress=False)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == 0
+    tr = Trainer(tiny(tmp_path / "c", compile_update=True, updates=2), tmp_path / "c", progress=False)
+    assert tr.graphs0 == torch._dynamo.utils.counters["stats"]["unique_graphs"] == 1  # the preload's, done
+    tr.train()
+    graphs = [int(r["compile/graphs"]) for r in rows(tmp_path / "c")]
+    assert graphs[0] >= 1 and graphs[-1] == torch._dynamo.utils.counters["stats"]["unique_graphs"] - 1
+
+
+def test_a_failed_compiler_preload_is_logged_and_never_raised(caplog, monkeypatch):
+    """The preload is a warm-up: its failure is logged, and waiting for it returns."""
+    from tg_gpudrive.learn import compiling
+
+    def broken(x):
+        raise RuntimeError("no compiler here")
+
+    monkeypatch.setattr(compiling, "_preload_fn", broken)
+    with caplog.at_level("INFO", logger="tg_gpudrive.learn.compiling"):
+        preload = compiling.CompilerPreload("cpu")
+        preload.wait()
+    assert not preload.thread.is_alive()
+    assert any("preload failed" in r.getMessage() and "no compiler here" in r.getMessage() for r in caplog.records)
+
+
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
     not torch.cuda.is_available(), reason="no CUDA device"))])
 def test_the_trainer_steps_one_fused_adam_on_the_gpu_and_its_state_resumes(tmp_path, device):

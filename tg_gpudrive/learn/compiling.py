@@ -1,4 +1,5 @@
-"""The passes that `compile_rollout` sends through torch.compile, with the pass as it is behind them.
+"""The passes that `compile_rollout` sends through torch.compile, with the pass as it is behind them; and the
+compiler's start-up, loaded while a trainer builds its worlds.
 
 A compilation is a speed-up, never a condition of training: the compiler fails on some shapes and backends
 (inductor's CPU code generator has rejected a dynamic-size pass that the GPU's compiles), and such a failure
@@ -9,6 +10,7 @@ comes from its plain run, with its own message.
 from __future__ import annotations
 
 import logging
+import threading
 
 import torch
 
@@ -39,3 +41,33 @@ class Compiled:
                             self.name, type(e).__name__, reason)
                 self.compiled = None
         return self.fn(*args, **kwargs)
+
+
+class CompilerPreload:
+    """The compiler's first use, on a thread of its own: a tiny function compiled and differentiated on `device`.
+
+    torch.compile imports some hundred modules on its first call (Dynamo, Inductor, sympy, Triton's runtime on a
+    GPU) and sets up its caches; a first update that compiles its loss waits for all of that. Started before the
+    worlds are built, most of it happens while the main thread waits for the scene workers. `wait` joins it, so
+    that the trainer's own compilation never runs beside it. A failure here is logged, never raised: the real
+    compilation then meets it with its own message (or `Compiled`'s fallback)."""
+
+    def __init__(self, device: str):
+        self.device = device
+        self.thread = threading.Thread(target=self._run, name="compiler-preload", daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            x = torch.ones(8, device=self.device, requires_grad=True)
+            torch._dynamo.mark_dynamic(x, 0)  # the symbolic sizes' machinery too, as the loss's row count uses
+            torch.compile(_preload_fn)(x).backward()
+        except Exception as e:  # noqa: BLE001 - a warm-up only: the trainer's compilation reports real faults
+            log.info("the compiler's preload failed (%s: %s)", type(e).__name__, e)
+
+    def wait(self) -> None:
+        self.thread.join()
+
+
+def _preload_fn(x: torch.Tensor) -> torch.Tensor:
+    return (x.sin() * x).sum()

@@ -42,6 +42,7 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn import pipeline
 from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector, TrainingError
+from tg_gpudrive.learn.compiling import CompilerPreload
 from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
@@ -156,12 +157,16 @@ class Trainer:
                         "takes %d small optimiser steps an epoch: slow and noisy (4-8 minibatches is usual)",
                         cfg.minibatches, per_mb, cfg.num_worlds, cfg.rollout_steps, cfg.minibatches)
         torch.backends.cuda.matmul.allow_tf32 = True
+        preload = CompilerPreload(self.device) if cfg.compile_update or cfg.compile_rollout else None
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.stream)
         # exact resume needs the same process count: engine states and samplers are per rank
         mine = saved_rank_state(ck, self.rank, self.world, cfg.pipeline)
         self._build_worlds(mine)
         self._build_learner(ck)
+        if preload is not None:
+            preload.wait()
+        self.graphs0 = torch._dynamo.utils.counters["stats"]["unique_graphs"]  # the preload's and earlier runs'
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
@@ -460,7 +465,7 @@ class Trainer:
             row["graphs/update_fell_back"] = int(self.graphs.fallen_back)
             row["graphs/rollout_captures"] = self.collector.graphs.captures
         if self.cfg.compile_update:  # compilations so far: more than one or two per shape means recompiling
-            row["compile/graphs"] = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+            row["compile/graphs"] = torch._dynamo.utils.counters["stats"]["unique_graphs"] - self.graphs0
         if self.sim.is_cuda:
             row["gpu_mem_peak_gb"] = torch.cuda.max_memory_allocated(self.device) / 2**30
         return row
