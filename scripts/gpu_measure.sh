@@ -38,6 +38,11 @@ RES=/tmp/res/$stage
 mkdir -p "$OUT" "$RES"
 export CUDA_VISIBLE_DEVICES=${GPU:-${CUDA_VISIBLE_DEVICES:-0}}
 export PYTHONUNBUFFERED=1
+# Python's bytecode cached as an installed torch has it: a machine that sets PYTHONDONTWRITEBYTECODE over a
+# venv without .pyc files compiles torch's compiler modules from source in every process, seconds of a first
+# update that compiles (BENCHMARKS.md)
+unset PYTHONDONTWRITEBYTECODE
+export PYTHONPYCACHEPREFIX=${PYTHONPYCACHEPREFIX:-/tmp/pyc}
 CFG="$R"/configs/train/gpu.yaml
 SETS=()
 for s in ${TRAIN_SET:-}; do SETS+=(--set "$s"); done

@@ -306,7 +306,7 @@ def test_a_failed_compiler_preload_is_logged_and_never_raised(caplog, monkeypatc
         preload = compiling.CompilerPreload("cpu")
         preload.wait()
     assert not preload.thread.is_alive()
-    assert any("preload failed" in r.getMessage() and "no compiler here" in r.getMessage() for r in caplog.records)
+    assert any("start-up failed" in r.getMessage() and "no compiler here" in r.getMessage() for r in caplog.records)
 
 
 @pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(

@@ -63,7 +63,8 @@ class CompilerPreload:
             torch._dynamo.mark_dynamic(x, 0)  # the symbolic sizes' machinery too, as the loss's row count uses
             torch.compile(_preload_fn)(x).backward()
         except Exception as e:  # noqa: BLE001 - a warm-up only: the trainer's compilation reports real faults
-            log.info("the compiler's preload failed (%s: %s)", type(e).__name__, e)
+            log.warning("the compiler's start-up failed on %s (%s: %s); the first compilation meets it again",
+                        self.device, type(e).__name__, e)
 
     def wait(self) -> None:
         self.thread.join()
