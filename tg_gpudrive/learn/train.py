@@ -166,7 +166,8 @@ class Trainer:
         self._build_learner(ck)
         if preload is not None:
             preload.wait()
-        self.graphs0 = torch._dynamo.utils.counters["stats"]["unique_graphs"]  # the preload's and earlier runs'
+        # graphs compiled before this trainer's first update (the preload's, an earlier trainer's in this process)
+        self.graphs0 = torch._dynamo.utils.counters["stats"]["unique_graphs"]
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
