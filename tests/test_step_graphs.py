@@ -303,9 +303,9 @@ def test_a_failed_compiler_preload_is_logged_and_never_raised(caplog, monkeypatc
 
     monkeypatch.setattr(compiling, "_preload_fn", broken)
     with caplog.at_level("INFO", logger="tg_gpudrive.learn.compiling"):
-        preload = compiling.CompilerPreload("cpu")
-        preload.wait()
-    assert not preload.thread.is_alive()
+        thread = compiling.start_compiler_preload("cpu")
+        thread.join()
+    assert not thread.is_alive()
     assert any("start-up failed" in r.getMessage() and "no compiler here" in r.getMessage() for r in caplog.records)
 
 

@@ -43,31 +43,28 @@ class Compiled:
         return self.fn(*args, **kwargs)
 
 
-class CompilerPreload:
-    """The compiler's first use, on a thread of its own: a tiny function compiled and differentiated on `device`.
+def start_compiler_preload(device: str) -> threading.Thread:
+    """The compiler's first use, on a thread of its own (started here; join it): a tiny function compiled and
+    differentiated on `device`.
 
     torch.compile imports some hundred modules on its first call (Dynamo, Inductor, sympy, Triton's runtime on a
     GPU) and sets up its caches; a first update that compiles its loss waits for all of that. Started before the
-    worlds are built, most of it happens while the main thread waits for the scene workers. `wait` joins it, so
-    that the trainer's own compilation never runs beside it. A failure here is logged, never raised: the real
-    compilation then meets it with its own message (or `Compiled`'s fallback)."""
+    worlds are built, most of it happens while the main thread waits for the scene workers; joined before the
+    first update, so that the trainer's own compilation never runs beside it. A failure here is logged, never
+    raised: the real compilation then meets it with its own message (or `Compiled`'s fallback)."""
 
-    def __init__(self, device: str):
-        self.device = device
-        self.thread = threading.Thread(target=self._run, name="compiler-preload", daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
+    def run() -> None:
         try:
-            x = torch.ones(8, device=self.device, requires_grad=True)
+            x = torch.ones(8, device=device, requires_grad=True)
             torch._dynamo.mark_dynamic(x, 0)  # the symbolic sizes' machinery too, as the loss's row count uses
             torch.compile(_preload_fn)(x).backward()
         except Exception as e:  # noqa: BLE001 - a warm-up only: the trainer's compilation reports real faults
             log.warning("the compiler's start-up failed on %s (%s: %s); the first compilation meets it again",
-                        self.device, type(e).__name__, e)
+                        device, type(e).__name__, e)
 
-    def wait(self) -> None:
-        self.thread.join()
+    thread = threading.Thread(target=run, name="compiler-preload", daemon=True)
+    thread.start()
+    return thread
 
 
 def _preload_fn(x: torch.Tensor) -> torch.Tensor:

@@ -162,7 +162,7 @@ class Channel:
 
     def __init__(self, tr):
         self.tr = tr
-        self.learning = tr.rank % 2 == 0
+        self.learning = tr.learns
         self.learner, self.actor = 2 * tr.stream, 2 * tr.stream + 1  # this process's pair
         # every process makes every group, in one order
         self.learners = dist.new_group(list(range(0, tr.world, 2)))

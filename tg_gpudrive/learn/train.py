@@ -42,7 +42,7 @@ from tg_gpudrive.learn import distributed as dist_util
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn import pipeline
 from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector, TrainingError
-from tg_gpudrive.learn.compiling import CompilerPreload
+from tg_gpudrive.learn.compiling import start_compiler_preload
 from tg_gpudrive.learn.quality import RATE_KEYS
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
@@ -143,6 +143,7 @@ class Trainer:
         # actor's first worlds and never steps them)
         self.streams = self.world // 2 if cfg.pipeline else self.world
         self.stream = self.rank // 2 if cfg.pipeline else self.rank
+        self.learns = not cfg.pipeline or self.rank % 2 == 0  # with `pipeline`, the learners are the even ranks
         self.reported = None  # with `pipeline`, on a learner: its actor's scene counters (source_counts)
         self.pipe_keys = None  # ... and the scene keys of its last batch's worlds (world_keys)
         if self.lead:
@@ -157,17 +158,20 @@ class Trainer:
                         "takes %d small optimiser steps an epoch: slow and noisy (4-8 minibatches is usual)",
                         cfg.minibatches, per_mb, cfg.num_worlds, cfg.rollout_steps, cfg.minibatches)
         torch.backends.cuda.matmul.allow_tf32 = True
-        preload = CompilerPreload(self.device) if cfg.compile_update or cfg.compile_rollout else None
+        # the compiler's start-up beside the build, in a process that will compile: the rollout's passes run on every
+        # process (the advantages on the learners), the update's loss on the learners
+        compiles = cfg.compile_rollout or (cfg.compile_update and self.learns)
+        preload = start_compiler_preload(self.device) if compiles else None
         ck = None if resume is None else load_checkpoint(resume, fallback=True)
         self._seed(cfg.seed + self.stream)
         # exact resume needs the same process count: engine states and samplers are per rank
         mine = saved_rank_state(ck, self.rank, self.world, cfg.pipeline)
         self._build_worlds(mine)
         self._build_learner(ck)
+        self.graphs0 = 0  # graphs compiled before this trainer's first update (the preload's, an earlier trainer's)
         if preload is not None:
-            preload.wait()
-        # graphs compiled before this trainer's first update (the preload's, an earlier trainer's in this process)
-        self.graphs0 = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+            preload.join()
+            self.graphs0 = torch._dynamo.utils.counters["stats"]["unique_graphs"]
         self.update = 0
         self.agent_steps = 0
         self.wall = 0.0  # s of rollouts and updates (the time-to-quality clock)
