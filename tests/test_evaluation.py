@@ -22,6 +22,7 @@ from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
+from tg_gpudrive.evaluation import report_markdown as rm
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
 from tg_gpudrive.engine.control import control_masks
@@ -250,6 +251,43 @@ def test_collision_partners_by_hand():
     assert k > 0 and tr.valid[0, 2, k] and of_1() == [(0, "ahead", True)]
     tr.valid[0, 0, k:] = False
     assert of_1() == [(0, "ahead", True)]
+
+
+def test_closest_partners_by_hand():
+    """Where the closest approach is, on hand-made scenes: a policy car passing a parked car at the kerb has it
+    abreast and parked; one closing on a slower car in its lane has it ahead, moving; two policy cars in one lane
+    see each other ahead and behind, as policy partners."""
+    T = 40
+    zeros = np.zeros(T)
+    driver = np.stack([np.arange(T) * 1.0, zeros], -1)  # 10 m/s along the lane
+    kerb = np.stack([np.full(T, 20.0), np.full(T, 3.5)], -1)  # parked 3.5 m to the side, passed at 2 s
+    slow = np.stack([40.0 + np.arange(T) * 0.5, zeros], -1)  # 5 m/s, 40 m ahead: the gap closes to 20.5 m
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
+    keep = lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2)  # 0 m/s^2, straight
+    road = [(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))]
+
+    def closest(trajs, controlled):
+        sc = make_scene(np.stack(trajs), np.zeros((len(trajs), T)), length=4.0, width=2.0, roads=road)
+        tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array(controlled)]), keep)
+        got = rk.closest_partners(tr)
+        rows = {int(a): (rk.PLACES[got["place"][0, a]], bool(got["parked"][0, a]), bool(got["policy"][0, a]))
+                for a in np.nonzero(tr.policy[0])[0]}
+        return rows, rk.summarize(tr), tr
+
+    rows, summary, tr = closest([driver, kerb], [True, False])
+    assert list(rows.values()) == [("abreast", True, False)]
+    a = next(iter(rows))
+    assert rk.min_gap(tr)[0, a] == pytest.approx(3.5, abs=0.2)  # the closest step is the pass, 3.5 m beside it
+    assert summary["closest_abreast_share"] == summary["closest_parked_share"] == 1.0
+    assert summary["closest_policy_share"] == summary["closest_ahead_share"] == 0.0
+    rows, summary, _ = closest([driver, slow], [True, False])
+    assert list(rows.values()) == [("ahead", False, False)]
+    rows, summary, _ = closest([driver, slow], [True, True])
+    assert sorted(rows.values()) == [("ahead", False, True), ("behind", False, True)]
+    assert summary["closest_policy_share"] == 1.0 and summary["closest_behind_share"] == 0.5
+    # the report's table reads the same shares
+    table = "".join(rm._closest_section([{"label": "p", "risk": summary}]))
+    assert "| p | 0 | 0.5 | 0.5 | 0 | 1 |" in table
 
 
 # ----------------------------------------------------------------- CCE-gap

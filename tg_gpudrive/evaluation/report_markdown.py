@@ -108,6 +108,19 @@ def _collides_section(results: list[dict]) -> list[str]:
                    [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results])]
 
 
+def _closest_section(results: list[dict]) -> list[str]:
+    """One row per policy: where its agents' closest approaches were (the partner's place, parked or a policy car)."""
+    keys = [*rk.PLACE_KEYS, "closest_parked_share", "closest_policy_share"]
+    return ["\n### Where the closest approach is\n\nEach policy agent's closest step (its min gap), the nearest other "
+            f"agent then: beside it (centre more than {rk.ABREAST_OFFSET:g} m to the side: the next lane, the kerb, "
+            "crossing traffic), ahead or behind; parked (never faster than "
+            f"{rk.PARKED_SPEED:g} m/s) or driven by the policy. Shares of the agent-episodes. A distance knob can "
+            "widen a gap ahead or behind by speed; one beside the agent it widens only by leaving the lane or "
+            "waiting.\n\n",
+            _table(["policy", *(f"closest: {p}" for p in rk.PLACES), "a parked partner", "a policy partner"],
+                   [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results])]
+
+
 def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[str]:
     """The report's beta x alpha section: the runs' training and evaluation means, and (three cells or
     more) the direction of every figure with each knob, and its change between each knob's extreme
@@ -275,7 +288,7 @@ def _critical_section(results: list[dict]) -> list[str]:
 def write_markdown(out: Path, results: list[dict], meta: dict, logged_hist: dict | None = None) -> None:
     """Write out/report.md: the findings of `results` (one dict per policy, as report.py gathers them)
     under the settings `meta`; `logged_hist` (the logs' histograms) adds the Hellinger direction row."""
-    parts = [*_opening(meta), *_comparison_section(results), *_collides_section(results),
+    parts = [*_opening(meta), *_comparison_section(results), *_collides_section(results), *_closest_section(results),
              *_flexibility_section(results, logged_hist), *_fidelity_section(results),
              *_gap_sections(results, meta.get("cce_gap", True)), *_diversity_section(results),
              *_worst_section(meta), *_critical_section(results)]

@@ -24,6 +24,12 @@ reaches its goal in the step of the contact leaves the scene in that step: goal_
 when the partner is behind the agent (in the agent's frame) and heads within CONTACT_ANGLE of it,
 "ahead" when it is in front and heads the same way, else "crossing" (side, head-on or crossing).
 
+Where the closest approach is (`closest_partners`), at the agent's closest step (the step of its
+min_gap): the partner is the other agent with the nearest centre then, "parked" when it never moves
+faster than PARKED_SPEED in the episode, "policy" as above; its place in the agent's frame is
+"abreast" when its centre lies more than ABREAST_OFFSET to the side (the next lane, a parked car at the
+kerb, crossing traffic: a gap a car cannot widen by its speed alone), else "ahead" or "behind".
+
 Scenario criticality ranks episodes by (any collision, lowest min TTC, lowest
 min gap, most hard brakes), most critical first.
 """
@@ -42,6 +48,10 @@ CLOSE_DISTANCE = 5.0  # m, centre to centre: close_time's threshold
 CONTACT_ANGLE = np.pi / 4  # rad: headings closer than this count as "the same way" (collision_partners)
 CONTACTS = ("from behind", "ahead", "crossing")
 CONTACT_KEYS = tuple(f"collision_{c.replace(' ', '_')}_rate" for c in CONTACTS)  # their rates in `summarize`
+PARKED_SPEED = 1.0  # m/s: a partner never faster than this in its episode is parked (closest_partners)
+ABREAST_OFFSET = 2.0  # m: a partner's centre further than this to the agent's side is abreast of it
+PLACES = ("abreast", "ahead", "behind")
+PLACE_KEYS = tuple(f"closest_{p}_share" for p in PLACES)  # their shares in `summarize`
 
 
 def disc_centres(pos: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
@@ -133,6 +143,28 @@ def collision_partners(tr: Trajectories) -> list[dict]:
     return rows
 
 
+def closest_partners(tr: Trajectories) -> dict[str, np.ndarray]:
+    """(E, A) arrays on the partner at each policy agent's closest step (see the module docstring): `place`
+    (index into PLACES; -1 where the agent never had another agent present), `parked` and `policy`."""
+    E, A, _ = tr.valid.shape
+    place = np.full((E, A), -1, np.int64)
+    parked, policy = np.zeros((E, A), bool), np.zeros((E, A), bool)
+    moves = (np.where(tr.valid, tr.speed, 0.0) > PARKED_SPEED).any(-1)  # (E, A)
+    for e, a in zip(*np.nonzero(tr.policy & tr.valid.any(-1))):
+        k = int(np.argmin(np.where(tr.valid[e, a], tr.nearest[e, a], np.inf)))
+        others = tr.valid[e, :, k].copy()
+        others[a] = False
+        if not others.any():
+            continue
+        rel = tr.pos[e, :, k] - tr.pos[e, a, k]  # (A, 2)
+        b = int(np.argmin(np.where(others, np.linalg.norm(rel, axis=-1), np.inf)))
+        c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
+        along, side = c * rel[b, 0] + s * rel[b, 1], c * rel[b, 1] - s * rel[b, 0]
+        place[e, a] = 0 if abs(side) > ABREAST_OFFSET else (1 if along >= 0 else 2)
+        parked[e, a], policy[e, a] = not moves[e, b], tr.policy[e, b]
+    return {"place": place, "parked": parked, "policy": policy}
+
+
 def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
     """Per (episode, agent) arrays, and `agents` (E, A): the policy agents that appear; `contact` (index
     into CONTACTS, -1 without a collision) and `partner_policy` describe the first collision."""
@@ -142,9 +174,11 @@ def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
     for row in collision_partners(tr):
         contact[row["episode"], row["agent"]] = CONTACTS.index(row["contact"])
         partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
+    closest = closest_partners(tr)
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
             "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "close_time": close_time(tr), "hard_brakes": hard_brakes(tr),
-            "contact": contact, "partner_policy": partner_policy}
+            "contact": contact, "partner_policy": partner_policy, "closest_place": closest["place"],
+            "closest_parked": closest["parked"], "closest_policy": closest["policy"]}
 
 
 def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
@@ -170,6 +204,11 @@ def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
         "collision_with_policy_rate": float(((r["contact"] >= 0) & r["partner_policy"])[m].mean()),
         "collision_with_other_rate": float(((r["contact"] >= 0) & ~r["partner_policy"])[m].mean()),
         **{key: float((r["contact"] == i)[m].mean()) for i, key in enumerate(CONTACT_KEYS)},
+        # where each agent's closest approach was (shares of the agent-episodes; agents never near another
+        # agent count in none)
+        **{key: float((r["closest_place"] == i)[m].mean()) for i, key in enumerate(PLACE_KEYS)},
+        "closest_parked_share": float(r["closest_parked"][m].mean()),
+        "closest_policy_share": float(r["closest_policy"][m].mean()),
     }
 
 
