@@ -270,7 +270,8 @@ def test_closest_partners_by_hand():
         sc = make_scene(np.stack(trajs), np.zeros((len(trajs), T)), length=4.0, width=2.0, roads=road)
         tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array(controlled)]), keep)
         got = rk.closest_partners(tr)
-        rows = {int(a): (rk.PLACES[got["place"][0, a]], bool(got["parked"][0, a]), bool(got["policy"][0, a]))
+        place = lambda a: rk.PLACES[got["place"][0, a]] if got["place"][0, a] >= 0 else None  # noqa: E731
+        rows = {int(a): (place(a), bool(got["parked"][0, a]), bool(got["policy"][0, a]))
                 for a in np.nonzero(tr.policy[0])[0]}
         return rows, rk.summarize(tr), tr
 
@@ -282,6 +283,10 @@ def test_closest_partners_by_hand():
     assert summary["closest_policy_share"] == summary["closest_ahead_share"] == 0.0
     rows, summary, _ = closest([driver, slow], [True, False])
     assert list(rows.values()) == [("ahead", False, False)]
+    far = kerb + [0.0, 60.0]  # never within the recording's cap of the driver: no closest moment to place
+    rows, summary, _ = closest([driver, far], [True, False])
+    assert list(rows.values()) == [(None, False, False)]
+    assert sum(summary[k] for k in rk.PLACE_KEYS) == 0.0
     rows, summary, _ = closest([driver, slow], [True, True])
     assert sorted(rows.values()) == [("ahead", False, True), ("behind", False, True)]
     assert summary["closest_policy_share"] == 1.0 and summary["closest_behind_share"] == 0.5

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tg_gpudrive.evaluation.episodes import Trajectories
+from tg_gpudrive.evaluation.episodes import NEAREST_CAP, Trajectories
 
 HARD_BRAKE = -4.0  # m/s^2
 TTC_HORIZON = 10.0  # s
@@ -145,17 +145,18 @@ def collision_partners(tr: Trajectories) -> list[dict]:
 
 def closest_partners(tr: Trajectories) -> dict[str, np.ndarray]:
     """(E, A) arrays on the partner at each policy agent's closest step (see the module docstring): `place`
-    (index into PLACES; -1 where the agent never had another agent present), `parked` and `policy`."""
+    (index into PLACES; -1 where no other agent came within NEAREST_CAP of it), `parked` and `policy`."""
     E, A, _ = tr.valid.shape
     place = np.full((E, A), -1, np.int64)
     parked, policy = np.zeros((E, A), bool), np.zeros((E, A), bool)
     moves = (np.where(tr.valid, tr.speed, 0.0) > PARKED_SPEED).any(-1)  # (E, A)
     for e, a in zip(*np.nonzero(tr.policy & tr.valid.any(-1))):
-        k = int(np.argmin(np.where(tr.valid[e, a], tr.nearest[e, a], np.inf)))
+        near = np.where(tr.valid[e, a], tr.nearest[e, a], np.inf)
+        k = int(np.argmin(near))
+        if near[k] >= NEAREST_CAP:  # no one near: the capped distance names no closest moment
+            continue
         others = tr.valid[e, :, k].copy()
         others[a] = False
-        if not others.any():
-            continue
         rel = tr.pos[e, :, k] - tr.pos[e, a, k]  # (A, 2)
         b = int(np.argmin(np.where(others, np.linalg.norm(rel, axis=-1), np.inf)))
         c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
@@ -204,8 +205,8 @@ def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
         "collision_with_policy_rate": float(((r["contact"] >= 0) & r["partner_policy"])[m].mean()),
         "collision_with_other_rate": float(((r["contact"] >= 0) & ~r["partner_policy"])[m].mean()),
         **{key: float((r["contact"] == i)[m].mean()) for i, key in enumerate(CONTACT_KEYS)},
-        # where each agent's closest approach was (shares of the agent-episodes; agents never near another
-        # agent count in none)
+        # where each agent's closest approach was (shares of the agent-episodes; an agent that no other
+        # came within NEAREST_CAP of counts in none)
         **{key: float((r["closest_place"] == i)[m].mean()) for i, key in enumerate(PLACE_KEYS)},
         "closest_parked_share": float(r["closest_parked"][m].mean()),
         "closest_policy_share": float(r["closest_policy"][m].mean()),
