@@ -117,6 +117,15 @@ def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
     return onset.sum(-1)
 
 
+def _nearest_in_frame(tr: Trajectories, e: int, a: int, k: int, others: np.ndarray) -> tuple[int, float, float]:
+    """The agent among `others` (A,) with the centre nearest agent a's at step k of episode e, and its centre in
+    a's frame then: (slot, ahead (+) / behind (-), to the left (+) / right (-)). `others` must hold one agent."""
+    rel = tr.pos[e, :, k] - tr.pos[e, a, k]  # (A, 2)
+    b = int(np.argmin(np.where(others, np.linalg.norm(rel, axis=-1), np.inf)))
+    c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
+    return b, float(c * rel[b, 0] + s * rel[b, 1]), float(c * rel[b, 1] - s * rel[b, 0])
+
+
 def collision_partners(tr: Trajectories) -> list[dict]:
     """One row per policy agent-episode with a collision (see the module docstring): episode, agent,
     step k of the first contact, partner slot, `partner_policy` (bool), `contact` (one of CONTACTS),
@@ -129,11 +138,7 @@ def collision_partners(tr: Trajectories) -> list[dict]:
         others[a] = False
         if not others.any():
             continue
-        d = np.linalg.norm(tr.pos[e, :, k] - tr.pos[e, a, k], axis=-1)
-        b = int(np.argmin(np.where(others, d, np.inf)))
-        rel = tr.pos[e, b, k] - tr.pos[e, a, k]
-        c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
-        along = c * rel[0] + s * rel[1]  # partner's centre ahead (+) or behind (-) the agent's
+        b, along, _ = _nearest_in_frame(tr, e, a, k, others)
         dyaw = np.angle(np.exp(1j * (tr.yaw[e, b, k] - tr.yaw[e, a, k])))
         same_way = abs(dyaw) < CONTACT_ANGLE
         contact = CONTACTS[2] if not same_way else (CONTACTS[0] if along < 0 else CONTACTS[1])
@@ -157,10 +162,7 @@ def closest_partners(tr: Trajectories) -> dict[str, np.ndarray]:
             continue
         others = tr.valid[e, :, k].copy()
         others[a] = False
-        rel = tr.pos[e, :, k] - tr.pos[e, a, k]  # (A, 2)
-        b = int(np.argmin(np.where(others, np.linalg.norm(rel, axis=-1), np.inf)))
-        c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
-        along, side = c * rel[b, 0] + s * rel[b, 1], c * rel[b, 1] - s * rel[b, 0]
+        b, along, side = _nearest_in_frame(tr, e, a, k, others)
         place[e, a] = 0 if abs(side) > ABREAST_OFFSET else (1 if along >= 0 else 2)
         parked[e, a], policy[e, a] = not moves[e, b], tr.policy[e, b]
     return {"place": place, "parked": parked, "policy": policy}
