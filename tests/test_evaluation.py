@@ -293,6 +293,7 @@ def test_closest_partners_by_hand():
     # the report's table reads the same shares
     table = "".join(rm._closest_section([{"label": "p", "risk": summary}]))
     assert "| p | 0 | 0.5 | 0.5 | 0 | 1 |" in table
+    assert rm._closest_section([{"label": "old cache", "risk": {"collision_rate": 0.0}}]) == []
 
 
 # ----------------------------------------------------------------- CCE-gap

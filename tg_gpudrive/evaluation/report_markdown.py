@@ -109,8 +109,11 @@ def _collides_section(results: list[dict]) -> list[str]:
 
 
 def _closest_section(results: list[dict]) -> list[str]:
-    """One row per policy: where its agents' closest approaches were (the partner's place, parked or a policy car)."""
+    """One row per policy: where its agents' closest approaches were (the partner's place, parked or a policy car).
+    Nothing when no policy carries these shares (a cache evaluated before the report had them)."""
     keys = [*rk.PLACE_KEYS, "closest_parked_share", "closest_policy_share"]
+    if not any(keys[0] in r["risk"] for r in results):
+        return []
     return ["\n### Where the closest approach is\n\nEach policy agent's closest step (its min gap), the nearest other "
             f"agent then: beside it (centre more than {rk.ABREAST_OFFSET:g} m to the side: the next lane, the kerb, "
             "crossing traffic), ahead or behind; parked (never faster than "

@@ -119,7 +119,7 @@ def hard_brakes(tr: Trajectories, threshold: float = HARD_BRAKE) -> np.ndarray:
 
 def _nearest_in_frame(tr: Trajectories, e: int, a: int, k: int, others: np.ndarray) -> tuple[int, float, float]:
     """The agent among `others` (A,) with the centre nearest agent a's at step k of episode e, and its centre in
-    a's frame then: (slot, ahead (+) / behind (-), to the left (+) / right (-)). `others` must hold one agent."""
+    a's frame then: (slot, ahead (+) / behind (-), to the left (+) / right (-)). `others` holds one agent or more."""
     rel = tr.pos[e, :, k] - tr.pos[e, a, k]  # (A, 2)
     b = int(np.argmin(np.where(others, np.linalg.norm(rel, axis=-1), np.inf)))
     c, s = np.cos(tr.yaw[e, a, k]), np.sin(tr.yaw[e, a, k])
@@ -177,11 +177,10 @@ def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
     for row in collision_partners(tr):
         contact[row["episode"], row["agent"]] = CONTACTS.index(row["contact"])
         partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
-    closest = closest_partners(tr)
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
             "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "close_time": close_time(tr), "hard_brakes": hard_brakes(tr),
-            "contact": contact, "partner_policy": partner_policy, "closest_place": closest["place"],
-            "closest_parked": closest["parked"], "closest_policy": closest["policy"]}
+            "contact": contact, "partner_policy": partner_policy,
+            **{f"closest_{k}": v for k, v in closest_partners(tr).items()}}
 
 
 def summarize(tr: Trajectories, risk: dict | None = None) -> dict:
