@@ -279,6 +279,8 @@ def test_closest_partners_by_hand():
     assert list(rows.values()) == [("abreast", True, False)]
     a = next(iter(rows))
     assert rk.min_gap(tr)[0, a] == pytest.approx(3.5, abs=0.2)  # the closest step is the pass, 3.5 m beside it
+    first = int(np.argmax(tr.valid[0, a])) + cfg.init_steps  # the log's step the recording starts from
+    assert rk.start_gap(tr)[0, a] == pytest.approx(np.linalg.norm(driver[first] - kerb[first]), abs=0.05)  # 19.3 m
     assert summary["closest_abreast_share"] == summary["closest_parked_share"] == 1.0
     assert summary["closest_policy_share"] == summary["closest_ahead_share"] == 0.0
     rows, summary, _ = closest([driver, slow], [True, False])

@@ -206,3 +206,60 @@ def test_gap_against_mappo_pairs_agents_and_says_which_side():
     assert rows[("high", "merge")][2] == 3 and rows[("low", "all")][9] == "less exploitable"
     assert rows[("same", "all")][9] == "not distinguishable" and rows[("same", "all")][8] == "50%"
     assert gap_against_mappo([r for r in results if r.get("kind") != "MAPPO"]) == []
+
+
+def _alike_cells(rng, shift: float, n: int = 300):
+    """Three runs of one cell on n shared episodes whose values spread 0-20 (the scene sets them), each run a
+    little off (its training seed), moved by `shift`."""
+    base = np.random.default_rng(3).uniform(0.0, 20.0, n)
+    return [base + shift + seed + rng.normal(0.0, 0.1, n) for seed in (-0.02, 0.0, 0.02)]
+
+
+def test_paired_cells_resample_their_shared_episodes_once():
+    """Two cells that played the same 300 episodes, 0.2 apart on every one of them: resampled each alone, the
+    episodes' own spread (0-20) hides the 0.2; paired, the interval holds 0.2 and excludes 0. Runs of other
+    lengths cannot be paired; an episode without a finite value in one run leaves every run."""
+    rng = np.random.default_rng(0)
+    low, high = _alike_cells(rng, 0.0), _alike_cells(rng, 0.2)
+    alone = effect_ci(low, high, n_boot=2000, seed=0)
+    paired = effect_ci(low, high, n_boot=2000, seed=0, paired=True)
+    assert alone.diff == paired.diff and alone.diff_lo < 0.0 < alone.diff_hi
+    assert 0.0 < paired.diff_lo < 0.2 < paired.diff_hi < 0.4 and paired.verdict(1) == "holds"
+    assert spearman_ci([2, 6], [low, high], n_boot=500, paired=True).lo == 1.0  # every resample ranks them alike
+    assert spearman_ci([2, 6], [low, high], n_boot=500).lo == -1.0
+    with pytest.raises(ValueError, match="beta 2.*beta 6"):
+        effect_ci(low, [h[:-1] for h in high], paired=True, labels=("beta 2", "beta 6"))
+    holed = [r.copy() for r in high]
+    holed[1][0] = np.inf
+    dropped = effect_ci(low, holed, n_boot=100, paired=True)
+    assert dropped.low == pytest.approx(np.mean([r[1:].mean() for r in low]))
+    with pytest.raises(ValueError, match="paired"):
+        spearman_ci([2, 6], [np.ones((4, 2))] * 2, statistic=lambda s: s[..., 0], paired=True)
+
+
+def test_knob_effects_pair_cells_that_played_the_same_episodes_and_gap_headroom_by_hand():
+    """Cells whose runs carry equal episode keys are compared episode by episode; a run with other keys (or
+    none: a cache from before the keys) makes the pair each cell alone. The headroom: agents at 1, 3 and 8 m
+    with first states 10, 4 and 9 m away, beta 6: max(gap, min(6, start)) = 6, 4, 8, +2 m over the mean gap of
+    4, of which a high cell at 5 m reaches 1 m: half."""
+    from tg_gpudrive.evaluation.report_stats import gap_headroom, group_cells, knob_effects, played_alike
+
+    keys = np.array(["s|0|1", "s|0|2", "s|0|3"])
+
+    def run(beta, seed, gap, key=keys):
+        return {"label": f"b{beta}s{seed}", "beta": beta, "alpha": 0.5, "seed": seed, "figures": {
+            "episode_key": key, "start_gap": np.array([10.0, 4.0, 9.0]), "min_gap": np.asarray(gap, float),
+            "speed": np.asarray(gap, float)}}
+    cells = group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(2.0, 1, [1.0, 3.0, 8.0]),
+                         run(6.0, 0, [2.0, 4.0, 9.0]), run(6.0, 1, [2.0, 4.0, 9.0])])
+    assert played_alike(cells)
+    gap = next(r for r in knob_effects(cells, n_boot=200) if r[0] == "min gap [m]")
+    assert gap[6] == "1 [1, 1]" and gap[9] == "holds" and gap[10] == "paired"
+    other = group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(6.0, 0, [2.0, 4.0, 9.0], keys[::-1])])
+    assert not played_alike(other) and knob_effects(other, n_boot=200)[0][10] == "each cell alone"
+    old = group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(6.0, 0, [2.0, 4.0, 9.0])])
+    del old[0]["figures"]["episode_key"]
+    assert not played_alike(old)
+    [row] = gap_headroom(group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(6.0, 0, [5.0, 5.0, 5.0])]))
+    assert row[:2] == ["alpha 0.5", "2 -> 6"] and row[2:5] == [4.0, 5.0, 1.0]
+    assert row[5:] == [2.0, 0.5]

@@ -79,12 +79,14 @@ from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.engine.simulator import Simulator, resolve_device
 from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
+from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
 from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, replay_episodes
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
-from tg_gpudrive.evaluation.report_stats import gap_curve, knob_scene, measure, tail_means, worst_scenes
+from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, tail_means,
+                                                 worst_scenes)
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import load_actor, load_policy
 from tg_gpudrive.agents.builtin import expert_policy
@@ -471,6 +473,8 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
         return res, gen
 
     res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
+    if "episode_key" not in res["figures"]:  # cached before the figures kept their episodes' keys: from the rollouts
+        res["figures"].update(episode_figures(gen, rk.episode_risk(gen)))
     got.keep(res, gen)
     if i == 0:  # where the report's first policy fails most, drawn as its episodes end
         worst = worst_scenes(gen)

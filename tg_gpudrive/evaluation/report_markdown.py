@@ -20,8 +20,8 @@ import numpy as np
 
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.report_stats import (flexibility_directions, fmt, gap_against_mappo, group_cells,
-                                                 knob_effects)
+from tg_gpudrive.evaluation.report_stats import (flexibility_directions, fmt, gap_against_mappo, gap_headroom,
+                                                 group_cells, knob_effects, played_alike)
 
 PER_AGENT_CSV, PER_SCENE_CSV = "per_agent.csv", "per_scene.csv"
 PER_AGENT_COLUMNS = ("policy", "agent", "scenario_type", "gap", "gain", "gain_ci95", "j_pi", "j_br",
@@ -149,6 +149,10 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
     noise = ("training seeds and evaluation noise: each resample draws a cell's runs with replacement, then "
              "each drawn run's agent-episodes" if seeds > 1 else
              "evaluation noise only (one training seed per cell): each resample draws every cell's agent-episodes")
+    if played_alike(cells):
+        noise += (f"; the cells played the same {len(cells[0]['figures']['episode_key'][0])} agent-episodes "
+                  "(scenes, agents, rollout seeds), so a resample draws one set of them for every run of every "
+                  "cell (**paired**): which episodes were drawn is one noise for all cells, as in a paired test")
     if len(cells) >= 3:
         out.append(f"\nDirection of each figure with each knob over the {len(cells)} cells ({seeds}+ training "
                    f"seeds each): Spearman's rho of the knob with the cells' means, 95 % bootstrap interval over "
@@ -164,7 +168,15 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
                    f"the difference (high - low) and the ratio (high / low) with 95 % bootstrap intervals over "
                    f"{noise}. **holds**: the difference's interval lies on the paper's side of 0.\n\n")
         out.append(_table(["figure", "knob", "held", "knob low -> high", "at low", "at high", "difference [95 %]",
-                           "ratio [95 %]", "paper's sign", "verdict"], effects))
+                           "ratio [95 %]", "paper's sign", "verdict", "episodes resampled"], effects))
+    headroom = gap_headroom(cells)
+    if headroom:
+        out.append("\nHow much min gap beta can buy: the ceiling is the change if every agent of the low cell "
+                   "kept at least the high beta wherever its first state (the log's, which no policy moves) "
+                   "allows. The cost charges nothing beyond beta, so a change above the ceiling needs agents to "
+                   "keep more distance than beta asks.\n\n")
+        out.append(_table(["held", "beta low -> high", "min gap at low [m]", "at high [m]", "change [m]",
+                           "ceiling [m]", "share of the ceiling"], headroom))
     return out
 
 

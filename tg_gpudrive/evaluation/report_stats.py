@@ -5,6 +5,7 @@
     group_cells(results)               the CCE-MAPPO runs grouped by (beta, alpha), their training seeds together
     flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
     knob_effects(cells)                each figure's change between a knob's extreme cells, with intervals
+    gap_headroom(cells)                how much min gap a distance threshold of beta can buy at most
     gap_against_mappo(results)         each CCE-MAPPO policy's CCE-gap against plain MAPPO's, agent by agent
     worst_scenes(gen)                  the scenes where the policy's agents fail most
     knob_scene(gens)                   the scene where beta (or alpha) moves the distance kept most
@@ -96,11 +97,20 @@ def knob_scene(cells: dict[tuple[float, float], object]) -> tuple[str, float] | 
     return best, full[best]
 
 
+def episode_keys(gen, m: np.ndarray) -> np.ndarray:
+    """'scene|rollout seed|scene agent' of each agent-episode of mask `m` (E, A), in the figures' order: two
+    runs played the same agent-episodes when their keys are equal."""
+    ids = gen.scene_ids
+    return np.array([f"{ids[e]}|{gen.seed[e]}|{gen.slot_agent[e, a]}" for e, a in zip(*np.nonzero(m))], dtype=str)
+
+
 def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
-    """One value per policy agent-episode of each figure the flexibility claims are about."""
+    """One value per policy agent-episode of each figure the flexibility claims are about, its `start_gap` (the
+    min gap's ceiling) and its `episode_key`."""
     m = risk["agents"]  # present at some step, so the mean speed below has a step to average
     speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
-    return {"min_gap": risk["min_gap"][m], "close_time": risk["close_time"][m], "speed": speed[m],
+    return {"episode_key": episode_keys(gen, m), "start_gap": risk["start_gap"][m],
+            "min_gap": risk["min_gap"][m], "close_time": risk["close_time"][m], "speed": speed[m],
             "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
             "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float),
             "collision_other": ((risk["contact"] >= 0) & ~risk["partner_policy"])[m].astype(float),
@@ -159,11 +169,28 @@ def _episodes(x) -> int:
     return sum(len(v) for v in x) if isinstance(x, list) else len(x)
 
 
+def _run_figures(cell: dict, key: str) -> list:
+    """A cell's per-run arrays of figure `key` (a single run's `figures` hold the array itself)."""
+    x = cell["figures"].get(key)
+    return [] if x is None else (x if isinstance(x, list) else [x])
+
+
+def played_alike(cells: list[dict]) -> bool:
+    """Whether every run of `cells` played the same agent-episodes in the same order (equal `episode_key`s):
+    their figures can be compared episode by episode (stats' paired resampling)."""
+    keys = [_run_figures(c, "episode_key") for c in cells]
+    if any(len(k) != c.get("runs", 1) for k, c in zip(keys, cells)):  # a cache written before the keys existed
+        return False
+    first = keys[0][0]
+    return all(np.array_equal(k, first) for ks in keys for k in ks)
+
+
 def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
     """Rows (figure, knob, the other knob's value, knob low -> high, figure at low, at high, difference
-    high - low with its 95 % interval, ratio high / low with its interval, paper's sign, verdict): each
-    claimed figure between the extreme cells of each knob, the other knob held. Cells are
-    `group_cells` dicts (or single runs with `figures` arrays)."""
+    high - low with its 95 % interval, ratio high / low with its interval, paper's sign, verdict, how the
+    interval resampled): each claimed figure between the extreme cells of each knob, the other knob held.
+    Cells are `group_cells` dicts (or single runs with `figures` arrays); cells that played the same
+    agent-episodes are compared episode by episode (`played_alike`)."""
     rows = []
     for key, (name, *signs) in FLEX_CLAIMS.items():
         if not any(signs) or any(key not in c["figures"] for c in cells):
@@ -174,12 +201,38 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
                 if len(row) < 2 or row[0][knob] == row[-1][knob]:
                     continue
                 lo_c, hi_c = row[0], row[-1]
+                paired = played_alike([lo_c, hi_c])
                 e = effect_ci(lo_c["figures"][key], hi_c["figures"][key], n_boot=n_boot,
-                              labels=(lo_c["label"], hi_c["label"]))
+                              labels=(lo_c["label"], hi_c["label"]), paired=paired)
                 rows.append([name, knob, f"{other} {at:g}", f"{lo_c[knob]:g} -> {hi_c[knob]:g}", e.low, e.high,
                              f"{fmt(e.diff)} [{fmt(e.diff_lo)}, {fmt(e.diff_hi)}]",
                              f"{fmt(e.ratio)} [{fmt(e.ratio_lo)}, {fmt(e.ratio_hi)}]",
-                             {1: "+", -1: "-"}[sign], e.verdict(sign)])
+                             {1: "+", -1: "-"}[sign], e.verdict(sign), "paired" if paired else "each cell alone"])
+    return rows
+
+
+def gap_headroom(cells: list[dict]) -> list[list]:
+    """Rows (alpha held, beta low -> high, min gap at low, at high, the change, the ceiling, the share of it
+    the cells reach) of how much min gap beta can buy. The ceiling is the change if every agent of the low
+    cell kept at least the high beta wherever its first state allows: the mean of max(min gap, min(beta high,
+    start gap)) less the low cell's mean min gap. A cost whose distance threshold is beta charges nothing
+    beyond it, and no policy moves the state the log hands over, so a larger change needs agents to keep
+    more than beta asks. Nothing for cells without start gaps (evaluated before the figure existed)."""
+    rows = []
+    for at in sorted({c["alpha"] for c in cells}):
+        row = sorted((c for c in cells if c["alpha"] == at), key=lambda c: c["beta"])
+        lo_c, hi_c = row[0], row[-1]
+        if len(row) < 2 or lo_c["beta"] == hi_c["beta"] or not _run_figures(lo_c, "start_gap"):
+            continue
+        low, high, ceiling = [], [], []
+        for gap, start in zip(_run_figures(lo_c, "min_gap"), _run_figures(lo_c, "start_gap")):
+            ok = np.isfinite(gap)
+            low.append(gap[ok].mean())
+            ceiling.append(np.maximum(gap[ok], np.minimum(hi_c["beta"], start[ok])).mean() - gap[ok].mean())
+        high = [g[np.isfinite(g)].mean() for g in _run_figures(hi_c, "min_gap")]
+        change, most = float(np.mean(high) - np.mean(low)), float(np.mean(ceiling))
+        rows.append([f"alpha {at:g}", f"{lo_c['beta']:g} -> {hi_c['beta']:g}", float(np.mean(low)),
+                     float(np.mean(high)), change, most, change / most if most > 0 else float("nan")])
     return rows
 
 
@@ -232,11 +285,13 @@ def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict |
             continue
         samples = [c["figures"][key] for c in cells]
         stat = (lambda sums: fid.hellinger_of_sums(logged, sums)) if key == "hellinger" else None
+        paired = stat is None and played_alike(cells)
         for knob, sign in zip(("beta", "alpha"), signs):
             values = [c[knob] for c in cells]
             if len(set(values)) < 2:
                 continue
-            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells], statistic=stat)
+            r = spearman_ci(values, samples, n_boot=n_boot, labels=[c["label"] for c in cells], statistic=stat,
+                            paired=paired)
             verdict = r.verdict(sign) if sign else "-"
             rows.append([name, knob, {1: "+", -1: "-", 0: "none"}[sign], r.rho, f"[{fmt(r.lo)}, {fmt(r.hi)}]",
                          verdict, min(_episodes(x) for x in samples)])

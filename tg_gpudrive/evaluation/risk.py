@@ -6,6 +6,8 @@ at the same step, policy-driven or replayed):
     collision      the engine flagged a box overlap at some step of the episode
     min_gap        m, smallest centre-to-centre distance to another agent (the engine's and the
                    cost's `beta` convention)
+    start_gap      m, the same distance at the agent's first step: the state the log hands over, which
+                   no policy changes, so min_gap can never exceed it
     close_time     share of the agent's steps with another agent's centre within CLOSE_DISTANCE (5 m,
                    the reference TrafficGamer code's default distance limit): how much of the time it
                    drives close to someone, where min_gap is its single closest moment
@@ -103,6 +105,13 @@ def min_gap(tr: Trajectories) -> np.ndarray:
     return near
 
 
+def start_gap(tr: Trajectories) -> np.ndarray:
+    """(E, A) centre distance to the nearest other agent at each agent's first valid step (inf: never valid)."""
+    first = np.argmax(tr.valid, axis=-1)[..., None]
+    near = np.take_along_axis(tr.nearest, first, axis=-1)[..., 0]
+    return np.where(tr.valid.any(-1), near, np.inf)
+
+
 def close_time(tr: Trajectories, distance: float = CLOSE_DISTANCE) -> np.ndarray:
     """(E, A) share of each agent's valid steps with another agent nearer than `distance` (0 without steps)."""
     close = (tr.valid & (tr.nearest < distance)).sum(-1)
@@ -178,7 +187,8 @@ def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
         contact[row["episode"], row["agent"]] = CONTACTS.index(row["contact"])
         partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
-            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "close_time": close_time(tr), "hard_brakes": hard_brakes(tr),
+            "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "start_gap": start_gap(tr), "close_time": close_time(tr),
+            "hard_brakes": hard_brakes(tr),
             "contact": contact, "partner_policy": partner_policy,
             **{f"closest_{k}": v for k, v in closest_partners(tr).items()}}
 

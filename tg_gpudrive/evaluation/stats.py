@@ -12,6 +12,13 @@ holds training noise too; a cell of one run holds evaluation noise only. `effect
 difference (and ratio) between two cells' figures with the same resampling. `paired_difference`
 compares two policies on the same units (the CCE-gap of each agent under each), resampling the units.
 
+Paired cells (`paired=True`): every run of every cell played the same agent-episodes (the same scenes,
+agents and rollout seeds, in the same order), so an episode's values under two cells differ by the knob
+and sampling, not by the scene. A resample then draws one set of episode indices and applies it to every
+run of every cell (the training seeds are still drawn per cell): the interval holds the noise of which
+episodes were played once, as a paired test does, rather than once per cell. Episodes without a finite
+value in some run are left out of all of them, so every cell averages the same episodes.
+
 Must not: decide a claim holds (the caller compares the interval with the expected sign), or drop
 cells with no episodes silently (that is a ValueError naming the cell).
 """
@@ -62,7 +69,8 @@ class RankCorrelation:
 
 
 def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot: int = 2000, level: float = 0.95,
-                seed: int = 0, labels: Sequence[str] | None = None, statistic=None) -> RankCorrelation:
+                seed: int = 0, labels: Sequence[str] | None = None, statistic=None,
+                paired: bool = False) -> RankCorrelation:
     """Spearman's rho between `knob[c]` and the figure of `samples[c]` (one 1-D array of per-episode
     values per cell c, or a list of them, one per run of the cell), with a `level` percentile
     interval from `n_boot` resamples of every cell (`cell_means`).
@@ -70,20 +78,23 @@ def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot:
     With `statistic`, a cell's figure is not a mean: `samples[c]` is (n, d), one row per episode
     (e.g. its histogram counts; the rows of a cell's runs are pooled), and the figure is
     `statistic(sum of the rows)` ((..., d) -> (...)); a resample weights the rows by multinomial
-    counts, so the sums of all resamples are one matrix product."""
+    counts, so the sums of all resamples are one matrix product. `paired`: see the module docstring (not with a
+    `statistic`)."""
     knob = np.asarray(knob, np.float64)
     if len(knob) != len(samples):
         raise ValueError(f"{len(knob)} knob values for {len(samples)} cells")
     names = [labels[c] if labels is not None else f"#{c}" for c in range(len(samples))]
     if statistic is not None:
+        if paired:
+            raise ValueError("spearman_ci: a statistic of pooled rows resamples each cell alone; paired needs none")
         pooled = [np.concatenate(s) if isinstance(s, (list, tuple)) else s for s in samples]
         return _spearman_ci_of(knob, pooled, statistic, n_boot, level, seed, labels)
-    cells = [_runs_of(s, n) for s, n in zip(samples, names)]
     rng = np.random.default_rng(seed)
+    cells, idx = _cells_of(samples, names, paired, n_boot, rng)
     means = np.empty((n_boot, len(cells)))
     points = np.empty(len(cells))
     for c, runs in enumerate(cells):
-        points[c], means[:, c] = cell_means(runs, n_boot, rng)
+        points[c], means[:, c] = cell_means(runs, n_boot, rng, idx)
     return _interval(float(spearman(knob, points)), spearman(knob, means), len(cells), n_boot, level)
 
 
@@ -97,12 +108,34 @@ def _runs_of(cell, name: str) -> list[np.ndarray]:
     return runs
 
 
-def cell_means(runs: Sequence[np.ndarray], n_boot: int, rng: np.random.Generator) -> tuple[float, np.ndarray]:
+def _cells_of(samples, names, paired: bool, n_boot: int, rng: np.random.Generator):
+    """Each cell's runs (`_runs_of`) and, when `paired`, the (n_boot, episodes) indices every run's resample
+    draws (None otherwise); paired runs keep only the episodes finite in all of them."""
+    if not paired:
+        return [_runs_of(s, n) for s, n in zip(samples, names)], None
+    cells = [[np.asarray(r, np.float64).ravel() for r in (s if isinstance(s, (list, tuple)) else [s])]
+             for s in samples]
+    sizes = {len(r) for runs in cells for r in runs}
+    if len(sizes) != 1:
+        raise ValueError(f"paired cells need the same episodes in every run, got {sorted(sizes)} episodes "
+                         f"in cells {', '.join(names)}")
+    keep = np.logical_and.reduce([np.isfinite(r) for runs in cells for r in runs])
+    cells = [_runs_of([r[keep] for r in runs], n) for runs, n in zip(cells, names)]
+    n = int(keep.sum())
+    return cells, rng.integers(0, n, (n_boot, n))
+
+
+def cell_means(runs: Sequence[np.ndarray], n_boot: int, rng: np.random.Generator,
+               idx: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """A cell's figure (the mean of its runs' episode means) and `n_boot` two-stage resamples of it:
-    runs drawn with replacement, then each drawn run's episodes."""
+    runs drawn with replacement, then each drawn run's episodes (with `idx` (n_boot, episodes), those
+    episodes for every run: paired cells)."""
     point = float(np.mean([r.mean() for r in runs]))
     R = len(runs)
     pick = rng.integers(0, R, (n_boot, R)) if R > 1 else np.zeros((n_boot, 1), np.int64)
+    if idx is not None:
+        per_run = np.stack([r[idx].mean(axis=1) for r in runs], axis=1)  # (n_boot, R)
+        return point, np.take_along_axis(per_run, pick, axis=1).mean(axis=1)
     means = np.empty((n_boot, R))
     for k in range(R):
         for j, r in enumerate(runs):
@@ -131,12 +164,14 @@ class Effect:
 
 
 def effect_ci(low, high, *, n_boot: int = 2000, level: float = 0.95, seed: int = 0,
-              labels: tuple[str, str] = ("low", "high")) -> Effect:
+              labels: tuple[str, str] = ("low", "high"), paired: bool = False) -> Effect:
     """The difference and ratio of two cells' figures (each an array of episode values or a list of
-    them, one per run), with `level` percentile intervals from `cell_means` resamples."""
+    them, one per run), with `level` percentile intervals from `cell_means` resamples; `paired`: the
+    cells played the same episodes (module docstring)."""
     rng = np.random.default_rng(seed)
-    a, boot_a = cell_means(_runs_of(low, labels[0]), n_boot, rng)
-    b, boot_b = cell_means(_runs_of(high, labels[1]), n_boot, rng)
+    (runs_a, runs_b), idx = _cells_of([low, high], labels, paired, n_boot, rng)
+    a, boot_a = cell_means(runs_a, n_boot, rng, idx)
+    b, boot_b = cell_means(runs_b, n_boot, rng, idx)
     tail = 100 * (1 - level) / 2
     d_lo, d_hi = np.percentile(boot_b - boot_a, [tail, 100 - tail])
     with np.errstate(divide="ignore", invalid="ignore"):
