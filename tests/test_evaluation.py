@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -735,6 +736,16 @@ def test_report_parts_fill_one_cache_that_the_last_pass_reads(tmp_path, capsys):
     assert {f.name: f.stat().st_mtime_ns for f in cache.glob("*.pkl")} == done  # all read back
     labels = {r["label"] for r in json.loads((out / "report" / "summary.json").read_text())["results"]}
     assert {"log replay", "beta2.0_alpha0.25", "beta2.0_alpha0.75"} <= labels
+    md = (out / "report" / "report.md").read_text()
+    assert "| alpha | beta 4 | 0.25 -> 0.75 |" in md and "| paired |" in md  # both runs played the same episodes
+    # a cache written before the figures kept their episodes' keys: they are rebuilt from its rollouts
+    old = cache / "beta2.0_alpha0.25.pkl"
+    hit = pickle.loads(old.read_bytes())
+    del hit["value"][0]["figures"]["episode_key"]
+    old.write_bytes(pickle.dumps(hit))
+    (out / "report" / "report.md").unlink()
+    assert mod.main(["--config", str(exp), "--out", str(out), "--report-only"]) == 0
+    assert (out / "report" / "report.md").read_text() == md
     with pytest.raises(SystemExit):
         mod.main(["--config", str(exp), "--out", str(out), "--report-part", "2/2"])
 
