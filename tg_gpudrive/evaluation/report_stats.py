@@ -27,7 +27,7 @@ import numpy as np
 from tg_gpudrive.evaluation import diversity as div
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.stats import effect_ci, paired_difference, spearman_ci
+from tg_gpudrive.evaluation.stats import as_runs, effect_ci, paired_difference, spearman_ci
 
 WORST_SCENES = 4  # scenes drawn in worst_scenes.png
 
@@ -166,13 +166,13 @@ def group_cells(results: list[dict]) -> list[dict]:
 
 def _episodes(x) -> int:
     """Episodes (or agents) behind a cell's figure: one array, or the runs' arrays."""
-    return sum(len(v) for v in x) if isinstance(x, list) else len(x)
+    return sum(len(v) for v in as_runs(x))
 
 
 def _run_figures(cell: dict, key: str) -> list:
     """A cell's per-run arrays of figure `key` (a single run's `figures` hold the array itself)."""
     x = cell["figures"].get(key)
-    return [] if x is None else (x if isinstance(x, list) else [x])
+    return [] if x is None else as_runs(x)
 
 
 def played_alike(cells: list[dict]) -> bool:
@@ -191,7 +191,7 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
     interval resampled): each claimed figure between the extreme cells of each knob, the other knob held.
     Cells are `group_cells` dicts (or single runs with `figures` arrays); cells that played the same
     agent-episodes are compared episode by episode (`played_alike`)."""
-    rows = []
+    rows, alike = [], {}  # alike: played_alike of each compared pair, checked once for all figures
     for key, (name, *signs) in FLEX_CLAIMS.items():
         if not any(signs) or any(key not in c["figures"] for c in cells):
             continue
@@ -201,7 +201,9 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
                 if len(row) < 2 or row[0][knob] == row[-1][knob]:
                     continue
                 lo_c, hi_c = row[0], row[-1]
-                paired = played_alike([lo_c, hi_c])
+                if (knob, at) not in alike:
+                    alike[knob, at] = played_alike([lo_c, hi_c])
+                paired = alike[knob, at]
                 e = effect_ci(lo_c["figures"][key], hi_c["figures"][key], n_boot=n_boot,
                               labels=(lo_c["label"], hi_c["label"]), paired=paired)
                 rows.append([name, knob, f"{other} {at:g}", f"{lo_c[knob]:g} -> {hi_c[knob]:g}", e.low, e.high,
@@ -278,14 +280,14 @@ def flexibility_directions(cells: list[dict], n_boot: int = 2000, logged: dict |
     """Rows (figure, knob, paper's sign, rho, 95 % interval, verdict, samples per cell) of the Spearman
     correlation of each figure with beta and with alpha over the CCE-MAPPO cells; the Hellinger row
     needs the `logged` histograms (fidelity.histograms of the logs the cells were compared with)."""
-    rows = []
+    rows, alike = [], played_alike(cells)
     for key, (name, *signs) in FLEX_CLAIMS.items():
         # a cache written before the figure existed, or a report without CCE-gaps
         if any(key not in c["figures"] for c in cells) or key == "hellinger" and logged is None:
             continue
         samples = [c["figures"][key] for c in cells]
         stat = (lambda sums: fid.hellinger_of_sums(logged, sums)) if key == "hellinger" else None
-        paired = stat is None and played_alike(cells)
+        paired = stat is None and alike
         for knob, sign in zip(("beta", "alpha"), signs):
             values = [c[knob] for c in cells]
             if len(set(values)) < 2:

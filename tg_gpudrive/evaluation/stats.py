@@ -87,7 +87,7 @@ def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot:
     if statistic is not None:
         if paired:
             raise ValueError("spearman_ci: a statistic of pooled rows resamples each cell alone; paired needs none")
-        pooled = [np.concatenate(s) if isinstance(s, (list, tuple)) else s for s in samples]
+        pooled = [np.concatenate(as_runs(s)) for s in samples]
         return _spearman_ci_of(knob, pooled, statistic, n_boot, level, seed, labels)
     rng = np.random.default_rng(seed)
     cells, idx = _cells_of(samples, names, paired, n_boot, rng)
@@ -98,10 +98,14 @@ def spearman_ci(knob: Sequence[float], samples: Sequence[np.ndarray], *, n_boot:
     return _interval(float(spearman(knob, points)), spearman(knob, means), len(cells), n_boot, level)
 
 
+def as_runs(cell) -> list:
+    """A cell's per-run arrays: a list (or tuple) of them as given, a bare array as one run."""
+    return list(cell) if isinstance(cell, (list, tuple)) else [cell]
+
+
 def _runs_of(cell, name: str) -> list[np.ndarray]:
     """A cell's finite episode values, one array per run (a bare array is one run)."""
-    runs = cell if isinstance(cell, (list, tuple)) else [cell]
-    runs = [np.asarray(r, np.float64).ravel() for r in runs]
+    runs = [np.asarray(r, np.float64).ravel() for r in as_runs(cell)]
     runs = [r[np.isfinite(r)] for r in runs]
     if not runs or any(r.size == 0 for r in runs):
         raise ValueError(f"cell {name} has a run with no finite episode value")
@@ -113,8 +117,7 @@ def _cells_of(samples, names, paired: bool, n_boot: int, rng: np.random.Generato
     draws (None otherwise); paired runs keep only the episodes finite in all of them."""
     if not paired:
         return [_runs_of(s, n) for s, n in zip(samples, names)], None
-    cells = [[np.asarray(r, np.float64).ravel() for r in (s if isinstance(s, (list, tuple)) else [s])]
-             for s in samples]
+    cells = [[np.asarray(r, np.float64).ravel() for r in as_runs(s)] for s in samples]
     sizes = {len(r) for runs in cells for r in runs}
     if len(sizes) != 1:
         raise ValueError(f"paired cells need the same episodes in every run, got {sorted(sizes)} episodes "
