@@ -356,6 +356,36 @@ def test_lambda_on_mean_budget_is_one_per_beta_for_every_alpha(tmp_path):
     assert cvar_hi > cvar_lo >= mean_lo
 
 
+def test_start_budget_is_the_starting_policys_mean_cost_for_every_alpha(tmp_path):
+    """cost_limit_mode start asks cost_limit x the starting actor's mean discounted cost-to-go over one
+    sampled episode in every world: the same at every alpha, scaled by cost_limit; the run then trains as
+    one given that budget as a number."""
+    from tg_gpudrive.agents.policy import actor_policy
+    from tg_gpudrive.learn.train import Trainer, cost_to_go
+
+    from test_train import rows, tiny
+
+    def trainer(name, **kw):
+        cfg = tiny(tmp_path / name, lambda_on="cvar", num_worlds=4, updates=2, **kw)
+        return Trainer(dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=12.0)), progress=False)
+
+    lo = trainer("lo", cost_limit_mode="start", cost_limit=1.0, alpha=0.25)
+    hi = trainer("hi", cost_limit_mode="start", cost_limit=1.0, alpha=0.75)
+    twice = trainer("twice", cost_limit_mode="start", cost_limit=2.0, alpha=0.25)
+    fixed = trainer("fixed", cost_limit_mode="absolute", cost_limit=float(lo.budget), alpha=0.25)
+    torch.manual_seed(lo.cfg.seed)
+    want = cost_to_go(fixed.sim, fixed.cfg.gamma, actor_policy(fixed.actor, fixed.sim)).mean()
+    fixed.sim.reset()
+    assert float(lo.budget) == pytest.approx(float(want)) and float(want) > 0
+    assert float(hi.budget) == pytest.approx(float(lo.budget))
+    assert float(twice.budget) == pytest.approx(2 * float(lo.budget))
+    lo.train()
+    fixed.train()
+    learned = [[{k: v for k, v in r.items() if "time" not in k and not k.endswith(("_s", "_per_s"))} for r in rows(p)]
+               for p in (tmp_path / "lo", tmp_path / "fixed")]
+    assert learned[0] == learned[1]
+
+
 def test_vehicle_lagrange_step_by_hand():
     """lambda_per_vehicle: worlds 0 and 2 hold scene 0, world 1 scene 1; each (scene, slot) multiplier
     moves by lambda_lr times the mean of the value over that vehicle's live states in all its worlds,

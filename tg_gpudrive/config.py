@@ -288,7 +288,10 @@ class TrainConfig:
     eta2: float = 20.0
     alpha: float = 0.5  # CVaR level of the cost critic (lower: less risk-averse)
     cost_limit: float = 1.0  # budget on CVaR_alpha of the discounted cost-to-go (see cost_limit_mode)
-    cost_limit_mode: str = "logs"  # logs: cost_limit x the logged drivers' own CVaR; absolute: cost_limit itself
+    # logs: cost_limit x the logged drivers' own CVaR (their mean with lambda_on: mean); absolute: cost_limit
+    # itself; start: cost_limit x the starting policy's mean cost-to-go, one budget per beta for every alpha, so
+    # with lambda_on: cvar a higher alpha holds a heavier tail to the same bar
+    cost_limit_mode: str = "logs"
     # what lambda is stepped on: cvar, the CVaR_alpha of the discounted cost-to-go; mean, its expectation
     # E[c] (TrafficGamer's Algorithm 1), whose "logs" budget is the logs' mean, one per beta for every alpha
     # (alpha then shapes the actor's cost advantage alone)
@@ -347,8 +350,8 @@ class TrainConfig:
         require_nonempty(self, ("scenes", "device", "out_dir"))
         if not 0.0 <= self.alpha < 1.0:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
-        if self.cost_limit_mode not in ("logs", "absolute"):
-            raise ConfigError(f"cost_limit_mode: expected logs or absolute, got {self.cost_limit_mode!r}")
+        if self.cost_limit_mode not in ("logs", "absolute", "start"):
+            raise ConfigError(f"cost_limit_mode: expected logs, absolute or start, got {self.cost_limit_mode!r}")
         if self.lambda_per_vehicle and not self.per_agent_lambda:
             raise ConfigError("lambda_per_vehicle: needs per_agent_lambda (a multiplier per slot of each scene)")
         if self.actor_history_partners and not self.actor_history:

@@ -6,8 +6,9 @@ then PPO epochs over it (update.ppo_update: advantages, the Lagrange step on the
 actor and critic losses of losses.py). Around them the loop resamples scenes, logs (runlog.RunLog),
 checks the quality targets (targets.RateWindow, targets.HeldoutCheck), saves checkpoints and stops on
 the update count, the time limit, the target or a Ctrl-C (stop.StopRequest). The budget lambda
-answers to is `cost_limit` (x the logged drivers' own CVaR with `cost_limit_mode: logs`; set it above
-their level, or the constraint is infeasible and lambda grows without bound).
+answers to is `cost_limit` (x the logged drivers' own CVaR with `cost_limit_mode: logs`, x the starting
+policy's mean cost-to-go with `start`; set it above their level, or the constraint is infeasible and lambda grows
+without bound).
 
 Checkpoints are atomic (write, then rename) and hold everything a resume needs
 to continue exactly: weights, optimisers, lambda, RNG states, counters, the
@@ -51,7 +52,7 @@ from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import make_optimizer, ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
-from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, build_models
+from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
 log = logging.getLogger(__name__)
@@ -184,11 +185,21 @@ class Trainer:
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
             # the logs' own value of what lambda is stepped on: their CVaR_alpha, or their mean (alpha 0)
             level = cfg.alpha if cfg.lambda_on == "cvar" else 0.0
-            self.logged_cvar = dist_util.all_reduce_mean(logged_cost_cvar(self.sim, level, cfg.gamma))
-            self.budget = cfg.cost_limit * self.logged_cvar
+            self.budget = cfg.cost_limit * dist_util.all_reduce_mean(logged_cost_cvar(self.sim, level, cfg.gamma))
+        elif cfg.cost_limit_mode == "start" and cfg.constraint:
+            self.budget = cfg.cost_limit * dist_util.all_reduce_mean(self._start_cost())
         self.sim.reset()
         if ck is not None:
             self._load(ck, mine)
+
+    def _start_cost(self) -> torch.Tensor:
+        """The starting policy's mean discounted cost-to-go over one sampled episode in every world: the
+        budget of `cost_limit_mode: start`, an alpha-free level, so one per beta holds every alpha's CVaR
+        to the same bar (a higher alpha, a heavier tail held to it: the tighter constraint)."""
+        with torch.random.fork_rng(devices=[self.device] if self.sim.is_cuda else []):  # training's stream kept
+            torch.manual_seed(self.cfg.seed + self.stream)
+            ctg = cost_to_go(self.sim, self.cfg.gamma, actor_policy(self.actor, self.sim, self.cfg.actor_history))
+        return ctg.mean() if ctg.numel() else torch.zeros((), device=self.device)
 
     # ------------------------------------------------------------ setup bits
     def _build_worlds(self, ck: dict | None) -> None:
