@@ -104,6 +104,33 @@ def test_report_md_holds_no_per_agent_rows_and_stays_short(tmp_path):
         assert text in md, text
 
 
+def test_the_flexibility_section_names_each_cells_constraint_rule(tmp_path):
+    """The rule the cells' multipliers followed, in words from each run's config, and each cell's CVaR and
+    budget at the end of training beside lambda."""
+    import dataclasses
+
+    from tg_gpudrive.config import TrainConfig
+    from tg_gpudrive.evaluation.report import constraint_rule
+
+    cfg = TrainConfig(alpha=0.875, lambda_on="cvar", cost_limit_mode="start", cost_limit=0.5)
+    assert constraint_rule(cfg) == "CVaR 0.875 of the cost-to-go against 0.5 x the starting policy's mean"
+    assert (constraint_rule(dataclasses.replace(cfg, lambda_on="mean", cost_limit_mode="logs", cost_limit=1.0))
+            == "the mean of the cost-to-go against 1 x the logs' mean")
+    assert (constraint_rule(dataclasses.replace(cfg, cost_limit_mode="absolute", cost_limit=0.0))
+            == "CVaR 0.875 of the cost-to-go against 0")
+    assert constraint_rule(dataclasses.replace(cfg, constraint=False)) == "no constraint"
+    rng = np.random.default_rng(0)
+    cells = [_result(rng, f"beta{b}_alpha{a}", "CCE-MAPPO", 4, 1, b, a) for b in (2.0, 6.0) for a in (0.125, 0.875)]
+    for c in cells:
+        c["constraint"] = constraint_rule(dataclasses.replace(cfg, alpha=c["alpha"]))
+        c["train_tail"].update(cvar=0.25, cost_budget=0.125)
+    write_markdown(tmp_path, cells, _meta([c["label"] for c in cells]))
+    md = (tmp_path / "report.md").read_text()
+    assert ("stepped on CVaR 0.125 of the cost-to-go against 0.5 x the starting policy's mean; CVaR 0.875 of the "
+            "cost-to-go against 0.5 x the starting policy's mean." in md)
+    assert "| 2 | 0.125 | - | 0.1 | 0.25 | 0.125 | 4 |" in md
+
+
 def test_the_per_agent_check_finds_a_per_agent_row(tmp_path):
     """The check above is not vacuous: a per-agent table in report.md is caught."""
     _write(tmp_path, agents=4, top=1)

@@ -496,7 +496,9 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     # guarded policy may act otherwise than the policy they are compared with
     res["acting"] = f"T {cfg.act_temperature:g}" + (f", guard {cfg.act_guard_s:g} s" if cfg.act_guard_s else "")
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
-    res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost"))
+    res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost", "cvar",
+                                                       "cost_budget"))
+    res["constraint"] = constraint_rule(cfg)
     if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cell_runs:  # a cell's first training seed
         got.cell_runs[(cfg.env.beta, cfg.alpha)] = (cfg, scenes, masks, ckpt, device, label)
     # the most critical scenarios, as GPUDrive JSON with their risk figures
@@ -504,6 +506,18 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     files = export_episodes(gen, [c["episode"] for c in crit], out / "scenarios" / label, crit)
     for c, f in zip(crit, files):
         c["file"] = str(f.relative_to(out))
+
+
+def constraint_rule(cfg: TrainConfig) -> str:
+    """What a run's multipliers were stepped on and against which budget, in words."""
+    if not cfg.constraint:
+        return "no constraint"
+    value = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "the mean"
+    if cfg.cost_limit_mode == "absolute":
+        return f"{value} of the cost-to-go against {cfg.cost_limit:g}"
+    level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
+    bar = {"logs": f"the logs' {level}", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
+    return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}"
 
 
 def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, sim, gsim, scenes, masks, logged,

@@ -132,16 +132,19 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
                  key=lambda r: (r["beta"], r["alpha"], r.get("seed", 0)))
     if not cce:
         return []
+    rules = sorted({r["constraint"] for r in cce if r.get("constraint")})
+    rule = f" Each cell's multipliers were stepped on {'; '.join(rules)}." if rules else ""
     out = ["\n## Flexibility: beta x alpha\n\nTraining: mean of the last 5 updates. Evaluation: the "
            "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
-           "alpha (less risk-averse) -> faster, smaller gaps.\n\n"]
+           f"alpha (less risk-averse) -> faster, smaller gaps.{rule}\n\n"]
     rows = [[r["beta"], r["alpha"], r.get("seed", "-"), r["train_tail"]["lambda"],
+             r["train_tail"].get("cvar", "-"), r["train_tail"].get("cost_budget", "-"),
              r["train_tail"]["mean_min_distance"], r["train_tail"]["mean_speed"], r["train_tail"]["cost"],
              r["risk"].get("mean_min_gap_m"), r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
              r["risk"].get("collision_rate")] for r in cce]
-    out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "min distance (train) [m]",
-                       "speed (train) [m/s]", "cost (train)", "min gap (eval) [m]", "speed (eval) [m/s]",
-                       "collision rate (eval)"], rows))
+    out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "CVaR (train)",
+                       "budget (train)", "min distance (train) [m]", "speed (train) [m/s]", "cost (train)",
+                       "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"], rows))
     if not all("figures" in r for r in cce):
         return out
     cells = group_cells(cce)
