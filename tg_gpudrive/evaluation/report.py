@@ -512,10 +512,10 @@ def constraint_rule(cfg: TrainConfig) -> str:
     """What a run's multipliers were stepped on and against which budget, in words."""
     if not cfg.constraint:
         return "no constraint"
-    value = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "the mean"
+    level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
+    value = level if cfg.lambda_on == "cvar" else "the mean"
     if cfg.cost_limit_mode == "absolute":
         return f"{value} of the cost-to-go against {cfg.cost_limit:g}"
-    level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
     bar = {"logs": f"the logs' {level}", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
     return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}"
 
