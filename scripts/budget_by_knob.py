@@ -8,7 +8,8 @@ policy (sampled), and of each the discounted cost-to-go of every controlled agen
 (`learn.train.cost_to_go`, the run's gamma). Per (beta, alpha) it prints the logs' CVaR_alpha, the
 budget a `cost_limit_mode: logs` run would ask (cost_limit x that), the policy's own CVaR_alpha, and
 whether the policy already meets the budget (then the multiplier has nothing to push against, and the
-knob acts through the cost advantage alone). alpha 0 is the plain mean: the budget of `lambda_on: mean`.
+knob acts through the cost advantage alone). alpha 0 is the plain mean: the budget of `lambda_on: mean`; the
+policy's own at alpha 0, times cost_limit, is what `cost_limit_mode: start` asks of a run starting from it.
 Numbers only; it never fails on them.
 """
 
