@@ -226,7 +226,7 @@ def gap_headroom(cells: list[dict]) -> list[list]:
         lo_c, hi_c = row[0], row[-1]
         if len(row) < 2 or lo_c["beta"] == hi_c["beta"] or not _run_figures(lo_c, "start_gap"):
             continue
-        low, high, ceiling = [], [], []
+        low, ceiling = [], []
         for gap, start in zip(_run_figures(lo_c, "min_gap"), _run_figures(lo_c, "start_gap")):
             ok = np.isfinite(gap)
             low.append(gap[ok].mean())
