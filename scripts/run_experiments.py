@@ -61,6 +61,13 @@ def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
     return [(f"{name}_s{seed}", common + sets + [f"seed={seed}"] + extra) for name, sets in cells for seed in seeds]
 
 
+
+def report_options(exp: dict) -> ReportOptions:
+    """The experiment's `report:` keys over ReportOptions' own defaults (an unknown key is a TypeError naming it)."""
+    r = exp.get("report") or {}
+    return dataclasses.replace(ReportOptions(), **{k: tuple(v) if isinstance(v, list) else v for k, v in r.items()})
+
+
 FLEX_COLUMNS = ("lambda", "cvar", "mean_min_distance", "mean_speed", "cost", "collision_rate", "goal_rate")
 
 
@@ -163,9 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     print((out / "flexibility.md").read_text(), flush=True)
     if args.no_report:
         return 0
-    r = exp.get("report") or {}
-    # the experiment's report keys over ReportOptions' own defaults (an unknown key fails here)
-    opts = dataclasses.replace(ReportOptions(), **{k: tuple(v) if isinstance(v, list) else v for k, v in r.items()})
+    opts = report_options(exp)
     paths = [out / n for n, _ in runs]
     if part is not None:
         k, n = part

@@ -769,6 +769,25 @@ def test_run_experiments_leaves_the_distance_keeping_reward_to_the_knobs():
     assert {c.env.cost_shape for c in cfgs} == {"approach"}
 
 
+@pytest.mark.parametrize("grid", sorted((REPO_CONFIGS / "experiments").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_experiment_grid_resolves_before_it_trains(grid):
+    """Every run a shipped grid plans loads as a training config that is the cell it is named for, and the grid's
+    report keys are the report's: a misspelt key fails here, not on the GPU or after the grid has trained."""
+    mod = _script("run_experiments")
+    exp = yaml.safe_load(grid.read_text())
+    base = REPO_CONFIGS / "train" / exp["base"]
+    runs = mod.plan(exp, [])
+    cells = {(float(b), float(a)) for b in exp["beta"] for a in exp["alpha"]}
+    assert len(runs) == (len(cells) + len(exp.get("baselines") or {})) * len(exp.get("seeds") or [None])
+    for name, sets in runs:
+        cfg = load_config(TrainConfig, base, overrides=sets)
+        if name.startswith("beta"):
+            assert name.split("_s")[0] == f"beta{cfg.env.beta}_alpha{cfg.alpha}", name
+            cells.discard((cfg.env.beta, cfg.alpha))
+    assert not cells  # every cell planned
+    mod.report_options(exp)
+
+
 def test_flexibility_table_averages_the_last_updates(tmp_path):
     mod = _script("run_experiments")
     run = tmp_path / "beta2.0_alpha0.5"
