@@ -61,7 +61,6 @@ def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
     return [(f"{name}_s{seed}", common + sets + [f"seed={seed}"] + extra) for name, sets in cells for seed in seeds]
 
 
-
 def report_options(exp: dict) -> ReportOptions:
     """The experiment's `report:` keys over ReportOptions' own defaults (an unknown key is a TypeError naming it)."""
     r = exp.get("report") or {}
