@@ -562,7 +562,8 @@ def test_report_on_tiny_runs(tmp_path):
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
     md = (out / "report.md").read_text()
     for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model",
-                  "| cce | CCE-MAPPO | T 1 |", "| mappo | MAPPO | T 1 |", "acts at", "realism (ours)", "grid.png shows scene "):
+                  "| cce | CCE-MAPPO | T 1 |", "| mappo | MAPPO | T 1 |", "acts at", "realism (ours)",
+                  "grid.png shows scene ", "bottom right, the mean over that run's episodes"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",

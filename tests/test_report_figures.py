@@ -57,6 +57,22 @@ def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs):
     assert len(ticks) == len(gaps)
 
 
+def test_grid_writes_each_cells_note_under_its_picture(tmp_path):
+    rng = np.random.default_rng(0)  # the knobs' extreme cells, two by two as a grid report draws them
+    cells = {(b, a): rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for b in (2.0, 6.0) for a in (0.125, 0.875)}
+    notes = {cell: f"mean least distance here {i + 3.5:.1f} m" for i, cell in enumerate(sorted(cells))}
+    fig = plot_grid(cells, tmp_path / "grid.png", notes=notes)
+    renderer = fig.canvas.get_renderer()
+    drawn = {}
+    for ax in fig.axes:
+        for t in ax.texts:  # each note inside its own cell's picture, so it covers no other cell
+            drawn[t.get_text()] = ax
+            box, own = t.get_window_extent(renderer), ax.get_window_extent(renderer)
+            assert own.x0 <= box.x0 and box.x1 <= own.x1 and own.y0 <= box.y0 and box.y1 <= own.y1, t.get_text()
+    assert sorted(drawn) == sorted(notes.values())
+    assert not any(ax.texts for ax in plot_grid(cells, tmp_path / "bare.png").axes)
+
+
 def test_report_pictures_without_runs(tmp_path):
     plot_grid({}, tmp_path / "grid.png")
     plot_gaps({}, tmp_path / "cce_gap.png")

@@ -85,8 +85,8 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, re
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
-from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, tail_means,
-                                                 worst_scenes)
+from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, scene_distances,
+                                                 tail_means, worst_scenes)
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.agents.policy import load_actor, load_policy
 from tg_gpudrive.agents.builtin import expert_policy
@@ -247,6 +247,9 @@ def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
         got.cells[cell] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
                                       out / "frames" / f"{label}.png", gif=opts.grid_gifs)
         got.grid_scene = scenes[g].scene_id
+        here = scene_distances(got.generated[label]).get(got.grid_scene)
+        if here is not None:
+            got.grid_notes[cell] = f"mean least distance here {here:.1f} m"
     if pick:
         got.grid_scene += f" (where the knob moves the distance kept most: {pick[1]:+.2f} m)"
 
@@ -389,6 +392,7 @@ class _Collected:
     cells: dict = dataclasses.field(default_factory=dict)
     cell_runs: dict = dataclasses.field(default_factory=dict)
     grid_scene: str = ""
+    grid_notes: dict = dataclasses.field(default_factory=dict)
     logged: object = None
     worst: dict | None = None
     br: dict = dataclasses.field(default_factory=dict)
@@ -545,7 +549,7 @@ def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, 
 
 def _write_report(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOptions, out: Path) -> dict:
     """The pictures, report.md, its CSV tables and summary.json of what `got` gathered; returns the summary."""
-    plot_grid(got.cells, out / "grid.png", scene=got.grid_scene)
+    plot_grid(got.cells, out / "grid.png", scene=got.grid_scene, notes=got.grid_notes)
     plot_multipliers(got.curves, out / "multipliers.png")
     fid.plot_histograms(got.logged, got.generated, out / "fidelity.png")
     # the CCE-gap pictures this pass has, and no earlier report's beside this one's text

@@ -45,11 +45,13 @@ def _short(label: str, n: int = 26) -> str:
     return label if len(label) <= n else label[: n - 10] + "…" + label[-9:]
 
 
-def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows: int = 8, scene: str = ""):
+def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows: int = 8, scene: str = "",
+              notes: dict[tuple[float, float], str] | None = None):
     """The paper's beta x alpha figure: one picture per CCE-MAPPO cell, beta down the rows, alpha
-    across the columns. More than `max_rows` betas wrap into further blocks side by side (each block
-    all the alphas); cells shrink (from 2.4 in) and labels with them, so the picture stays within
-    MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
+    across the columns, each cell's line of `notes` at its picture's foot (what it measured on the scene, which
+    a picture of metres at a crossing's scale does not show). More than `max_rows` betas wrap into further
+    blocks side by side (each block all the alphas); cells shrink (from 2.4 in) and labels with them, so the
+    picture stays within MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
     from tg_gpudrive.render.draw import legend_handles  # the render extra, as the cells' frames
 
     betas = sorted({b for b, _ in cells}) or [0.0]
@@ -76,6 +78,9 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
                 ax.set_yticks([])
                 if (b, a) in cells:
                     ax.imshow(cells[(b, a)])
+                if (b, a) in (notes or {}):  # bottom right: the frame's scale bar holds the bottom left
+                    ax.text(0.98, 0.02, notes[(b, a)], transform=ax.transAxes, ha="right", va="bottom",
+                            fontsize=max(5.0, fs - 1), bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.6"))
                 if r == 0:
                     ax.set_title(f"alpha = {a:g}", fontsize=fs)
                 if c == 0:
