@@ -859,13 +859,16 @@ def test_the_grid_scene_is_where_the_knob_moves_the_distance_kept_most():
     cells = {(2.0, 0.1): gen([3.0, 5.0, 7.0]), (6.0, 0.1): gen([4.0, 8.0, 7.5]),  # +1, +3, +0.5
              (2.0, 0.9): gen([3.0, 5.0, 7.0]), (6.0, 0.9): gen([4.0, 5.0, 7.0]),  # +1, 0, 0
              (4.0, 0.1): gen([0.0, 0.0, 0.0])}  # a middle beta takes no part
-    pick = knob_scene(cells)
+    def dists(cells):  # what the report hands knob_scene: each cell's distances per scene
+        return {cell: scene_distances(g) for cell, g in cells.items()}
+
+    pick = knob_scene(dists(cells))
     assert pick == ("b", 1.5)  # means over alpha: a 1.0, b 1.5, c 0.25
     cells[(6.0, 0.9)] = gen([6.0, 5.0, 7.0])
-    assert knob_scene(cells) == ("a", 2.0)
+    assert knob_scene(dists(cells)) == ("a", 2.0)
     # one beta: the largest alpha's distance minus the smallest's; one cell: no pick
-    assert knob_scene({(4.0, 0.9): gen([3.0, 9.0, 7.0]), (4.0, 0.1): gen([3.0, 5.0, 7.0])}) == ("b", 4.0)
-    assert knob_scene({(4.0, 0.1): gen([3.0, 9.0, 7.0])}) is None
+    assert knob_scene(dists({(4.0, 0.9): gen([3.0, 9.0, 7.0]), (4.0, 0.1): gen([3.0, 5.0, 7.0])})) == ("b", 4.0)
+    assert knob_scene(dists({(4.0, 0.1): gen([3.0, 9.0, 7.0])})) is None
 
 
 def test_cce_gap_reports_robust_summaries_beside_the_mean():

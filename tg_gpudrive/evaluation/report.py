@@ -235,11 +235,12 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
 
 def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
     """Each cell's picture for grid.png, of one scene: --grid-scene, or the one where the knob moves the
-    distance kept most (knob_scene over the cells' recorded episodes; scene 0 when it finds none)."""
+    distance kept most (knob_scene over the cells' recorded episodes; scene 0 when it finds none), and its
+    note: the same episodes' mean least distance on that scene."""
     if not got.cell_runs:
         return
-    pick = None if opts.grid_scene is not None else knob_scene(
-        {cell: got.generated[run[-1]] for cell, run in got.cell_runs.items()})
+    dists = {cell: scene_distances(got.generated[run[-1]]) for cell, run in got.cell_runs.items()}
+    pick = None if opts.grid_scene is not None else knob_scene(dists)
     for cell, (cfg, scenes, masks, ckpt, device, label) in got.cell_runs.items():
         g = opts.grid_scene
         if g is None:
@@ -247,7 +248,7 @@ def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
         got.cells[cell] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
                                       out / "frames" / f"{label}.png", gif=opts.grid_gifs)
         got.grid_scene = scenes[g].scene_id
-        here = scene_distances(got.generated[label]).get(got.grid_scene)
+        here = dists[cell].get(got.grid_scene)
         if here is not None:
             got.grid_notes[cell] = f"mean least distance here {here:.1f} m"
     if pick:

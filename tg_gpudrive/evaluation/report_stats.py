@@ -8,7 +8,7 @@
     gap_headroom(cells)                how much min gap a distance threshold of beta can buy at most
     gap_against_mappo(results)         each CCE-MAPPO policy's CCE-gap against plain MAPPO's, agent by agent
     worst_scenes(gen)                  the scenes where the policy's agents fail most
-    knob_scene(gens)                   the scene where beta (or alpha) moves the distance kept most
+    knob_scene(dists)                  the scene where beta (or alpha) moves the distance kept most
     tail_means(rows, keys)             training figures averaged over the last updates
     gap_curve(start, kept, last, u)    the CCE-gap over a run's training
 
@@ -73,12 +73,12 @@ def scene_distances(gen) -> dict[str, float]:
     return {k: a / n for k, (a, n) in sums.items() if n}
 
 
-def knob_scene(cells: dict[tuple[float, float], object]) -> tuple[str, float] | None:
+def knob_scene(cells: dict[tuple[float, float], dict[str, float]]) -> tuple[str, float] | None:
     """The scene (id) where the knob moves the distance kept most, and by how much (m): per scene, the mean
-    least distance (`scene_distances`) of the largest beta's cell minus the smallest beta's, averaged over
-    the alphas both have; with a single beta, the largest alpha's minus the smallest alpha's (the paper's
-    direction: a larger beta, or a larger alpha, the more risk-averse, keeps more distance). `cells` maps (beta, alpha) to recorded
-    episodes. None with fewer than two cells, or no scene that the extreme cells share."""
+    least distance of the largest beta's cell minus the smallest beta's, averaged over the alphas both have;
+    with a single beta, the largest alpha's minus the smallest alpha's (the paper's direction: a larger beta,
+    or a larger alpha, the more risk-averse, keeps more distance). `cells` maps (beta, alpha) to its
+    `scene_distances`. None with fewer than two cells, or no scene that the extreme cells share."""
     betas = sorted({b for b, _ in cells})
     alphas = sorted({a for _, a in cells})
     if len(betas) > 1:
@@ -87,7 +87,7 @@ def knob_scene(cells: dict[tuple[float, float], object]) -> tuple[str, float] | 
         pairs = [((betas[0], alphas[-1]), (betas[0], alphas[0]))] if len(alphas) > 1 else []
     diffs: dict[str, list[float]] = {}
     for hi, lo in pairs:
-        d_hi, d_lo = scene_distances(cells[hi]), scene_distances(cells[lo])
+        d_hi, d_lo = cells[hi], cells[lo]
         for k in d_hi.keys() & d_lo.keys():
             diffs.setdefault(k, []).append(d_hi[k] - d_lo[k])
     full = {k: float(np.mean(v)) for k, v in diffs.items() if len(v) == len(pairs)}
