@@ -276,14 +276,25 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.0)
 
 
-@pytest.mark.parametrize("compiled, device", [
-    (False, "cpu"), pytest.param(True, "cpu", marks=pytest.mark.slow, id="compile_rollout-cpu"),
-    pytest.param(True, "cuda", marks=CUDA_ONLY, id="compile_rollout-cuda")])
-def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled, device):
+def test_cost_advantage_names_a_rule():
+    from tg_gpudrive.config import ConfigError, TrainConfig
+
+    assert TrainConfig(cost_advantage="tail").cost_advantage == "tail"
+    with pytest.raises(ConfigError, match="cost_advantage: expected gae or tail, got 'cvar'"):
+        TrainConfig(cost_advantage="cvar")
+
+
+@pytest.mark.parametrize("compiled, device, rule", [
+    (False, "cpu", "gae"), (False, "cpu", "tail"),
+    pytest.param(True, "cpu", "gae", marks=pytest.mark.slow, id="compile_rollout-cpu"),
+    pytest.param(True, "cuda", "gae", marks=CUDA_ONLY, id="compile_rollout-cuda"),
+    pytest.param(True, "cuda", "tail", marks=CUDA_ONLY, id="compile_rollout-cuda-tail")])
+def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled, device, rule):
     """update.advantages computes its targets on the (world, slot) columns that act at some step: there they
     equal the targets of the whole (T, W, C) block, computed as losses.py states them (the quantiles sorted
     inside CVaR), and a column that never acts holds zeros. The critic's quantiles come sorted, which lets
-    CVaR skip its sort. With compile_rollout the column targets go through torch.compile."""
+    CVaR skip its sort. With compile_rollout the column targets go through torch.compile. The cost advantage
+    is the one cost_advantage names."""
     cfg, sim, nets, collector, *_ = _setup(tmp_path, "discrete", device, num_worlds=3)  # a world with fewer agents
     batch = collector.collect()
     assert bool((batch.quant.diff(dim=-1) >= 0).all())
@@ -291,13 +302,17 @@ def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path
         noise = torch.rand(batch.cost.shape, generator=torch.Generator().manual_seed(3)).to(device)
         batch.cost.copy_(noise * batch.mask)
         batch.quant.add_(torch.linspace(0.0, 4.0, cfg.quantiles, device=device))
-    cfg = dataclasses.replace(cfg, cost_nstep=3, compile_rollout=compiled)
+    cfg = dataclasses.replace(cfg, cost_nstep=3, compile_rollout=compiled, cost_advantage=rule, alpha=0.75)
     torch._dynamo.utils.counters.clear()
     tg = advantages(cfg, batch)
     assert (torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1) == compiled
     q = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
     adv_r, ret_r = L.gae(batch.reward, batch.value, batch.done, cfg.gamma, cfg.gae_lambda)
-    adv_c, cvar = L.cvar_gae(batch.cost, q, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
+    adv_rule = L.cvar_tail_advantage if rule == "tail" else L.cvar_gae
+    adv_c, cvar = adv_rule(batch.cost, q, batch.done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
+    if rule == "tail":  # it tells the sampled costs apart where the CVaR baseline rule does not
+        assert not torch.allclose(adv_c, L.cvar_gae(batch.cost, q, batch.done, cfg.alpha, cfg.gamma,
+                                                   cfg.gae_lambda)[0])
     q_target = L.cost_quantile_targets(batch.cost, q, batch.done, cfg.gamma, cfg.cost_nstep)
     acts = batch.mask.any(0)
     assert bool(acts.any()) and not bool(acts.all())  # columns that never act were there

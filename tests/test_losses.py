@@ -20,6 +20,7 @@ from tg_gpudrive.learn.losses import (
     cost_quantile_targets,
     cvar_from_quantiles,
     cvar_gae,
+    cvar_tail_advantage,
     gae,
     kl_estimate,
     masked_mean,
@@ -27,6 +28,7 @@ from tg_gpudrive.learn.losses import (
     ppo_clip_loss,
     quantile_huber_loss,
     quantile_midpoints,
+    var_from_quantiles,
 )
 
 DEVICES = [
@@ -241,6 +243,64 @@ def test_cvar_gae_uses_the_cvar_of_the_quantiles(device):
     close(v5, [[2.0], [4.0]])
     close(adv0, [[0.5 * 2.0 - 2.0]])
     close(adv5, [[0.5 * 4.0 - 2.0]])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_var_is_the_atom_that_holds_alpha(device):
+    q = t([[0.0, 1.0, 2.0, 3.0]], device)  # atoms of width 1/4
+    for alpha, want in {0.0: 0.0, 0.3: 1.0, 0.5: 2.0, 0.74: 2.0, 0.99: 3.0, 1.0: 3.0}.items():
+        close(var_from_quantiles(q, alpha), [want])
+    close(var_from_quantiles(q.expand(2, 4), t([0.3, 0.8], device)), [1.0, 3.0])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_tail_advantage_tells_equal_mean_actions_apart_by_their_tail(device):
+    """A one-step game at an even policy: the safe action always costs 0.5; the risky one costs 0 three times
+    in four and 2 otherwise, the same mean. Eight columns hold those outcomes in their proportions (4 safe, 3
+    risky at 0, 1 risky at 2), and the critic holds the mixture's exact atoms [0 x3, 0.5 x4, 2]. At alpha 0.75
+    VaR = 0.5 and CVaR = 1.25, so by hand A = 0.5 + (G - 0.5)^+ / 0.25 - 1.25: -0.75 at G = 0 or 0.5, 5.25 at 2.
+    Averaged per action the tail rule charges the risky action 1.5 more than the safe one, and nothing over the
+    policy; cvar_gae's c - CVaR gives both actions the same mean, so the gradient cannot tell them apart."""
+    costs = t([[0.5] * 4 + [0.0] * 3 + [2.0]], device)
+    atoms = t([0.0] * 3 + [0.5] * 4 + [2.0], device)
+    quant = atoms.expand(2, 8, 8).contiguous()
+    done = torch.ones_like(costs)
+    adv, cvar = cvar_tail_advantage(costs, quant, done, 0.75, 0.99, 0.95)
+    close(adv, [[-0.75] * 7 + [5.25]])
+    close(cvar[0], [1.25] * 8)
+    safe, risky = adv[0, :4].mean(), adv[0, 4:].mean()
+    assert float(risky - safe) == pytest.approx(1.5) and float(adv.mean()) == pytest.approx(0.0, abs=1e-6)
+    plain, _ = cvar_gae(costs, quant, done, 0.75, 0.99, 0.95, presorted=True)
+    assert float(plain[0, 4:].mean() - plain[0, :4].mean()) == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_tail_advantage_matches_numpy_and_is_gae_at_alpha_0(device):
+    """Against a NumPy loop: the lambda-return over the quantiles' mean, cut at episode ends; VaR the atom at
+    floor(alpha N); CVaR the exact upper-tail integral. At alpha 0 with costs and atoms >= 0 and a least atom of
+    0, it is the GAE of the mean cost-to-go."""
+    rng = np.random.default_rng(0)
+    T, B, N, gamma, lam = 6, 5, 8, 0.9, 0.8
+    c = rng.uniform(0, 1, (T, B)) * (rng.uniform(size=(T, B)) < 0.5)
+    d = (rng.uniform(size=(T, B)) < 0.2).astype(float)
+    q = np.sort(rng.exponential(1.0, (T + 1, B, N)), -1)
+    q[..., 0] = 0.0
+    for alpha in (0.0, 0.3, 0.875):
+        mean = q.mean(-1)
+        ret, nxt = np.zeros((T, B)), mean[T]
+        for s in range(T - 1, -1, -1):
+            nxt = c[s] + gamma * (1 - d[s]) * ((1 - lam) * mean[s + 1] + lam * nxt)
+            ret[s] = nxt
+        k = min(int(np.floor(alpha * N)), N - 1)
+        var = q[..., k]
+        w = np.clip(np.arange(1, N + 1) / N - alpha, 0, 1 / N)
+        cv = (q * w).sum(-1) / w.sum()
+        want = var[:-1] + np.maximum(ret - var[:-1], 0) / (1 - alpha) - cv[:-1]
+        got, got_cvar = cvar_tail_advantage(t(c, device), t(q, device), t(d, device), alpha, gamma, lam)
+        close(got, want, atol=1e-5)
+        close(got_cvar, cv, atol=1e-5)
+        if alpha == 0.0:
+            close(got, gae(t(c, device), t(mean, device), t(d, device), gamma, lam)[0], atol=1e-5)
 
 
 def test_quantile_midpoints():

@@ -311,6 +311,10 @@ class TrainConfig:
     # cost-to-go lies well under 1, so at 1 the critic's atoms crowd towards the mean and CVaR_alpha hardly
     # depends on alpha; 0 is the plain quantile (pinball) loss, exact at any cost scale
     cost_kappa: float = 1.0
+    # the actor's cost advantage: gae, GAE over the critic's CVaR_alpha values (alpha reaches it through the
+    # bootstraps alone); tail, each sampled cost-to-go's excess over its state's VaR_alpha, times 1 / (1 - alpha)
+    # (the CVaR policy gradient, losses.cvar_tail_advantage), which reads true quantiles: pair it with cost_kappa 0
+    cost_advantage: str = "gae"
     prior: str = "world_model"  # world_model | expert: the magnet
     prior_top_component: bool = True  # world_model, continuous: the magnet is the most probable mixture component
     prior_model: str = ""  # world_model: a checkpoint (model.pt or run dir) or a packaged name (small_cpu); "" = the shipped model of the action space (shipped, shipped_continuous)
@@ -361,6 +365,8 @@ class TrainConfig:
                               f"a window, got {self.actor_history_partners}")
         if self.lambda_on not in ("cvar", "mean"):
             raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
+        if self.cost_advantage not in ("gae", "tail"):
+            raise ConfigError(f"cost_advantage: expected gae or tail, got {self.cost_advantage!r}")
         if self.background not in BACKGROUNDS:
             raise ConfigError(f"background: expected one of {', '.join(BACKGROUNDS)}, got {self.background!r}")
         if self.prior not in ("expert", "world_model"):

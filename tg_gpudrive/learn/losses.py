@@ -52,7 +52,9 @@ __all__ = [
     "quantile_midpoints",
     "quantile_huber_loss",
     "cvar_from_quantiles",
+    "var_from_quantiles",
     "cvar_gae",
+    "cvar_tail_advantage",
     "cost_quantile_targets",
     "LagrangeMultiplier",
     "kl_estimate",
@@ -356,6 +358,61 @@ def cvar_gae(
     """
     cvar = cvar_from_quantiles(quantiles, alpha, presorted)
     adv, _ = gae(costs, cvar, dones, gamma, lam)
+    return adv, cvar
+
+
+def var_from_quantiles(quantiles: torch.Tensor, alpha: float | torch.Tensor) -> torch.Tensor:
+    """VaR_alpha, the alpha-quantile of a cost given by N ascending quantiles read as atoms of width 1/N (as in
+    cvar_from_quantiles): the atom that holds tau = alpha, the last one at alpha = 1. (...) from (..., N)."""
+    n = quantiles.shape[-1]
+    a = torch.as_tensor(alpha, dtype=quantiles.dtype, device=quantiles.device).clamp(0.0, 1.0).unsqueeze(-1)
+    idx = (a * n).floor().clamp(max=n - 1).long().expand(*quantiles.shape[:-1], 1)
+    return quantiles.gather(-1, idx).squeeze(-1)
+
+
+@torch.no_grad()
+def cvar_tail_advantage(
+    costs: torch.Tensor,
+    quantiles: torch.Tensor,
+    dones: torch.Tensor,
+    alpha: float | torch.Tensor,
+    gamma: float,
+    lam: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cost advantages that weigh each sampled cost-to-go by whether it falls in its state's upper tail, so the
+    risk level reaches the actor through the costs the policy met, not only through the critic's bootstraps.
+
+    ==========  ============  ================================================
+    name        shape         meaning
+    ==========  ============  ================================================
+    costs       (T, ...)      c_t
+    quantiles   (T+1, ..., N) ascending cost quantiles of o_t; row T is the bootstrap o_T
+    dones       (T, ...)      the episode ended after step t
+    alpha       float         risk level in [0, 1)
+    advantages  (T, ...)      returned
+    cvar        (T+1, ...)    returned: CVaR_alpha(Z(o_t)), the constraint's per-state value
+    ==========  ============  ================================================
+
+        G_t = the lambda-return of the costs over the critic's mean cost-to-go (GAE's return)
+        v_t = VaR_alpha(Z(o_t))
+        A_t = v_t + (G_t - v_t)^+ / (1 - alpha) - CVaR_alpha(Z(o_t))
+
+    CVaR_alpha(Z) = min_v v + E[(Z - v)^+] / (1 - alpha), attained at v = VaR_alpha(Z) (Rockafellar and
+    Uryasev), so under an exact critic A_t has mean 0 at each state and its expectation over the actions has the
+    gradient of CVaR_alpha(Z(o_t)) (Tamar et al.'s CVaR policy gradient): a sampled future counts only by how far
+    its cost-to-go rises above the state's VaR, times 1 / (1 - alpha). cvar_gae's advantage is the sampled cost
+    minus a CVaR baseline, which moves no action's expectation relative to another's; alpha reaches it only
+    through the bootstraps, which gae lambda near 1 makes small. At alpha = 0 (returns at or above the least
+    quantile) this is the ordinary GAE of the mean cost-to-go.
+    """
+    if isinstance(alpha, (int, float)) and not 0.0 <= alpha < 1.0:
+        raise ValueError(f"alpha must be in [0, 1) for the tail advantage, got {alpha}")
+    mean = quantiles.mean(-1)
+    _, ret = gae(costs, mean, dones, gamma, lam)
+    var = var_from_quantiles(quantiles, alpha)
+    cvar = cvar_from_quantiles(quantiles, alpha, presorted=True)
+    a = torch.as_tensor(alpha, dtype=costs.dtype, device=costs.device)
+    adv = var[:-1] + (ret - var[:-1]).clamp_min(0.0) / (1.0 - a) - cvar[:-1]
     return adv, cvar
 
 

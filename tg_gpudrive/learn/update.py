@@ -104,7 +104,10 @@ def column_targets(cfg: TrainConfig, reward: Tensor, value: Tensor, cost: Tensor
     adv_r, ret_r = L.gae(reward, value, done, cfg.gamma, cfg.gae_lambda)
     # the cost critic is read inside the cost-to-go's support (targets, advantages, constraint)
     quant = quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
-    adv_c, cvar = L.cvar_gae(cost, quant, done, cfg.alpha, cfg.gamma, cfg.gae_lambda, presorted=True)
+    if cfg.cost_advantage == "tail":
+        adv_c, cvar = L.cvar_tail_advantage(cost, quant, done, cfg.alpha, cfg.gamma, cfg.gae_lambda)
+    else:
+        adv_c, cvar = L.cvar_gae(cost, quant, done, cfg.alpha, cfg.gamma, cfg.gae_lambda, presorted=True)
     q_target = L.cost_quantile_targets(cost, quant, done, cfg.gamma, cfg.cost_nstep)
     return adv_r, ret_r, adv_c, cvar, q_target, quant.mean(-1)
 
