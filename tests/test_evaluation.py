@@ -534,6 +534,8 @@ def test_report_refuses_two_runs_of_one_name(tmp_path):
 
 
 def test_report_on_tiny_runs(tmp_path):
+    from PIL import Image
+
     from tg_gpudrive.cli import main as cli_main
     from tg_gpudrive.evaluation.report import FILES
     from tg_gpudrive.evaluation.report_markdown import PER_AGENT_COLUMNS
@@ -560,10 +562,14 @@ def test_report_on_tiny_runs(tmp_path):
     for f in FILES:
         assert (out / f).stat().st_size > 0, f
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
+    # the grid's cell: its whole paths beside its closest approach, both as frames/ keeps them
+    whole, near = (np.asarray(Image.open(out / "frames" / f)) for f in ("cce.png", "cce_closest.png"))
+    assert near.shape == whole.shape
     md = (out / "report.md").read_text()
     for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model",
                   "| cce | CCE-MAPPO | T 1 |", "| mappo | MAPPO | T 1 |", "acts at", "realism (ours)",
-                  "grid.png shows scene ", "bottom right, the mean over that run's episodes"):
+                  "grid.png shows scene ", "on the right the moment one of its cars came nearest another",
+                  "bottom right, the mean over that run's episodes"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",

@@ -14,11 +14,11 @@ from tg_gpudrive.evaluation.report_figures import plot_gaps, plot_grid, plot_mul
 MAX_W, MAX_H = 3000, 2200  # pixels
 
 
-def _fake_runs(n: int, agents: int = 12):
+def _fake_runs(n: int, agents: int = 12, wide: int = 1):
     rng = np.random.default_rng(n)
     betas, alphas = (2.0, 4.0, 6.0, 8.0, 10.0), (0.25, 0.5, 0.75, 0.9)
     keys = [(betas[i % 5] + 10 * (i // 20), alphas[i // 5 % 4]) for i in range(n)]
-    cells = {k: rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for k in keys}
+    cells = {k: rng.integers(0, 255, (64, 64 * wide, 3), dtype=np.uint8) for k in keys}
     labels = ["expert (inverse dynamics)", "behaviour prior"] + [f"beta{b:g}_alpha{a:g}_a_long_run_name" for b, a in keys]
     gaps = {lab: {"agents": [f"s{j // 2}/a{j % 2}" for j in range(agents)],
                   "gap_per_agent": rng.random(agents).tolist(), "mean_gap": 0.5, "ci95": 0.1} for lab in labels}
@@ -34,9 +34,11 @@ def _inside(fig, artist) -> bool:
     return box.x0 >= page.x0 - 1 and box.y0 >= page.y0 - 1 and box.x1 <= page.x1 + 1 and box.y1 <= page.y1 + 1
 
 
+@pytest.mark.parametrize("wide", [1, 2], ids=["square", "paths-and-closest-approach"])
 @pytest.mark.parametrize("runs", [1, 20, 200])
-def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs):
-    cells, gaps, curves = _fake_runs(runs)
+def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs, wide):
+    """`wide` 2: each cell's picture is two frames side by side, as the report draws them."""
+    cells, gaps, curves = _fake_runs(runs, wide=wide)
     figs = {"grid": plot_grid(cells, tmp_path / "grid.png"),
             "cce_gap": plot_gaps(gaps, tmp_path / "cce_gap.png"),
             "multipliers": plot_multipliers(curves, tmp_path / "multipliers.png")}

@@ -212,13 +212,14 @@ def world_model_policy(cfg: TrainConfig, sim) -> WorldModelDriver:
 
 def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool = False) -> np.ndarray:
     """Last frame of the scene's episode under the run's policy, with every agent's whole trajectory
-    (engine without auto-reset, so the final state is still there to draw), saved to `path`; with
-    `gif` also the whole episode beside it (`path` with .gif)."""
+    (engine without auto-reset, so the final state is still there to draw), saved to `path`, and to its right
+    the same episode's closest approach zoomed in (render_closest_approach, saved beside as *_closest.png):
+    the two side by side are returned. With `gif` also the whole episode (`path` with .gif)."""
     # drawing needs the render extra (matplotlib, Pillow): imported when a report draws, so that the
     # report's parser and its numbers do not need it
     from PIL import Image
 
-    from tg_gpudrive.render import render_episode
+    from tg_gpudrive.render import render_closest_approach, render_episode
 
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -230,7 +231,10 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
-    return np.asarray(Image.open(path).convert("RGB"))
+    near = render_closest_approach(sim, load_policy(ckpt, sim), **kw)
+    Image.fromarray(near).save(path.with_name(path.stem + "_closest.png"))
+    whole = np.asarray(Image.open(path).convert("RGB"))
+    return np.concatenate([whole, near[:whole.shape[0], :, :3]], axis=1)
 
 
 def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:

@@ -47,25 +47,30 @@ def _short(label: str, n: int = 26) -> str:
 
 def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows: int = 8, scene: str = "",
               notes: dict[tuple[float, float], str] | None = None):
-    """The paper's beta x alpha figure: one picture per CCE-MAPPO cell, beta down the rows, alpha
-    across the columns, each cell's line of `notes` at its picture's foot (what it measured on the scene, which
-    a picture of metres at a crossing's scale does not show). More than `max_rows` betas wrap into further
-    blocks side by side (each block all the alphas); cells shrink (from 2.4 in) and labels with them, so the
-    picture stays within MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
+    """The paper's beta x alpha figure: one picture per CCE-MAPPO cell (the report's: the whole paths beside the
+    closest approach), beta down the rows, alpha across the columns, each cell's line of `notes` at its
+    picture's foot (what it measured on the scene, which a picture of metres at a crossing's scale does not
+    show). More than `max_rows` betas wrap into further blocks side by side (each block all the alphas); cells
+    shrink (from 2.4 in tall) and labels with them, so the picture stays within MAX_FIG_W x MAX_FIG_H; the title
+    wraps to the picture's width."""
     from tg_gpudrive.render.draw import legend_handles  # the render extra, as the cells' frames
 
     betas = sorted({b for b, _ in cells}) or [0.0]
     alphas = sorted({a for _, a in cells}) or [0.0]
     blocks = [betas[i:i + max_rows] for i in range(0, len(betas), max_rows)]
     nrows, ncols = len(blocks[0]), len(blocks) * len(alphas)
+    # a cell's picture may be wider than tall (the whole paths beside the closest approach): `cell` is its height
+    aspect = max((im.shape[1] / im.shape[0] for im in cells.values()), default=1.0)
     # a few cells are drawn large (GRID_MIN_SIDE in across the picture), many shrink towards the bounds
-    cell = min(max(2.4, GRID_MIN_SIDE / max(nrows, ncols)), (MAX_FIG_W - 0.8 - 0.3 * len(blocks)) / ncols,
-               (MAX_FIG_H - 1.2 - GRID_LEGEND_IN) / nrows)
+    cell = min(max(2.4, GRID_MIN_SIDE / max(nrows, ncols * aspect)),
+               (MAX_FIG_W - 0.8 - 0.3 * len(blocks)) / (ncols * aspect), (MAX_FIG_H - 1.2 - GRID_LEGEND_IN) / nrows)
     fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits beside a cell
-    width = max(4.0, ncols * cell + 0.3 * len(blocks) + 0.8)
+    width = max(4.0, ncols * cell * aspect + 0.3 * len(blocks) + 0.8)
     where = f" on scene {scene}" if scene else ""
-    title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); whole "
-                     "trajectories (a dot each second), controlled vehicles blue", width - 0.2, 9)
+    what = ("left, whole trajectories (a dot each second); right, the closest approach zoomed in" if aspect > 1.5
+            else "whole trajectories (a dot each second)")
+    title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); {what}; "
+                     "controlled vehicles blue", width - 0.2, 9)
     head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title
     height = nrows * cell + 0.4 + head + GRID_LEGEND_IN
     fig = _fig()

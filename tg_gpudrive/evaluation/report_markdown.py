@@ -75,7 +75,8 @@ def _opening(meta: dict) -> list[str]:
             "**realism (ours)** is a Waymo-Sim-Agents-*style* likelihood score computed by this project, "
             "not the official challenge metric.\n",
             "![grid](grid.png)\n",
-            *([f"grid.png shows scene {meta['grid_scene']}, one episode of each cell's first training seed; at "
+            *([f"grid.png shows scene {meta['grid_scene']}, one episode of each cell's first training seed: on the "
+               "left its whole paths, on the right the moment one of its cars came nearest another, zoomed in; at "
                "each picture's bottom right, the mean over that run's episodes of its cars' least distance to "
                "another on this scene.\n"] if meta.get("grid_scene") else [])]
 
