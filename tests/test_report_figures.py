@@ -34,6 +34,14 @@ def _inside(fig, artist) -> bool:
     return box.x0 >= page.x0 - 1 and box.y0 >= page.y0 - 1 and box.x1 <= page.x1 + 1 and box.y1 <= page.y1 + 1
 
 
+def _apart(fig) -> bool:
+    """No two of the figure's axes overlap (by more than half a pixel)."""
+    renderer = fig.canvas.get_renderer()
+    boxes = [ax.get_window_extent(renderer) for ax in fig.axes]
+    return all(min(a.x1, b.x1) - max(a.x0, b.x0) <= 0.5 or min(a.y1, b.y1) - max(a.y0, b.y0) <= 0.5
+               for k, a in enumerate(boxes) for b in boxes[k + 1:])
+
+
 @pytest.mark.parametrize("wide", [1, 2], ids=["square", "paths-and-closest-approach"])
 @pytest.mark.parametrize("runs", [1, 20, 200])
 def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs, wide):
@@ -49,6 +57,7 @@ def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs, wide):
             assert _inside(fig, fig._suptitle), (name, runs)
         for ax in fig.axes:
             assert _inside(fig, ax.title), (name, runs)
+    assert _apart(figs["grid"]), (runs, wide)
     # the grid carries the legend of what its frames draw, inside the picture
     assert figs["grid"].legends and _inside(figs["grid"], figs["grid"].legends[0])
     # one run: one large cell (at least 6 inches at 100 dpi), not a thumbnail
@@ -59,9 +68,13 @@ def test_report_pictures_stay_bounded_and_unclipped(tmp_path, runs, wide):
     assert len(ticks) == len(gaps)
 
 
-def test_grid_writes_each_cells_note_under_its_picture(tmp_path):
-    rng = np.random.default_rng(0)  # the knobs' extreme cells, two by two as a grid report draws them
-    cells = {(b, a): rng.integers(0, 255, (64, 64, 3), dtype=np.uint8) for b in (2.0, 6.0) for a in (0.125, 0.875)}
+@pytest.mark.parametrize("wide", [1, 2], ids=["square", "paths-and-closest-approach"])
+def test_grid_writes_each_cells_note_under_its_picture(tmp_path, wide):
+    """The knobs' extreme cells, two by two as a grid report draws them (`wide` 2: its two frames side by side);
+    the pictures do not overlap, so no note is hidden under the next row."""
+    rng = np.random.default_rng(0)
+    cells = {(b, a): rng.integers(0, 255, (640, 640 * wide, 3), dtype=np.uint8) for b in (2.0, 6.0)
+             for a in (0.125, 0.875)}
     notes = {cell: f"mean least distance here {i + 3.5:.1f} m" for i, cell in enumerate(sorted(cells))}
     fig = plot_grid(cells, tmp_path / "grid.png", notes=notes)
     renderer = fig.canvas.get_renderer()
@@ -71,7 +84,7 @@ def test_grid_writes_each_cells_note_under_its_picture(tmp_path):
             drawn[t.get_text()] = ax
             box, own = t.get_window_extent(renderer), ax.get_window_extent(renderer)
             assert own.x0 <= box.x0 and box.x1 <= own.x1 and own.y0 <= box.y0 and box.y1 <= own.y1, t.get_text()
-    assert sorted(drawn) == sorted(notes.values())
+    assert sorted(drawn) == sorted(notes.values()) and _apart(fig)
     assert not any(ax.texts for ax in plot_grid(cells, tmp_path / "bare.png").axes)
 
 

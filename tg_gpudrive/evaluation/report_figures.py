@@ -97,6 +97,8 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     fig.legend([h for h, _ in handles], [n for _, n in handles], loc="center", ncol=6 if width >= 5.5 else 4,
                fontsize=7, frameon=False, bbox_to_anchor=(0.5, GRID_LEGEND_IN / 2 / height))
     fig.tight_layout(rect=(0, GRID_LEGEND_IN / height, 1, 1 - head / height))
+    # rows carry no labels between them, so tight_layout may close the gap below 0: the pictures would overlap
+    fig.subplots_adjust(hspace=max(fig.subplotpars.hspace, 0.02))
     fig.savefig(path)
     return fig
 
@@ -203,11 +205,15 @@ def plot_gaps(gaps: dict[str, dict], path: Path):
 
 
 def plot_worst_scenes(frames: list[np.ndarray], rows: list[dict], label: str, path: Path):
-    """The last frames of the worst scenes side by side, each titled with its failures."""
+    """The last frames of the worst scenes side by side, each titled with its failures; frames wider than tall
+    (the report's: the whole paths beside the closest approach) wrap into rows about 13 inches wide."""
     fig = _fig()
-    fig.set_size_inches(min(3.2 * len(frames), MAX_FIG_W), 3.6)
+    aspect = max((im.shape[1] / im.shape[0] for im in frames), default=1.0)
+    ncols = max(1, min(len(frames), int(13.0 // (3.2 * aspect))))
+    nrows = -(-len(frames) // ncols)
+    fig.set_size_inches(min(3.2 * aspect * ncols, MAX_FIG_W), min(3.6 * nrows, MAX_FIG_H))
     for k, (img, r) in enumerate(zip(frames, rows)):
-        ax = fig.add_subplot(1, len(frames), k + 1)
+        ax = fig.add_subplot(nrows, ncols, k + 1)
         ax.imshow(img)
         ax.set_axis_off()
         ax.set_title(f"{_short(r['scene_id'], 22)}\ncollisions {r['collisions']}, off-road {r['offroad']} "

@@ -261,7 +261,7 @@ def render_closest_approach(sim, policy: Callable, world: int = 0, seed: int | N
     k, i, _, dist = closest_approach(sim, policy, world, seed)
     if i >= 0:
         kw = dict(kw, center_agent=i, view_radius=max(10.0, dist + margin),
-                  title=f"closest approach {dist:.1f} m at {k * sim.model.scenes[world].dt:.1f} s")
+                  title=f"closest approach: centres {dist:.1f} m apart at {k * sim.model.scenes[world].dt:.1f} s")
     rec = EpisodeRecorder(sim, world, **kw)
     for _ in _episode(sim, policy, k if i >= 0 else None, world, True, True, seed):
         rec.capture(draw=False)
