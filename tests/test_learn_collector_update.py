@@ -276,6 +276,23 @@ def test_magnet_fraction_is_for_the_discrete_magnet():
         TrainConfig(magnet_fraction=0.0)
 
 
+def test_lambda_max_bounds_the_trainers_multipliers(tmp_path):
+    """lambda_max > 0 builds the trainer's multipliers with that upper bound; 0 leaves them unbounded; a start
+    above the bound, or a negative bound, is a config error naming the field."""
+    from tg_gpudrive.config import ConfigError, TrainConfig
+    from tg_gpudrive.learn.train import Trainer
+
+    capped = Trainer(tiny(tmp_path / "capped", lambda_max=1.5, lambda_init=1.0), progress=False)
+    assert capped.lagrange.upper == 1.5
+    capped.lagrange.update(torch.full_like(capped.lagrange.value, 1e3), 0.0)
+    assert float(capped.lagrange.value.max()) == 1.5
+    assert math.isinf(Trainer(tiny(tmp_path / "free"), progress=False).lagrange.upper)
+    with pytest.raises(ConfigError, match="lambda_init: must not exceed lambda_max"):
+        TrainConfig(lambda_max=1.0, lambda_init=2.0)
+    with pytest.raises(ConfigError, match="lambda_max"):
+        TrainConfig(lambda_max=-1.0)
+
+
 def test_cost_advantage_names_a_rule():
     from tg_gpudrive.config import ConfigError, TrainConfig
 

@@ -440,6 +440,12 @@ def test_lagrange_multiplier_is_projected_gradient_ascent(device):
     close(lm.value, 0.0)  # projected at 0, never negative
     with pytest.raises(ValueError):
         LagrangeMultiplier(init_value=-1.0)
+    capped = LagrangeMultiplier(init_value=1.0, lr=0.5, upper=2.0).to(device)
+    close(capped.update(2.0, 1.0), 1.5)  # 1 + 0.5 * (2 - 1): inside the bound, the plain step
+    close(capped.update(5.0, 1.0), 2.0)  # 1.5 + 2 = 3.5, projected onto [0, 2]
+    close(capped.update(0.0, 1.0), 1.5)  # and it falls from the bound at once
+    with pytest.raises(ValueError, match="upper"):
+        LagrangeMultiplier(init_value=3.0, upper=2.0)
 
 
 @pytest.mark.parametrize("device", DEVICES)

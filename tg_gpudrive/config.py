@@ -298,6 +298,9 @@ class TrainConfig:
     lambda_on: str = "cvar"
     lambda_init: float = 0.0
     lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
+    # > 0: lambda is projected onto [0, lambda_max], which bounds how far the cost may outweigh the reward in the
+    # actor's advantage under a bar it does not meet; 0: no upper bound
+    lambda_max: float = 0.0
     per_agent_lambda: bool = True  # one multiplier per controlled slot (TrafficGamer's lambda_i)
     # ... and per scene of the source too: one multiplier per vehicle (scene x slot), stepped on that
     # vehicle's own states whenever its scene is in the worlds, as Algorithm 1 has one lambda_i per agent
@@ -365,6 +368,8 @@ class TrainConfig:
                               f"a window, got {self.actor_history_partners}")
         if self.lambda_on not in ("cvar", "mean"):
             raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
+        if self.lambda_max > 0 and self.lambda_init > self.lambda_max:
+            raise ConfigError(f"lambda_init: must not exceed lambda_max ({self.lambda_max}), got {self.lambda_init}")
         if self.cost_advantage not in ("gae", "tail"):
             raise ConfigError(f"cost_advantage: expected gae or tail, got {self.cost_advantage!r}")
         if self.background not in BACKGROUNDS:
@@ -374,7 +379,7 @@ class TrainConfig:
         check_ranges(self, {
             "num_scenes": "[1, inf)", "num_worlds": "[1, inf)", "updates": "[1, inf)", "rollout_steps": "[1, inf)",
             "cost_nstep": "[1, inf)", "cost_kappa": "[0, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)",
-            "epochs": "[1, inf)",
+            "epochs": "[1, inf)", "lambda_max": "[0, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "act_temperature": "[0, inf)",

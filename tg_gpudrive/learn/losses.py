@@ -425,7 +425,7 @@ class LagrangeMultiplier(torch.nn.Module):
     The constrained problem max R s.t. g <= budget has Lagrangian
     R - lambda (g - budget); its dual step is projected gradient ascent,
 
-        lambda <- max(0, lambda + lr * (g - budget)),
+        lambda <- min(upper, max(0, lambda + lr * (g - budget))),
 
     so the step grows with the violation (an Adam step would not: it normalises the
     gradient away) and lambda falls back to 0 once the constraint holds with room.
@@ -433,16 +433,19 @@ class LagrangeMultiplier(torch.nn.Module):
     lambda_i per agent); ``constraint_value`` must broadcast to that shape (one
     estimate per multiplier, e.g. each agent's mean CVaR over its states), never to a
     larger batch. lambda lives in a buffer: it is state, not a parameter of any loss.
+    ``upper`` bounds the projection from above too (lambda in [0, upper]): how far the cost may outweigh the
+    reward in the actor's advantage, however long the constraint stays violated.
     """
 
-    def __init__(self, init_value: float = 0.0, lr: float = 1e-2, shape: tuple[int, ...] = ()):
+    def __init__(self, init_value: float = 0.0, lr: float = 1e-2, shape: tuple[int, ...] = (),
+                 upper: float = math.inf):
         super().__init__()
-        if not init_value >= 0:
-            raise ValueError(f"init_value must be >= 0, got {init_value}")
+        if not 0 <= init_value <= upper:
+            raise ValueError(f"init_value must lie in [0, upper = {upper}], got {init_value}")
         if not lr >= 0:
             raise ValueError(f"lr must be >= 0, got {lr}")
         self.register_buffer("lam", torch.full(tuple(shape), float(init_value)))
-        self.lr = lr
+        self.lr, self.upper = lr, float(upper)
 
     @property
     def value(self) -> torch.Tensor:
@@ -462,7 +465,7 @@ class LagrangeMultiplier(torch.nn.Module):
                 f"constraint_value - budget has shape {tuple(violation.shape)}, which does not broadcast "
                 f"to the multiplier shape {tuple(self.lam.shape)}; reduce over the batch first"
             )
-        self.lam.add_(self.lr * violation).clamp_(min=0.0)
+        self.lam.add_(self.lr * violation).clamp_(min=0.0, max=self.upper)
         return self.lam.clone()
 
 

@@ -243,7 +243,8 @@ class Trainer:
         shape = (cfg.env.max_agents,) if cfg.per_agent_lambda else ()
         if cfg.lambda_per_vehicle:  # a row per scene of the whole source (every rank's shard in it)
             shape = (len(getattr(self.source, "source", self.source)), cfg.env.max_agents)
-        self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape).to(self.device)
+        self.lagrange = L.LagrangeMultiplier(cfg.lambda_init, cfg.lambda_lr, shape,
+                                             cfg.lambda_max or math.inf).to(self.device)
         self.budget = torch.tensor(float(cfg.cost_limit), device=self.device)  # "logs": scaled in __init__
         self.gen = torch.Generator(device=self.device).manual_seed(cfg.seed + self.stream)
         self.collector = RolloutCollector(cfg, self.sim, self.nets, prior, self.gen, self.device, self.actor_hist)
