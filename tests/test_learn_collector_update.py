@@ -304,6 +304,7 @@ def test_cost_advantage_names_a_rule():
 @pytest.mark.parametrize("compiled, device, rule", [
     (False, "cpu", "gae"), (False, "cpu", "tail"),
     pytest.param(True, "cpu", "gae", marks=pytest.mark.slow, id="compile_rollout-cpu"),
+    pytest.param(True, "cpu", "tail", marks=pytest.mark.slow, id="compile_rollout-cpu-tail"),
     pytest.param(True, "cuda", "gae", marks=CUDA_ONLY, id="compile_rollout-cuda"),
     pytest.param(True, "cuda", "tail", marks=CUDA_ONLY, id="compile_rollout-cuda-tail")])
 def test_advantages_over_the_acting_columns_equal_those_over_every_slot(tmp_path, compiled, device, rule):
