@@ -32,7 +32,7 @@ from tg_gpudrive.evaluation.episodes import (logged_episodes, path_kinematics, r
 from tg_gpudrive.agents.builtin import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
-from tg_gpudrive.enums import RoadType
+from tg_gpudrive.enums import AgentType, RoadType
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -253,6 +253,53 @@ def test_collision_partners_by_hand():
     tr.valid[0, 0, k:] = False
     assert of_1() == [(0, "ahead", True)]
 
+
+def _passing_cars():
+    """Car 0 drives along y = 0 from x = 0 to 20 m over 3 s; car 1 stands at (10, 4): by hand, the least
+    centre distance is 4 m, when car 0 passes x = 10 (half way, about step 15 of 30)."""
+    t = 31
+    x = np.linspace(0.0, 20.0, t)
+    pos = np.stack([np.stack([x, np.zeros(t)], -1), np.tile([10.0, 4.0], (t, 1))])
+    roads = [(RoadType.ROAD_EDGE, [[-20, -8], [40, -8]]), (RoadType.ROAD_EDGE, [[-20, 14], [40, 14]])]
+    scene = make_scene(pos, np.zeros((2, t)), roads=roads, agent_type=AgentType.VEHICLE)
+    return Simulator([scene], EngineConfig(replay_infeasible=False, init_steps=1, auto_reset=False))
+
+
+def test_closest_moment_is_the_least_distance_of_the_episode():
+    sim = _passing_cars()
+    k, i, j, d = rk.closest_moment(record_episodes(sim, expert_policy, seed=0))
+    # against the positions read step by step from the same episode
+    sim.reset()
+    least, at = np.inf, -1
+    for step in range(sim.episode_length + 1):
+        p = sim.pos[0].numpy().astype(np.float64)
+        if np.linalg.norm(p[0] - p[1]) < least:
+            least, at = float(np.linalg.norm(p[0] - p[1])), step
+        if step == sim.episode_length or int(sim.world_ended[0]):
+            break
+        expert_policy(sim)
+        sim.step()
+    assert {i, j} == {0, 1} and k == at and d == pytest.approx(least, abs=1e-4)
+    assert d == pytest.approx(4.0, abs=0.3) and abs(k - 14) <= 3
+    tr = record_episodes(sim, expert_policy, seed=0)
+    tr.nearest[:] = rk.NEAREST_CAP  # no one ever within the recording's cap: no moment to draw
+    assert rk.closest_moment(tr) is None
+
+
+def test_closest_frame_draws_that_moment_zoomed_in(tmp_path):
+    from tg_gpudrive.evaluation.report import _closest_frame
+    from tg_gpudrive.render import render_episode
+
+    sim = _passing_cars()
+    k, *_ = rk.closest_moment(record_episodes(sim, expert_policy, seed=0))
+    sim.reset()
+    start = int(sim.world_step[0])
+    kw = dict(world=0, size=(200, 200), legend=False, seed=0)
+    near = _closest_frame(sim, lambda: expert_policy, tmp_path / "near.png", kw)
+    assert near.shape == (200, 200, 3) and int(sim.world_step[0]) == start + k  # stopped at the moment found
+    assert (tmp_path / "near.png").stat().st_size > 0
+    whole = render_episode(sim, expert_policy, **kw)[-1]
+    assert not np.array_equal(near, whole)
 
 def test_closest_partners_by_hand():
     """Where the closest approach is, on hand-made scenes: a policy car passing a parked car at the kerb has it

@@ -81,7 +81,7 @@ from tg_gpudrive.evaluation import exploitability as ex
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import export_episodes
-from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts, replay_episodes
+from tg_gpudrive.evaluation.episodes import logged_episodes, record_episodes, record_rollouts, replay_episodes
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
@@ -213,13 +213,13 @@ def world_model_policy(cfg: TrainConfig, sim) -> WorldModelDriver:
 def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool = False) -> np.ndarray:
     """Last frame of the scene's episode under the run's policy, with every agent's whole trajectory
     (engine without auto-reset, so the final state is still there to draw), saved to `path`, and to its right
-    the same episode's closest approach zoomed in (render_closest_approach, saved beside as *_closest.png):
-    the two side by side are returned. With `gif` also the whole episode (`path` with .gif)."""
+    the same episode's closest approach zoomed in (`_closest_frame`, saved as *_closest.png): the two side by
+    side are returned. With `gif` also the whole episode (`path` with .gif)."""
     # drawing needs the render extra (matplotlib, Pillow): imported when a report draws, so that the
     # report's parser and its numbers do not need it
     from PIL import Image
 
-    from tg_gpudrive.render import render_closest_approach, render_episode
+    from tg_gpudrive.render import render_episode
 
     sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -231,10 +231,25 @@ def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool
     render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
-    near = render_closest_approach(sim, load_policy(ckpt, sim), **kw)
-    Image.fromarray(near).save(path.with_name(path.stem + "_closest.png"))
     whole = np.asarray(Image.open(path).convert("RGB"))
-    return np.concatenate([whole, near[:whole.shape[0], :, :3]], axis=1)
+    near = _closest_frame(sim, lambda: load_policy(ckpt, sim), path.with_name(path.stem + "_closest.png"), kw)
+    return whole if near is None else np.concatenate([whole, near[:whole.shape[0], :, :3]], axis=1)
+
+
+def _closest_frame(sim, make_policy, path: Path, kw: dict, margin: float = 8.0) -> np.ndarray | None:
+    """The moment of world 0's episode (kw's seed: the same episode as kw's other pictures) when a policy car came
+    nearest another (risk.closest_moment over its recording), drawn centred on that car with half-side the
+    distance plus `margin` m (at least 10) and saved to `path`: where two cells' whole paths look alike at a
+    scene's scale, the gap they kept shows here. None when no car ever had company."""
+    from tg_gpudrive.render import render_episode
+
+    moment = rk.closest_moment(record_episodes(sim, make_policy(), seed=kw["seed"]))
+    if moment is None:
+        return None
+    k, a, _, dist = moment
+    title = f"closest approach: centres {dist:.1f} m apart at {k * sim.model.scenes[0].dt:.1f} s"
+    return render_episode(sim, make_policy(), steps=k, out=path, **dict(kw, center_agent=a, title=title,
+                                                                         view_radius=max(10.0, dist + margin)))[-1]
 
 
 def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:

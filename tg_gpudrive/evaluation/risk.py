@@ -31,6 +31,7 @@ min_gap): the partner is the other agent with the nearest centre then, "parked" 
 faster than PARKED_SPEED in the episode, "policy" as above; its place in the agent's frame is
 "abreast" when its centre lies more than ABREAST_OFFSET to the side (the next lane, a parked car at the
 kerb, crossing traffic: a gap a car cannot widen by its speed alone), else "ahead" or "behind".
+`closest_moment` is the same moment for an episode's nearest pair of all (the report's zoomed pictures).
 
 Scenario criticality ranks episodes by (any collision, lowest min TTC, lowest
 min gap, most hard brakes), most critical first.
@@ -175,6 +176,19 @@ def closest_partners(tr: Trajectories) -> dict[str, np.ndarray]:
         place[e, a] = 0 if abs(side) > ABREAST_OFFSET else (1 if along >= 0 else 2)
         parked[e, a], policy[e, a] = not moves[e, b], tr.policy[e, b]
     return {"place": place, "parked": parked, "policy": policy}
+
+
+def closest_moment(tr: Trajectories, e: int = 0) -> tuple[int, int, int, float] | None:
+    """Episode `e`'s closest approach of any policy agent: (its step, the agent, the partner as closest_partners
+    names it, their centre distance in m); None when no other agent came within NEAREST_CAP of one."""
+    near = np.where(tr.valid[e] & tr.policy[e][:, None], tr.nearest[e], np.inf)  # (A, K)
+    a, k = np.unravel_index(int(np.argmin(near)), near.shape)
+    if not near[a, k] < NEAREST_CAP:
+        return None
+    others = tr.valid[e, :, k].copy()
+    others[a] = False
+    b, _, _ = _nearest_in_frame(tr, e, int(a), int(k), others)
+    return int(k), int(a), int(b), float(near[a, k])
 
 
 def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:

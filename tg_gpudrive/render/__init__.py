@@ -7,22 +7,19 @@
     frames = render_episode(sim, policy, steps, out="episode.gif")
 
     draw.py    the picture: palette, FrameRenderer (road layer once, agents per frame), render_frame
-    record.py  the episode: EpisodeRecorder (frames and trails), render_episode, the closest approach's frame,
-               GIF / MP4 / PNG writers
+    record.py  the episode: EpisodeRecorder (frames and trails), render_episode, GIF / MP4 / PNG writers
 
 Needs the render extra (matplotlib, Pillow; imageio-ffmpeg or an ffmpeg on PATH for .mp4). Nothing
-here writes engine state; only `render_episode` and the closest approach's two functions step the simulator.
+here writes engine state; only `render_episode` steps the simulator.
 """
 
 from tg_gpudrive.render.draw import (BACKGROUND, COLLIDED, CONTROLLED, CROSSWALK, CYCLIST, DEFAULT_VIEW_RADIUS,
                                      DRIVEWAY, GOAL, HIGHLIGHT, LANE, OFFROAD, OTHER, PEDESTRIAN, REPLAYED,
                                      ROAD_EDGE, ROAD_LINE, SIGNAL_COLOUR, SPEED_BUMP, STOP_SIGN, TYPE_COLOUR,
                                      FrameRenderer, render_frame, rgba)
-from tg_gpudrive.render.record import (EpisodeRecorder, check_mp4, closest_approach, mp4_backend,
-                                      render_closest_approach, render_episode, save_gif, save_mp4)
+from tg_gpudrive.render.record import EpisodeRecorder, check_mp4, mp4_backend, render_episode, save_gif, save_mp4
 
 __all__ = ["BACKGROUND", "COLLIDED", "CONTROLLED", "CROSSWALK", "CYCLIST", "DEFAULT_VIEW_RADIUS", "DRIVEWAY", "GOAL",
            "HIGHLIGHT", "LANE", "OFFROAD", "OTHER", "PEDESTRIAN", "REPLAYED", "ROAD_EDGE", "ROAD_LINE",
            "SIGNAL_COLOUR", "SPEED_BUMP", "STOP_SIGN", "TYPE_COLOUR", "EpisodeRecorder", "FrameRenderer",
-           "check_mp4", "closest_approach", "mp4_backend", "render_closest_approach", "render_episode", "render_frame",
-           "rgba", "save_gif", "save_mp4"]
+           "check_mp4", "mp4_backend", "render_episode", "render_frame", "rgba", "save_gif", "save_mp4"]

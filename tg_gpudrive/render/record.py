@@ -6,9 +6,8 @@
     frames = render_episode(sim, policy, steps, out="episode.gif")
 
 The pictures themselves come from draw.py. `render_episode` is the only place
-here that steps the simulator (through `_episode`, which resets it first), with `closest_approach` and
-`render_closest_approach`, which find and draw the moment a policy agent came nearest another; the recorder
-and the writers only read it. MP4 needs ffmpeg: imageio-ffmpeg when installed, else an
+here that steps the simulator (it resets it first); the recorder and the
+writers only read it. MP4 needs ffmpeg: imageio-ffmpeg when installed, else an
 ffmpeg on PATH through matplotlib (`mp4_backend` says which, `check_mp4` fails
 early with what to install).
 """
@@ -174,27 +173,6 @@ def save_mp4(frames: list[np.ndarray], path: str | Path, fps: float = 10) -> Non
             writer.grab_frame()
 
 
-def _episode(sim, policy: Callable, steps: int | None, world: int, reset: bool, stop_at_end: bool,
-             seed: int | None, bar=None):
-    """Step world `world`'s episode under `policy(sim)`, yielding before the first step and after each later
-    one whose state is still the episode's (render_episode's stops); `seed` seeds torch's generator first."""
-    if seed is not None:
-        torch.manual_seed(seed)
-    if reset:
-        sim.reset()
-    yield
-    for _ in range(sim.episode_length if steps is None else steps):
-        policy(sim)
-        sim.step()
-        if bar is not None:
-            bar.update(1)
-        if stop_at_end and int(sim.world_reset[world]) != 0:
-            return
-        yield
-        if stop_at_end and int(sim.world_ended[world]) != 0:
-            return
-
-
 def render_episode(sim, policy: Callable, steps: int | None = None, world: int = 0, out: str | Path | None = None,
                    *, fps: float = 10, reset: bool = True, stop_at_end: bool = True, progress: bool = False,
                    seed: int | None = None, **kw) -> list[np.ndarray]:
@@ -210,16 +188,32 @@ def render_episode(sim, policy: Callable, steps: int | None = None, world: int =
     first, which trained policies sample from (as `run_rollout` and `record_episodes` do): the same
     seed draws the same episode.
     """
+    if seed is not None:
+        torch.manual_seed(seed)
     if out is not None and Path(out).suffix.lower() == ".mp4":
         check_mp4()  # fail before the episode, not after it
-    steps = sim.episode_length if steps is None else steps
+    if steps is None:
+        steps = sim.episode_length
+    if reset:
+        sim.reset()
     rec = EpisodeRecorder(sim, world, **kw)
     # a .png needs only the last frame; without auto-reset the final state stays to be drawn at the end
     lazy = out is not None and Path(out).suffix.lower() == ".png" and not getattr(sim.cfg, "auto_reset", True)
-    bar = tqdm(total=steps, desc="render", unit="step", leave=False) if progress else None
+    bar = None
+    if progress:
+        bar = tqdm(total=steps, desc="render", unit="step", leave=False)
     try:
-        for _ in _episode(sim, policy, steps, world, reset, stop_at_end, seed, bar):
+        rec.capture(draw=not lazy)
+        for _ in range(steps):
+            policy(sim)
+            sim.step()
+            if bar is not None:
+                bar.update(1)
+            if stop_at_end and int(sim.world_reset[world]) != 0:
+                break
             rec.capture(draw=not lazy)
+            if stop_at_end and int(sim.world_ended[world]) != 0:
+                break
     finally:
         if bar is not None:
             bar.close()
@@ -229,42 +223,3 @@ def render_episode(sim, policy: Callable, steps: int | None = None, world: int =
         rec.save(out, fps=fps)
     rec.close()
     return rec.frames
-
-
-def closest_approach(sim, policy: Callable, world: int = 0, seed: int | None = None) -> tuple[int, int, int, float]:
-    """Where world `world`'s episode under `policy(sim)` (reset first; `seed` as in render_episode) brings one
-    of its policy agents nearest another agent in the scene: (steps taken by then, the policy agent's slot, the
-    other's, their centre distance in m). (0, -1, -1, inf) when no policy agent ever had company."""
-    best = (0, -1, -1, float("inf"))
-    for k, _ in enumerate(_episode(sim, policy, None, world, True, True, seed)):
-        shown = ((as_numpy(sim.present[world]) != 0) & (as_numpy(sim.removed[world]) == 0)
-                 & (as_numpy(sim.slot_valid[world]) != 0))
-        mine = shown & (as_numpy(sim.policy_agents[world]) != 0)
-        pos = as_numpy(sim.pos[world]).astype(np.float64)
-        d = np.linalg.norm(pos[:, None] - pos[None], axis=-1)
-        d[~mine] = np.inf
-        d[:, ~shown] = np.inf
-        np.fill_diagonal(d, np.inf)
-        i, j = np.unravel_index(int(np.argmin(d)), d.shape)
-        if d[i, j] < best[3]:
-            best = (k, int(i), int(j), float(d[i, j]))
-    return best
-
-
-def render_closest_approach(sim, policy: Callable, world: int = 0, seed: int | None = None, margin: float = 8.0,
-                            **kw) -> np.ndarray:
-    """The frame of `closest_approach`'s moment, the view centred on its policy agent with half-side its
-    distance plus `margin` m (at least 10), the trails up to then and the distance and time in the title:
-    where two cells' whole paths look alike at a scene's scale, the gap they kept shows here. The episode
-    runs twice with the same `seed`: once to find the moment, once to draw it. Other keywords go to
-    `EpisodeRecorder` / `render_frame`; the last frame when no policy agent ever had company."""
-    k, i, _, dist = closest_approach(sim, policy, world, seed)
-    if i >= 0:
-        kw = dict(kw, center_agent=i, view_radius=max(10.0, dist + margin),
-                  title=f"closest approach: centres {dist:.1f} m apart at {k * sim.model.scenes[world].dt:.1f} s")
-    rec = EpisodeRecorder(sim, world, **kw)
-    for _ in _episode(sim, policy, k if i >= 0 else None, world, True, True, seed):
-        rec.capture(draw=False)
-    frame = rec.renderer.draw({a: np.asarray(tr) for a, tr in rec.trails.items()})
-    rec.close()
-    return frame
