@@ -209,6 +209,42 @@ def test_risk_of_a_rear_end_scene():
     assert ranked[0]["collisions"] == 1 and ranked[-1]["collisions"] == 0
 
 
+def _gap_ahead_by_sampling(tr, horizon: float, samples: int = 2001) -> np.ndarray:
+    """min_gap_ahead's reference: every pair's constant-velocity distance read on a fine grid of look-ahead times."""
+    E, A, K = tr.valid.shape
+    out = np.full((E, A), np.inf)
+    ts = np.linspace(0.0, horizon, samples)
+    for e, i, j, k in zip(*np.nonzero(tr.policy[:, :, None, None] & tr.valid[:, :, None, :] & tr.valid[:, None])):
+        if i != j:
+            p, v = tr.pos[e, j, k] - tr.pos[e, i, k], tr.vel[e, j, k] - tr.vel[e, i, k]
+            out[e, i] = min(out[e, i], np.linalg.norm(p[None] + ts[:, None] * v[None], axis=-1).min())
+    return out
+
+
+def test_min_gap_ahead_is_the_least_gap_over_the_next_second():
+    """A car drives past a standing one 4 m to its side: over a second's look-ahead the least gap is exactly the
+    4 m of the closed form, which the recorded steps only approach; a car closing on a stopped one at 10 m/s
+    has its gap ahead 10 m below its gap, as a fine sampling of the look-ahead reads it."""
+    tr = record_episodes(_passing_cars(), expert_policy, seed=0)
+    ahead, now = rk.min_gap_ahead(tr), rk.min_gap(tr)
+    assert ahead[0, 0] == pytest.approx(4.0, abs=0.02) and ahead[0, 0] <= now[0, 0] + 1e-6
+    assert ahead == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)
+    T = 40
+    lead = np.stack([np.full(T, 60.0), np.zeros(T)], -1)
+    follow = np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)  # 10 m/s, dt 0.1
+    sc = make_scene(np.stack([lead, follow]), np.zeros((2, T)), length=4.0, width=2.0,
+                    roads=[(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))])
+    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
+    tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])]),
+                         lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    slot = int(np.nonzero(tr.policy[0])[0][0])
+    assert rk.min_gap_ahead(tr) == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)
+    assert rk.min_gap_ahead(tr)[0, slot] == pytest.approx(rk.min_gap(tr)[0, slot] - 10.0, abs=0.2)
+    # no look-ahead: the recording's own nearest distance
+    assert rk.min_gap_ahead(tr, 0.0)[0, slot] == pytest.approx(rk.min_gap(tr)[0, slot], abs=1e-3)
+    assert rk.episode_risk(tr)["min_gap_ahead"][0, slot] == rk.min_gap_ahead(tr)[0, slot]
+
+
 def test_collision_partners_by_hand():
     """Who hit whom, on hand-made scenes (first contact, nearest centre, geometry in the agent's frame):
     a policy car running into a slow log car is "ahead" with a non-policy partner; a slow policy car

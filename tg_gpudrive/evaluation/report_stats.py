@@ -110,7 +110,8 @@ def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
     m = risk["agents"]  # present at some step, so the mean speed below has a step to average
     speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
     return {"episode_key": episode_keys(gen, m), "start_gap": risk["start_gap"][m],
-            "min_gap": risk["min_gap"][m], "close_time": risk["close_time"][m], "speed": speed[m],
+            "min_gap": risk["min_gap"][m], "min_gap_ahead": risk["min_gap_ahead"][m],
+            "close_time": risk["close_time"][m], "speed": speed[m],
             "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
             "collision": risk["collided"][m].astype(float), "hard_brakes": risk["hard_brakes"][m].astype(float),
             "collision_other": ((risk["contact"] >= 0) & ~risk["partner_policy"])[m].astype(float),
@@ -134,6 +135,8 @@ def measure(label: str, gen, logged, top: int) -> dict:
 # more risk-averse) gives lower speeds and larger spacing. 0: the paper states no direction.
 FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
     "min_gap": ("min gap [m]", +1, +1),
+    # what the look-ahead cost charges: the least gap over the next second, where slowing down keeps distance
+    "min_gap_ahead": (f"min gap over the next {rk.ANTICIPATION:g} s [m]", +1, +1),
     # the same claim (traffic keeps its distance) over the whole episode, not its closest moment
     "close_time": (f"time within {rk.CLOSE_DISTANCE:g} m [share of steps]", -1, -1),
     "speed": ("mean speed [m/s]", -1, -1),

@@ -8,6 +8,9 @@ at the same step, policy-driven or replayed):
                    cost's `beta` convention)
     start_gap      m, the same distance at the agent's first step: the state the log hands over, which
                    no policy changes, so min_gap can never exceed it
+    min_gap_ahead  m, smallest centre distance to another agent over the next ANTICIPATION seconds of any
+                   step, both moving on with their velocity then: the distance the look-ahead cost
+                   (`env.cost_horizon`) charges, which a car can keep small by slowing down
     close_time     share of the agent's steps with another agent's centre within CLOSE_DISTANCE (5 m,
                    the reference TrafficGamer code's default distance limit): how much of the time it
                    drives close to someone, where min_gap is its single closest moment
@@ -47,6 +50,7 @@ HARD_BRAKE = -4.0  # m/s^2
 TTC_HORIZON = 10.0  # s
 TTC_DISCS = 3
 TTC_CRITICAL = 1.5  # s, "near miss" threshold reported as a rate
+ANTICIPATION = 1.0  # s: min_gap_ahead's look-ahead, the grids' env.cost_horizon
 CLOSE_DISTANCE = 5.0  # m, centre to centre: close_time's threshold
 CONTACT_ANGLE = np.pi / 4  # rad: headings closer than this count as "the same way" (collision_partners)
 CONTACTS = ("from behind", "ahead", "crossing")
@@ -104,6 +108,28 @@ def min_gap(tr: Trajectories) -> np.ndarray:
     """(E, A) smallest centre distance to another agent (the recording's `nearest`, capped there)."""
     near = np.where(tr.valid, tr.nearest, np.inf).min(-1)
     return near
+
+
+def min_gap_ahead(tr: Trajectories, horizon: float = ANTICIPATION) -> np.ndarray:
+    """(E, A) least centre distance of every policy agent to another present agent over the next `horizon`
+    seconds of each of its steps, both at constant velocity (inf: never valid or alone); `horizon` 0 is the
+    plain centre distance, uncapped."""
+    E, A, K = tr.valid.shape
+    out = np.full((E, A), np.inf)
+    for e in range(E):
+        rows = np.nonzero(tr.policy[e] & tr.valid[e].any(-1))[0]
+        if len(rows) == 0:
+            continue
+        p = tr.pos[e][None] - tr.pos[e, rows][:, None]  # (R, A, K, 2)
+        v = tr.vel[e][None] - tr.vel[e, rows][:, None]
+        vv = (v * v).sum(-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.clip(np.where(vv > 1e-12, -(p * v).sum(-1) / vv, 0.0), 0.0, horizon)
+        d = np.linalg.norm(p + v * t[..., None], axis=-1)
+        ok = tr.valid[e, rows][:, None, :] & tr.valid[e][None, :, :]
+        ok &= rows[:, None, None] != np.arange(A)[None, :, None]
+        out[e, rows] = np.where(ok, d, np.inf).min(axis=(1, 2))
+    return out
 
 
 def start_gap(tr: Trajectories) -> np.ndarray:
@@ -202,6 +228,7 @@ def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:
         partner_policy[row["episode"], row["agent"]] = row["partner_policy"]
     return {"agents": agents, "collided": (tr.collided & tr.valid).any(-1), "offroad": (tr.offroad & tr.valid).any(-1),
             "min_ttc": min_ttc(tr), "min_gap": min_gap(tr), "start_gap": start_gap(tr), "close_time": close_time(tr),
+            "min_gap_ahead": min_gap_ahead(tr),
             "hard_brakes": hard_brakes(tr),
             "contact": contact, "partner_policy": partner_policy,
             **{f"closest_{k}": v for k, v in closest_partners(tr).items()}}
