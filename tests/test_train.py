@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -523,3 +524,54 @@ def test_the_timeout_rate_counts_the_episodes_that_ended_without_goal_crash_or_o
     got = [float(r["timeout_rate"]) * float(r["episodes"]) for r in rows(tmp_path) if float(r["episodes"]) > 0]
     assert sum(late) > 0  # some episodes ran out of time
     assert sum(got) == pytest.approx(sum(late))
+
+
+def _watch_rows(lam, con, budget=1.0):
+    return [{"lambda": l, "cvar": c, "cost_to_go": c, "cost_budget": budget} for l, c in zip(lam, con)]
+
+
+def test_the_bar_watch_warns_once_when_the_cost_stalls_above_its_bar():
+    from tg_gpudrive.learn.bar_watch import BarWatch
+
+    cfg = dataclasses.replace(load_config(TrainConfig, SMALL), alpha=0.875)
+    fed = lambda watch, rows: [m for m in map(watch.add, rows) if m]  # noqa: E731
+    # stalled at 3x the bar while lambda climbs: one warning, after a whole window, naming the figures
+    said = fed(BarWatch(cfg, window=10), _watch_rows(np.linspace(1, 4, 30), np.full(30, 3.0)))
+    assert len(said) == 1 and "CVaR_0.875" in said[0] and "budget of 1" in said[0] and "lambda_max" in said[0]
+    assert len(fed(BarWatch(cfg, window=10), _watch_rows(np.linspace(1, 4, 9), np.full(9, 3.0)))) == 0
+    # coming down (3 -> 1.6: the last tenth under 0.8 x the first) or within 1.5x its budget: no warning
+    assert not fed(BarWatch(cfg, window=10), _watch_rows(np.linspace(1, 4, 10), np.linspace(3.0, 1.6, 10)))
+    assert not fed(BarWatch(cfg, window=10), _watch_rows(np.linspace(1, 4, 30), np.full(30, 1.4)))
+    # one update of the window within the margin is enough to stay quiet
+    con = np.full(10, 3.0)
+    con[4] = 1.2
+    assert not fed(BarWatch(cfg, window=10), _watch_rows(np.linspace(1, 4, 10), con))
+    # at its cap: says so, and points to the bar instead of a cap
+    capped = fed(BarWatch(dataclasses.replace(cfg, lambda_max=2.0), window=10), _watch_rows(np.full(10, 2.0),
+                                                                                             np.full(10, 3.0)))
+    assert len(capped) == 1 and "cap lambda_max = 2" in capped[0] and "cost_limit" in capped[0]
+    # on the mean cost-to-go with lambda_on: mean; never without a constraint
+    mean = fed(BarWatch(dataclasses.replace(cfg, lambda_on="mean"), window=10),
+               [dict(r, cvar=0.0) for r in _watch_rows(np.ones(10), np.full(10, 3.0))])
+    assert len(mean) == 1 and "mean cost-to-go" in mean[0]
+    assert not fed(BarWatch(dataclasses.replace(cfg, constraint=False), window=10),
+                   _watch_rows(np.ones(10), np.full(10, 3.0)))
+
+
+def test_training_warns_when_its_bar_is_out_of_reach(tmp_path, monkeypatch, caplog):
+    """A bar of 0 on a cost that every step pays (beta far beyond the scene) cannot be met: the trainer says so
+    once its window of updates is in; the same run with a bar it meets at once says nothing."""
+    from tg_gpudrive.learn import bar_watch
+
+    monkeypatch.setattr(bar_watch, "WINDOW", 3)
+    cfg = tiny(tmp_path / "far", updates=4, cost_limit_mode="absolute", cost_limit=0.0, lambda_lr=0.5)
+    cfg = dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=500.0))
+    with caplog.at_level(logging.WARNING, logger="tg_gpudrive.learn.train"):
+        Trainer(cfg, tmp_path / "far", progress=False).train()
+    said = [r.getMessage() for r in caplog.records if "out of reach" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("update 3:") and "budget of 0" in said[0]
+    caplog.clear()
+    met = dataclasses.replace(cfg, cost_limit=1e6, out_dir=str(tmp_path / "met"))
+    with caplog.at_level(logging.WARNING, logger="tg_gpudrive.learn.train"):
+        Trainer(met, tmp_path / "met", progress=False).train()
+    assert not [r for r in caplog.records if "out of reach" in r.getMessage()]

@@ -45,6 +45,7 @@ from tg_gpudrive.learn import pipeline
 from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCollector, TrainingError
 from tg_gpudrive.learn.compiling import start_compiler_preload
 from tg_gpudrive.learn.quality import RATE_KEYS
+from tg_gpudrive.learn.bar_watch import BarWatch
 from tg_gpudrive.learn.runlog import RunLog
 from tg_gpudrive.learn.stop import StopRequest
 from tg_gpudrive.learn.targets import HeldoutCheck, RateWindow
@@ -180,6 +181,7 @@ class Trainer:
         self.window = RateWindow()  # the last RATE_WINDOW updates' episodes: the bar, the final line, the stop
         self.heldout = HeldoutCheck(cfg, self.device, self.lead)  # target_heldout
         self.runlog = RunLog(self.out, self.lead)
+        self.bar_watch = BarWatch(cfg)  # warns once when lambda climbs and the cost stays far above its bar
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
         elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
@@ -397,6 +399,9 @@ class Trainer:
         held-out check) and the time limit; (whether to save a checkpoint, whether to stop here)."""
         cfg = self.cfg
         self.window.add(stats)  # the window of rates the bar shows and the stop reads
+        warning = self.bar_watch.add(last)
+        if warning and self.lead:
+            log.warning("update %d: %s", self.update, warning)
         reached = self.window.reached(cfg)
         self._show(bar, last)
         if reached and cfg.target_heldout:
