@@ -1,7 +1,7 @@
 """Run the experiment grid (configs/experiments/grid.yaml) in batches, then the report.
 
     python scripts/run_experiments.py --config configs/experiments/grid.yaml --out runs/experiments \
-        [--batch 4] [--gpus 0,1] [--set device=cuda] [--dry-run] [--report-only] [--no-report]
+        [--batch 4] [--gpus 0,1] [--set device=cuda] [--seeds 1,2] [--dry-run] [--report-only] [--no-report]
 
 Every cell (beta x alpha) and every baseline is one `tg-gpudrive train` process
 (`python -m tg_gpudrive.cli train ...`); `--batch` of them run at the same time
@@ -10,7 +10,8 @@ one CUDA_VISIBLE_DEVICES each, round robin). A run directory that already holds 
 checkpoint of its final update is skipped, so an interrupted grid resumes. When
 all runs are done, the flexibility table (how the knobs moved the multiplier,
 gaps, speed and cost during training: the mean of each run's last `--tail`
-updates) goes to <out>/flexibility.md and .json, then
+updates, and the update from which the trainer warned that a run's constraint bar was out of reach,
+learn/bar_watch.py) goes to <out>/flexibility.md and .json, then
 `tg_gpudrive.evaluation.report.report_main` writes <out>/report/ (skip it with
 `--no-report`). The report caches each policy's evaluation (<out>/report/cache/):
 `--report-part K/N` evaluates every N-th run from the K-th (part 0 also the
@@ -34,6 +35,7 @@ import yaml
 
 from tg_gpudrive.evaluation.generate import KNOBS_ALONE
 from tg_gpudrive.evaluation.report import ReportOptions, report_main
+from tg_gpudrive.learn import bar_watch
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
@@ -46,8 +48,9 @@ def _yaml(v) -> str:
     return yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()
 
 
-def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
-    """(run name, train overrides) for every cell and baseline. Every run starts with the reward terms that keep
+def plan(exp: dict, extra: list[str], seeds: list[int] | None = None) -> list[tuple[str, list[str]]]:
+    """(run name, train overrides) for every cell and baseline, once per training seed (`seeds`, else the
+    experiment's). Every run starts with the reward terms that keep
     distance whatever beta and alpha say turned off (generate.KNOBS_ALONE: a base such as real_mix.yaml charges
     closing in), so the grid measures the knobs; the grid's own overrides may turn them back on."""
     common = [f"env.reward.{k}={_yaml(v)}" for k, v in KNOBS_ALONE.items()]
@@ -55,7 +58,7 @@ def plan(exp: dict, extra: list[str]) -> list[tuple[str, list[str]]]:
     cells = [(f"beta{beta}_alpha{alpha}", [f"env.beta={beta}", f"alpha={alpha}"])
              for beta in exp["beta"] for alpha in exp["alpha"]]
     cells += [(name, [f"{k}={_yaml(v)}" for k, v in over.items()]) for name, over in (exp.get("baselines") or {}).items()]
-    seeds = exp.get("seeds")  # training seeds: every cell and baseline once per seed, named <run>_s<seed>
+    seeds = exp.get("seeds") if seeds is None else seeds  # every cell and baseline once each, named <run>_s<seed>
     if seeds is None:
         return [(name, common + sets + extra) for name, sets in cells]
     return [(f"{name}_s{seed}", common + sets + [f"seed={seed}"] + extra) for name, sets in cells for seed in seeds]
@@ -78,20 +81,24 @@ def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> 
         path = out / name / "metrics.csv"
         if not path.exists():
             continue
-        metrics = list(csv.DictReader(path.open()))[-tail:]
+        every = list(csv.DictReader(path.open()))
+        metrics = every[-tail:]
         kv = dict(a.split("=", 1) for a in sets)
         cfg_path = out / name / "config.json"  # the run's resolved config: baselines inherit beta / alpha
-        if cfg_path.exists():
-            cfg = json.loads(cfg_path.read_text())
+        cfg = json.loads(cfg_path.read_text()) if cfg_path.exists() else None
+        if cfg is not None:
             kv = {"env.beta": str(cfg["env"]["beta"]), "alpha": str(cfg["alpha"]), **kv}
+        out_of_reach = bar_watch.replay(cfg, every) if cfg is not None else None
         row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),
-               "updates": int(metrics[-1]["update"]) if metrics else 0}
+               "updates": int(metrics[-1]["update"]) if metrics else 0,
+               # the update at which the trainer warned that the constraint's bar was out of reach
+               "bar out of reach": "-" if out_of_reach is None else f"from update {out_of_reach}"}
         for k in FLEX_COLUMNS:
             vals = [float(m[k]) for m in metrics if m.get(k) not in (None, "", "nan")]
             row[k] = sum(vals) / len(vals) if vals else math.nan
         rows.append(row)
     (out / "flexibility.json").write_text(json.dumps(rows, indent=1))
-    head = ["run", "beta", "alpha", "updates", *FLEX_COLUMNS]
+    head = ["run", "beta", "alpha", "updates", *FLEX_COLUMNS, "bar out of reach"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         lines.append("| " + " | ".join(f"{r[k]:.3f}" if isinstance(r[k], float) else str(r[k]) for k in head) + " |")
@@ -119,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
                          "filling the report's cache")
     ap.add_argument("--no-report", action="store_true", help="train and tabulate, skip the report")
     ap.add_argument("--tail", type=int, default=5, help="updates averaged in the flexibility table")
+    ap.add_argument("--seeds", default="", help="training seeds in place of the experiment's, e.g. 1,2: one "
+                    "seed's cells per GPU call")
     args = ap.parse_args(argv)
     part = None
     if args.report_part:
@@ -136,7 +145,11 @@ def main(argv: list[str] | None = None) -> int:
         tries = [cfg_path.parent / base, cfg_path.parent.parent / "train" / base, CONFIGS / "train" / base]
         base = next((p for p in tries if p.exists()), tries[-1])
     out = Path(args.out)
-    runs = plan(exp, args.set)
+    try:
+        seeds = [int(x) for x in args.seeds.split(",") if x.strip()] or None
+    except ValueError:
+        ap.error(f"--seeds: expected comma-separated integers, got {args.seeds!r}")
+    runs = plan(exp, args.set, seeds)
     updates = dict(a.split("=", 1) for _, sets in runs[:1] for a in sets).get("updates")
     if updates is None:
         updates = yaml.safe_load(base.read_text()).get("updates")

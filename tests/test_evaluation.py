@@ -900,6 +900,36 @@ def test_flexibility_table_averages_the_last_updates(tmp_path):
     assert rows[0]["beta"] == "4.0" and rows[0]["alpha"] == "0.5"
 
 
+def test_flexibility_table_says_from_which_update_a_bar_was_out_of_reach(tmp_path):
+    """A run whose CVaR stalls at 3x its budget for the watch's whole window is flagged at the window's last
+    update, one whose CVaR comes down to its bar is not, and a plain-MAPPO run (no constraint) never is."""
+    from tg_gpudrive.learn.bar_watch import WINDOW
+
+    mod = _script("run_experiments")
+    n = WINDOW + 20
+    cols = ["update", *mod.FLEX_COLUMNS, "cost_to_go", "cost_budget"]
+    for name, cvar, constraint in (("stalled", [3.0] * n, True), ("met", np.linspace(3.0, 1.0, n), True),
+                                   ("mappo", [3.0] * n, False)):
+        run = tmp_path / name
+        run.mkdir()
+        rows = [[u + 1, 1.0 + 0.05 * u, c, 5.0, 6.0, 0.1, 0.0, 0.9, c, 1.0] for u, c in enumerate(cvar)]
+        (run / "metrics.csv").write_text("\n".join([",".join(cols)] + [",".join(map(str, r)) for r in rows]) + "\n")
+        (run / "config.json").write_text(json.dumps({"alpha": 0.875, "env": {"beta": 6.0}, "constraint": constraint,
+                                                     "lambda_on": "cvar", "lambda_max": 0.0}))
+    got = {r["run"]: r["bar out of reach"] for r in mod.flexibility(tmp_path, [(x, []) for x in
+                                                                              ("stalled", "met", "mappo")])}
+    assert got == {"stalled": f"from update {WINDOW}", "met": "-", "mappo": "-"}
+    assert f"| from update {WINDOW} |" in (tmp_path / "flexibility.md").read_text()
+
+
+def test_run_experiments_takes_the_training_seeds_from_the_command_line():
+    mod = _script("run_experiments")
+    exp = {"beta": [2.0], "alpha": [0.5], "seeds": [0, 1, 2]}
+    assert [n for n, _ in mod.plan(exp, [])] == [f"beta2.0_alpha0.5_s{s}" for s in (0, 1, 2)]
+    runs = mod.plan(exp, ["device=cuda"], [2])
+    assert [n for n, _ in runs] == ["beta2.0_alpha0.5_s2"] and runs[0][1][-2:] == ["seed=2", "device=cuda"]
+
+
 def test_worst_scenes_rank_scenes_by_failures_per_agent_episode():
     from types import SimpleNamespace
 

@@ -6,6 +6,8 @@ the reward in play."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from tg_gpudrive.config import TrainConfig
@@ -49,3 +51,18 @@ class BarWatch:
         return (f"the constraint's bar looks out of reach: over the last {self.window} updates the {self.name} "
                 f"stayed above {MARGIN:g}x its budget of {budget[-1]:.3g} ({first:.3g} -> {last:.3g}) while lambda "
                 + how)
+
+
+def replay(config: dict, rows: list[dict]) -> int | None:
+    """The update at which a finished run's metrics rows (metrics.csv) first drew the warning; None if they never
+    did, or hold no multiplier. `config` is the run's config.json: its keys, TrainConfig's defaults for the rest."""
+    default = TrainConfig()
+    watch = BarWatch(SimpleNamespace(**{k: config.get(k, getattr(default, k))
+                                        for k in ("constraint", "lambda_max", "lambda_on", "alpha")}))
+    keys = ("lambda", watch.key, "cost_budget")
+    for r in rows:
+        if any(r.get(k) in (None, "", "nan") for k in keys):
+            return None
+        if watch.add({k: float(r[k]) for k in keys}):
+            return int(float(r["update"]))
+    return None
