@@ -176,16 +176,23 @@ def test_ttc_closed_form_head_on():
     assert float(rk.pair_ttc(np.array([20.0, 0.0]), np.array([10.0, 0.0]), np.array(2.0))) == rk.TTC_HORIZON
 
 
-def test_risk_of_a_rear_end_scene():
-    """A fast car behind a stopped one: TTC from the closed form, collision and hard braking found."""
+def _behind_a_stopped_car(lead_x: float, accel_bin: int = 3):
+    """The recorded episode of a policy car starting at x = 0 at 10 m/s behind a stopped log car at `lead_x`, both
+    4 x 2 m on one lane, the policy holding acceleration bin `accel_bin` (3: 0 m/s^2, 0: -6 m/s^2) and no turn."""
     T = 40
-    lead = np.stack([np.full(T, 30.0), np.zeros(T)], -1)
+    lead = np.stack([np.full(T, lead_x), np.zeros(T)], -1)
     follow = np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)  # 10 m/s, dt 0.1
     sc = make_scene(np.stack([lead, follow]), np.zeros((2, T)), length=4.0, width=2.0,
                     roads=[(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))])
     cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
     sim = Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])])
-    tr = record_episodes(sim, lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    return record_episodes(sim, lambda s: s.actions_index.fill_(accel_bin * cfg.curvature_bins
+                                                                 + cfg.curvature_bins // 2))
+
+
+def test_risk_of_a_rear_end_scene():
+    """A fast car behind a stopped one: TTC from the closed form, collision and hard braking found."""
+    tr = _behind_a_stopped_car(30.0)
     r = rk.episode_risk(tr)
     slot = int(np.nonzero(tr.policy[0])[0][0])
     # at k = 0: gap 29 m between centres, 3 discs of radius 1, outer discs 1 m from the centre:
@@ -201,8 +208,7 @@ def test_risk_of_a_rear_end_scene():
     assert 0.0 < want < 1.0 and r["close_time"][0, slot] == pytest.approx(want)
     assert rk.summarize(tr, r)["close_time_share"] == pytest.approx(want)
     # braking at the last grid value (-6 m/s^2) from 10 m/s is one event
-    sim2 = Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])])
-    tr2 = record_episodes(sim2, lambda s: s.actions_index.fill_(0 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    tr2 = _behind_a_stopped_car(30.0, accel_bin=0)
     assert rk.hard_brakes(tr2)[0, slot] == 1
     assert not rk.episode_risk(tr2)["collided"][0, slot]
     ranked = rk.rank_scenarios(tr.concat([tr2, tr]))
@@ -229,14 +235,7 @@ def test_min_gap_ahead_is_the_least_gap_over_the_next_second():
     ahead, now = rk.min_gap_ahead(tr), rk.min_gap(tr)
     assert ahead[0, 0] == pytest.approx(4.0, abs=0.02) and ahead[0, 0] <= now[0, 0] + 1e-6
     assert ahead == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)
-    T = 40
-    lead = np.stack([np.full(T, 60.0), np.zeros(T)], -1)
-    follow = np.stack([np.arange(T) * 1.0, np.zeros(T)], -1)  # 10 m/s, dt 0.1
-    sc = make_scene(np.stack([lead, follow]), np.zeros((2, T)), length=4.0, width=2.0,
-                    roads=[(RoadType.LANE, np.array([[-10.0, 0.0], [100.0, 0.0]]))])
-    cfg = EngineConfig(max_agents=4, partner_k=2, road_k=4, init_steps=1)
-    tr = record_episodes(Simulator([sc], cfg, "cpu", controlled=[np.array([False, True])]),
-                         lambda s: s.actions_index.fill_(3 * cfg.curvature_bins + cfg.curvature_bins // 2))
+    tr = _behind_a_stopped_car(60.0)
     slot = int(np.nonzero(tr.policy[0])[0][0])
     assert rk.min_gap_ahead(tr) == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)
     assert rk.min_gap_ahead(tr)[0, slot] == pytest.approx(rk.min_gap(tr)[0, slot] - 10.0, abs=0.2)
