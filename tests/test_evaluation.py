@@ -235,6 +235,9 @@ def test_min_gap_ahead_is_the_least_gap_over_the_next_second():
     ahead, now = rk.min_gap_ahead(tr), rk.min_gap(tr)
     assert ahead[0, 0] == pytest.approx(4.0, abs=0.02) and ahead[0, 0] <= now[0, 0] + 1e-6
     assert ahead == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)
+    far = dataclasses.replace(tr, pos=tr.pos.copy())
+    far.pos[0, 1] += 1000.0  # no one within the recording's cap: capped there, as min_gap is
+    assert rk.min_gap_ahead(far)[0, 0] == rk.NEAREST_CAP
     tr = _behind_a_stopped_car(60.0)
     slot = int(np.nonzero(tr.policy[0])[0][0])
     assert rk.min_gap_ahead(tr) == pytest.approx(_gap_ahead_by_sampling(tr, rk.ANTICIPATION), abs=1e-3)

@@ -112,8 +112,8 @@ def min_gap(tr: Trajectories) -> np.ndarray:
 
 def min_gap_ahead(tr: Trajectories, horizon: float = ANTICIPATION) -> np.ndarray:
     """(E, A) least centre distance of every policy agent to another present agent over the next `horizon`
-    seconds of each of its steps, both at constant velocity (inf: never valid or alone); `horizon` 0 is the
-    plain centre distance, uncapped."""
+    seconds of each of its steps, both at constant velocity, capped at NEAREST_CAP as min_gap is (inf: never
+    valid); `horizon` 0 is min_gap's centre distance."""
     E, A, K = tr.valid.shape
     out = np.full((E, A), np.inf)
     for e in range(E):
@@ -128,7 +128,7 @@ def min_gap_ahead(tr: Trajectories, horizon: float = ANTICIPATION) -> np.ndarray
         d = np.linalg.norm(p + v * t[..., None], axis=-1)
         ok = tr.valid[e, rows][:, None, :] & tr.valid[e][None, :, :]
         ok &= rows[:, None, None] != np.arange(A)[None, :, None]
-        out[e, rows] = np.where(ok, d, np.inf).min(axis=(1, 2))
+        out[e, rows] = np.minimum(np.where(ok, d, np.inf).min(axis=(1, 2)), NEAREST_CAP)
     return out
 
 
