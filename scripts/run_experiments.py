@@ -33,6 +33,7 @@ from pathlib import Path
 
 import yaml
 
+from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.evaluation.generate import KNOBS_ALONE
 from tg_gpudrive.evaluation.report import ReportOptions, report_main
 from tg_gpudrive.learn import bar_watch
@@ -85,9 +86,9 @@ def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> 
         metrics = every[-tail:]
         kv = dict(a.split("=", 1) for a in sets)
         cfg_path = out / name / "config.json"  # the run's resolved config: baselines inherit beta / alpha
-        cfg = json.loads(cfg_path.read_text()) if cfg_path.exists() else None
+        cfg = from_dict(TrainConfig, json.loads(cfg_path.read_text()), str(cfg_path)) if cfg_path.exists() else None
         if cfg is not None:
-            kv = {"env.beta": str(cfg["env"]["beta"]), "alpha": str(cfg["alpha"]), **kv}
+            kv = {"env.beta": str(cfg.env.beta), "alpha": str(cfg.alpha), **kv}
         out_of_reach = bar_watch.replay(cfg, every) if cfg is not None else None
         row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),
                "updates": int(metrics[-1]["update"]) if metrics else 0,

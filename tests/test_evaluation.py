@@ -654,7 +654,7 @@ def test_report_on_tiny_runs(tmp_path):
     for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model",
                   "| cce | CCE-MAPPO | T 1 |", "| mappo | MAPPO | T 1 |", "acts at", "realism (ours)",
                   "grid.png shows scene ", "on the right the moment one of its cars came nearest another",
-                  "bottom right, the mean over that run's episodes"):
+                  "bottom right, the mean over that run's episodes", "| bar out of reach (train) |"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",

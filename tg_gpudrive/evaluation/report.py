@@ -85,6 +85,7 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_episodes, re
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
+from tg_gpudrive.learn import bar_watch
 from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, scene_distances,
                                                  tail_means, worst_scenes)
 from tg_gpudrive.agents.prior import ExpertPrior
@@ -523,6 +524,7 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost", "cvar",
                                                        "cost_budget"))
     res["constraint"] = constraint_rule(cfg)
+    res["bar_out_of_reach"] = bar_watch.replay(cfg, got.curves[label])  # the update the trainer warned at, or None
     if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cell_runs:  # a cell's first training seed
         got.cell_runs[(cfg.env.beta, cfg.alpha)] = (cfg, scenes, masks, ckpt, device, label)
     # the most critical scenarios, as GPUDrive JSON with their risk figures

@@ -144,10 +144,12 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
              r["train_tail"].get("cvar", "-"), r["train_tail"].get("cost_budget", "-"),
              r["train_tail"]["mean_min_distance"], r["train_tail"]["mean_speed"], r["train_tail"]["cost"],
              r["risk"].get("mean_min_gap_m"), r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
-             r["risk"].get("collision_rate")] for r in cce]
+             r["risk"].get("collision_rate"),
+             "-" if r.get("bar_out_of_reach") is None else f"from update {r['bar_out_of_reach']}"] for r in cce]
     out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "CVaR (train)",
                        "budget (train)", "min distance (train) [m]", "speed (train) [m/s]", "cost (train)",
-                       "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)"], rows))
+                       "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)",
+                       "bar out of reach (train)"], rows))
     if not all("figures" in r for r in cce):
         return out
     cells = group_cells(cce)

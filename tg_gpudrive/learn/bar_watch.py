@@ -6,8 +6,6 @@ the reward in play."""
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 
 from tg_gpudrive.config import TrainConfig
@@ -53,12 +51,10 @@ class BarWatch:
                 + how)
 
 
-def replay(config: dict, rows: list[dict]) -> int | None:
-    """The update at which a finished run's metrics rows (metrics.csv) first drew the warning; None if they never
-    did, or hold no multiplier. `config` is the run's config.json: its keys, TrainConfig's defaults for the rest."""
-    default = TrainConfig()
-    watch = BarWatch(SimpleNamespace(**{k: config.get(k, getattr(default, k))
-                                        for k in ("constraint", "lambda_max", "lambda_on", "alpha")}))
+def replay(cfg: TrainConfig, rows: list[dict]) -> int | None:
+    """The update at which a finished run's metrics rows (metrics.csv, run under `cfg`) first drew the warning;
+    None if they never did, or hold no multiplier."""
+    watch = BarWatch(cfg)
     keys = ("lambda", watch.key, "cost_budget")
     for r in rows:
         if any(r.get(k) in (None, "", "nan") for k in keys):
