@@ -263,3 +263,37 @@ def test_knob_effects_pair_cells_that_played_the_same_episodes_and_gap_headroom_
     [row] = gap_headroom(group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(6.0, 0, [5.0, 5.0, 5.0])]))
     assert row[:2] == ["alpha 0.5", "2 -> 6"] and row[2:5] == [4.0, 5.0, 1.0]
     assert row[5:] == [2.0, 0.5]
+
+
+def test_effects_per_scenario_type_say_where_a_knob_acts():
+    """Two training seeds a cell (beta 2, 6 x alpha 0.1, 0.9) over the same agent-episodes of two scenario types:
+    on merges beta widens the min gap by 1 m and halves near misses, on roundabouts it moves nothing; a third
+    type with too few agent-episodes gets no row, and cells without types give no table."""
+    from tg_gpudrive.evaluation.report_stats import group_cells, knob_effects_by_type
+
+    rng = np.random.default_rng(3)
+    kinds = np.array(["merge"] * 300 + ["roundabout"] * 300 + ["t_junction"] * 10)
+    keys = np.array([f"scene{i}|0|1" for i in range(len(kinds))])
+    merge = kinds == "merge"
+    runs = []
+    for beta in (2.0, 6.0):
+        for alpha in (0.1, 0.9):
+            for seed in (0, 1):
+                acts = merge * (beta == 6.0)
+                runs.append({"label": f"b{beta}a{alpha}s{seed}", "beta": beta, "alpha": alpha, "seed": seed,
+                             "figures": {"episode_key": keys, "scenario_type": kinds,
+                                         "min_gap": rng.normal(5.0 + acts, 0.3, len(kinds)),
+                                         "ttc_critical": (rng.random(len(kinds)) < 0.4 / (1 + acts)).astype(float),
+                                         "collision": np.zeros(len(kinds))}})
+    rows = {(r[0], r[1], r[2]): r for r in knob_effects_by_type(group_cells(runs), n_boot=300)}
+    assert {t for t, _, _ in rows} == {"merge", "roundabout"}
+    on_merge, elsewhere = rows[("merge", "beta", "alpha 0.1")], rows[("roundabout", "beta", "alpha 0.1")]
+    assert on_merge[3] == "2 -> 6" and on_merge[4] == 300
+    assert float(on_merge[5].split()[0]) == pytest.approx(1.0, abs=0.1) and on_merge[5].endswith("holds")
+    assert on_merge[6].endswith("holds")
+    assert float(on_merge[6][1:].split()[0]) == pytest.approx(0.5, abs=0.12)
+    assert elsewhere[5].endswith("not shown") and elsewhere[6].endswith("not shown")
+    assert on_merge[7] == "0 [0, 0] (none at low) not shown"  # no collisions anywhere: no ratio to read
+    for r in runs:
+        del r["figures"]["scenario_type"]
+    assert knob_effects_by_type(group_cells(runs)) == []

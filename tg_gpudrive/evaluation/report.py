@@ -498,7 +498,7 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
         return res, gen
 
     res, gen = _cached(out, label, [ckpt, *(p for _, p in kept)], opts, evaluate_run, bar)
-    if not {"episode_key", "min_gap_ahead"} <= res["figures"].keys():  # cached before these figures: from rollouts
+    if not {"episode_key", "min_gap_ahead", "scenario_type"} <= res["figures"].keys():  # cached before: from rollouts
         res["figures"].update(episode_figures(gen, rk.episode_risk(gen)))
     got.keep(res, gen)
     if i == 0:  # where the report's first policy fails most, drawn as its episodes end

@@ -20,8 +20,9 @@ import numpy as np
 
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.report_stats import (flexibility_directions, fmt, gap_against_mappo, gap_headroom,
-                                                 group_cells, knob_effects, played_alike)
+from tg_gpudrive.evaluation.report_stats import (FLEX_CLAIMS, TYPE_FIGURES, flexibility_directions, fmt,
+                                                 gap_against_mappo, gap_headroom, group_cells, knob_effects,
+                                                 knob_effects_by_type, played_alike)
 
 PER_AGENT_CSV, PER_SCENE_CSV = "per_agent.csv", "per_scene.csv"
 PER_AGENT_COLUMNS = ("policy", "agent", "scenario_type", "gap", "gain", "gain_ci95", "j_pi", "j_br",
@@ -177,6 +178,14 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
                    f"{noise}. **holds**: the difference's interval lies on the paper's side of 0.\n\n")
         out.append(_table(["figure", "knob", "held", "knob low -> high", "at low", "at high", "difference [95 %]",
                            "ratio [95 %]", "paper's sign", "verdict", "episodes resampled"], effects))
+    by_type = knob_effects_by_type(cells)
+    if by_type:
+        names = [FLEX_CLAIMS[k][0] for k in TYPE_FIGURES]
+        out.append(f"\nEffect sizes per scenario type: the table above on each type's agent-episodes alone, for "
+                   f"{', '.join(names)}: min gap's difference high - low and the rates' ratio high / low, each with "
+                   f"its 95 % interval (as above) and its verdict.\n\n")
+        out.append(_table(["scenario type", "knob", "held", "knob low -> high", "agent-episodes a run", *names],
+                          by_type))
     headroom = gap_headroom(cells)
     if headroom:
         out.append("\nHow much min gap beta can buy: the ceiling is the change if every agent of the low cell "

@@ -106,10 +106,11 @@ def episode_keys(gen, m: np.ndarray) -> np.ndarray:
 
 def episode_figures(gen, risk: dict) -> dict[str, np.ndarray]:
     """One value per policy agent-episode of each figure the flexibility claims are about, its `start_gap` (the
-    min gap's ceiling) and its `episode_key`."""
+    min gap's ceiling), its `episode_key` and its scene's `scenario_type`."""
     m = risk["agents"]  # present at some step, so the mean speed below has a step to average
     speed = np.where(gen.valid, gen.speed, 0.0).sum(-1) / np.maximum(gen.valid.sum(-1), 1)
-    return {"episode_key": episode_keys(gen, m), "start_gap": risk["start_gap"][m],
+    types = np.array(gen.scenario_types(), dtype=str)[np.nonzero(m)[0]]
+    return {"episode_key": episode_keys(gen, m), "scenario_type": types, "start_gap": risk["start_gap"][m],
             "min_gap": risk["min_gap"][m], "min_gap_ahead": risk["min_gap_ahead"][m],
             "close_time": risk["close_time"][m], "speed": speed[m],
             "ttc_critical": (risk["min_ttc"][m] < rk.TTC_CRITICAL).astype(float),
@@ -213,6 +214,41 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
                              f"{fmt(e.diff)} [{fmt(e.diff_lo)}, {fmt(e.diff_hi)}]",
                              f"{fmt(e.ratio)} [{fmt(e.ratio_lo)}, {fmt(e.ratio_hi)}]",
                              {1: "+", -1: "-"}[sign], e.verdict(sign), "paired" if paired else "each cell alone"])
+    return rows
+
+
+# the per-type table's figures (distance, near miss, crash), each read as the difference or the ratio high / low
+TYPE_FIGURES = {"min_gap": "difference", "ttc_critical": "ratio", "collision": "ratio"}
+
+
+def knob_effects_by_type(cells: list[dict], n_boot: int = 2000, min_episodes: int = 30) -> list[list]:
+    """Rows (scenario type, knob, held, knob low -> high, agent-episodes a run, then per TYPE_FIGURES figure its
+    difference or ratio with its 95 % interval, and its verdict) of `knob_effects` on each scenario type's
+    agent-episodes alone: where a knob acts and where it does not. Only with two types or more, each with at least
+    `min_episodes` agent-episodes in every run; nothing for cells evaluated before the figures kept their types."""
+    runs = [r for c in cells for r in _run_figures(c, "scenario_type")]
+    if len(runs) < sum(c.get("runs", 1) for c in cells):
+        return []
+    types = sorted(t for t in set(np.concatenate(runs)) if all((r == t).sum() >= min_episodes for r in runs))
+    if len(types) < 2:
+        return []
+    rows, first = [], FLEX_CLAIMS[next(iter(TYPE_FIGURES))][0]
+    for t in types:
+        sub = [{**c, "figures": {k: [f[kind == t] for f, kind in zip(_run_figures(c, k), of_type)]
+                                 for k in (*TYPE_FIGURES, "episode_key")}}
+               for c in cells for of_type in [_run_figures(c, "scenario_type")]]
+        # knob_effects' rows: figure, knob, held, low -> high, at low, at high, difference, ratio, sign, verdict, ...
+        effects = {(r[0], r[1], r[2]): r for r in knob_effects(sub, n_boot)}
+        for (name, knob, held), lead in effects.items():
+            if name != first:
+                continue
+            row = [t, knob, held, lead[3], min(len(f) for c in sub for f in c["figures"]["episode_key"])]
+            for key, read in TYPE_FIGURES.items():
+                e = effects[(FLEX_CLAIMS[key][0], knob, held)]
+                undefined = read == "ratio" and not e[4] > 0  # none at the low cell: a ratio says nothing
+                row.append(f"{e[6] + ' (none at low)' if undefined else e[6] if read == 'difference' else 'x' + e[7]}"
+                           f" {e[9]}")
+            rows.append(row)
     return rows
 
 
