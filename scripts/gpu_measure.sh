@@ -184,10 +184,12 @@ store10k)
   ;;
 grid)
   # GRID_FROM: run directories trained earlier (e.g. a carried folder holding the slim checkpoints an earlier
-  # session brought back) copied in first; finished cells are not trained again. GRID_REPORT=0: train only
+  # session brought back) copied in first; finished cells are not trained again. GRID_REPORT=0: train only.
+  # GRID_SEEDS=S[,S]: those training seeds in place of the config's (one seed's cells per call)
   [ -n "${GRID_FROM:-}" ] && cp -r "$R/$GRID_FROM"/. "$RES"/
   timeout ${GRID_TRAIN_SECONDS:-300} python3 "$R"/scripts/run_experiments.py --config ${GRID_CONFIG:-"$R"/configs/experiments/grid.yaml} --out "$RES" --no-report \
-    ${GRID_GPUS:+--gpus $GRID_GPUS} ${GRID_BATCH:+--batch $GRID_BATCH} ${GRID_UPDATES:+--set updates=$GRID_UPDATES} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
+    ${GRID_GPUS:+--gpus $GRID_GPUS} ${GRID_BATCH:+--batch $GRID_BATCH} ${GRID_UPDATES:+--set updates=$GRID_UPDATES} \
+    ${GRID_SEEDS:+--seeds $GRID_SEEDS} "${SETS[@]}" 2>&1 | grep -E '^\||exit|failed' | tail -25
   slim
   # the report: with GRID_GPUS one part per GPU fills its cache (policies evaluated, CCE-gaps), then one
   # pass writes it; a part stopped by its timeout keeps what it finished for the next call
