@@ -1,10 +1,11 @@
 """How much of the actor's advantage the distance cost carries, and how much the risk level alpha moves it.
 
     python scripts/advantage_balance.py --runs RUN [RUN ...] --scenes STORE [--alphas 0.125 0.875] \\
-        [--num-worlds 32] [--rollouts 2] [--device cpu] [--json]
+        [--num-worlds 32] [--rollouts 2] [--device cpu] [--cost-advantage gae|tail] [--json]
 
 The actor of CCE-MAPPO ascends A = A_r - lambda A_c (update.minibatch_loss, losses.cce_mappo_actor_loss), where
-A_c is the CVaR_alpha-GAE advantage of the cost read from the run's quantile critic. alpha can move a policy only
+A_c is the cost's advantage read from the run's quantile critic by the run's rule (TrainConfig.cost_advantage, or
+`--cost-advantage` for every run: the same rollouts read by the other rule). alpha can move a policy only
 through A_c, so two things bound what it can do: how large lambda A_c is beside A_r, and how different A_c is at
 two alphas. Per run, its own networks and last multipliers drive its own training scenes (`--scenes` replaces a
 store path that no longer exists here) for `--rollouts` rollouts of `--num-worlds` worlds, and over the live rows:
@@ -14,7 +15,9 @@ store path that no longer exists here) for `--rollouts` rollouts of `--num-world
   |change| of A against the std of A (the normalised step the actor sees);
 - the critic's tail: over the live states whose mean cost-to-go exceeds 1e-3, the median of CVaR at the last alpha
   over CVaR at the first, from the quantiles the critic gives each state (how much the risk level can tell states
-  apart: a critic whose atoms crowd towards the mean, see TrainConfig.cost_kappa, gives little more than 1).
+  apart: a critic whose atoms crowd towards the mean, see TrainConfig.cost_kappa, gives little more than 1);
+- which way each part of the advantage leans on speed: the correlation of A_r, and of -lambda A_c, with the
+  acceleration of the action taken (negative: the part favours braking over speeding up).
 Numbers only; it never fails on them.
 """
 
@@ -35,23 +38,35 @@ from tg_gpudrive.learn.train import Trainer
 from tg_gpudrive.learn.update import advantages
 
 
-def run_config(run: str, scenes: str | None, num_worlds: int, device: str) -> tuple[TrainConfig, dict]:
+def run_config(run: str, scenes: str | None, num_worlds: int, device: str,
+               rule: str | None = None) -> tuple[TrainConfig, dict]:
     ck = load_checkpoint(run, "--runs")
     sets = [f"init_policy={Path(run) / 'checkpoint.pt' if Path(run).is_dir() else run}", f"num_worlds={num_worlds}",
             f"device={device}", "cuda_graphs=false", "compile_update=false", "resample_every=0"]
     if scenes:
         sets.append(f"scenes={scenes}")
+    if rule:
+        sets.append(f"cost_advantage={rule}")
     return from_dict(TrainConfig, apply_overrides(ck["config"], sets), run), ck
 
 
-def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, rollouts: int, device: str) -> dict:
-    cfg, ck = run_config(run, scenes, num_worlds, device)
+def accelerations(cfg: TrainConfig, act: torch.Tensor) -> torch.Tensor:
+    """m/s^2 of each action taken: its bin of the acceleration grid (discrete), or its first component."""
+    env = cfg.env
+    if act.dim() > 3:
+        return act[..., 0].float()
+    grid = torch.linspace(-env.max_accel, env.max_accel, env.accel_bins, device=act.device)
+    return grid[torch.div(act.long(), env.curvature_bins, rounding_mode="floor").clamp(0, env.accel_bins - 1)]
+
+
+def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, rollouts: int, device: str,
+            rule: str | None = None) -> dict:
+    cfg, ck = run_config(run, scenes, num_worlds, device, rule)
     with tempfile.TemporaryDirectory() as out:
         tr = Trainer(cfg, out, progress=False)
         lam = ck["lagrange"]["lam"].to(tr.device) if "lagrange" in ck else torch.zeros((), device=tr.device)
         rows = {"a_r": [], **{a: [] for a in alphas}, "own": []}
-        quant = []
-        lam_used = []
+        quant, lam_used, accel = [], [], []
         for _ in range(rollouts):
             b = tr.collector.collect()
             C = b.mask.shape[-1]
@@ -59,6 +74,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
             live = b.mask
             lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
             quant.append(b.quant[:-1][live])
+            accel.append(accelerations(cfg, b.act)[live])
             for a in {*alphas, cfg.alpha}:  # the update's own targets (update.advantages) at each risk level
                 tg = advantages(dataclasses.replace(cfg, alpha=a), b)
                 weighted = (lam_c * tg.adv_c)[live]
@@ -75,6 +91,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
     held = q.mean(-1) > 1e-3
     tail = L.cvar_from_quantiles(q[held], alphas[-1], True) / L.cvar_from_quantiles(q[held], alphas[0], True)
     corr = lambda x, y: float(torch.corrcoef(torch.stack([x, y]))[0, 1]) if x.std() > 0 and y.std() > 0 else 0.0  # noqa: E731
+    acc = torch.cat(accel).float()
     return {
         "run": run, "alpha": cfg.alpha, "beta": cfg.env.beta, "live_rows": int(a_r.numel()),
         "lambda_mean": float(torch.cat(lam_used).mean()),  # over the slots that held agents
@@ -85,6 +102,8 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         "sign_flips": float(((comb_first > 0) != (comb_last > 0)).float().mean()),
         "mean_abs_change_over_std": float((comb_first - comb_last).abs().mean() / comb_first.std().clamp(min=1e-12)),
         "tail_ratio": float(tail.median()) if len(tail) else float("nan"),
+        "cost_advantage": cfg.cost_advantage,
+        "reward_lean": corr(a_r, acc), "cost_lean": corr(-own, acc),
     }
 
 
@@ -96,23 +115,26 @@ def main(argv=None) -> int:
     p.add_argument("--num-worlds", type=int, default=32)
     p.add_argument("--rollouts", type=int, default=2)
     p.add_argument("--device", default="cpu")
+    p.add_argument("--cost-advantage", choices=("gae", "tail"), default=None,
+                   help="read every run's cost advantage by this rule (default: each run's own)")
     p.add_argument("--json", action="store_true", help="one JSON line per run instead of the table")
     args = p.parse_args(argv)
     if not args.json:
         print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
               + " | ".join(f"std at alpha {a} (corr)" for a in args.alphas)
               + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A"
-              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} |")
-        print("|" + "---|" * (11 + len(args.alphas)))
+              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean |")
+        print("|" + "---|" * (14 + len(args.alphas)))
     for run in args.runs:
-        r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device)
+        r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device, args.cost_advantage)
         if args.json:
             print(json.dumps(r), flush=True)
             continue
         per = " | ".join(f"{v['std_lambda_a_c']:.4f} ({v['corr_with_own']:.2f})" for v in r["per_alpha"].values())
         print(f"| {Path(run).name} | {r['beta']} | {r['alpha']} | {r['live_rows']} | {r['lambda_mean']:.2f} | "
               f"{r['std_a_r']:.4f} | {r['std_lambda_a_c']:.4f} | {r['cost_share']:.3f} | {per} | "
-              f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} | {r['tail_ratio']:.2f} |", flush=True)
+              f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} | {r['tail_ratio']:.2f} | "
+              f"{r['cost_advantage']} | {r['reward_lean']:+.3f} | {r['cost_lean']:+.3f} |", flush=True)
     return 0
 
 

@@ -1075,3 +1075,15 @@ def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
     # the critic's tail: CVaR is non-decreasing in alpha, and an alpha against itself gives 1
     assert same["tail_ratio"] == pytest.approx(1.0)
     assert (moved["tail_ratio"] > 1.0) == (other > own) and moved["tail_ratio"] != pytest.approx(1.0)
+    # the lean of each part on speed: the acceleration grid read by hand (7 bins over +-6 m/s^2), and the other
+    # rule's reading of the same rollouts changes the cost's part alone
+    cfg = mod.run_config("shipped", None, 4, "cpu")[0]
+    k = cfg.env.curvature_bins
+    act = torch.tensor([[[0, k - 1, 3 * k, 3 * k + 2, 6 * k + k // 2]]])
+    assert mod.accelerations(cfg, act).tolist() == [[[-6.0, -6.0, 0.0, 0.0, 6.0]]]
+    assert -1.0 <= same["cost_lean"] <= 1.0 and same["cost_lean"] != 0.0
+    assert same["cost_advantage"] == cfg.cost_advantage
+    rule = "tail" if cfg.cost_advantage == "gae" else "gae"
+    read = mod.balance("shipped", "procedural:all", [own, own], num_worlds=4, rollouts=1, device="cpu", rule=rule)
+    assert read["cost_advantage"] == rule and read["reward_lean"] == pytest.approx(same["reward_lean"])
+    assert read["cost_lean"] != pytest.approx(same["cost_lean"])
