@@ -242,12 +242,16 @@ def knob_effects_by_type(cells: list[dict], n_boot: int = 2000, min_episodes: in
         for (name, knob, held), lead in effects.items():
             if name != first:
                 continue
-            row = [t, knob, held, lead[3], min(len(f) for c in sub for f in c["figures"]["episode_key"])]
+            row = [t, knob, held, lead[3], min(len(f) for c in sub for f in c["figures"][next(iter(TYPE_FIGURES))])]
             for key, read in TYPE_FIGURES.items():
                 e = effects[(FLEX_CLAIMS[key][0], knob, held)]
-                undefined = read == "ratio" and not e[4] > 0  # none at the low cell: a ratio says nothing
-                row.append(f"{e[6] + ' (none at low)' if undefined else e[6] if read == 'difference' else 'x' + e[7]}"
-                           f" {e[9]}")
+                if read == "difference":
+                    text = e[6]
+                elif e[4] > 0:
+                    text = "x" + e[7]
+                else:  # none at the low cell: a ratio says nothing, the difference does
+                    text = e[6] + " (none at low)"
+                row.append(f"{text} {e[9]}")
             rows.append(row)
     return rows
 
