@@ -33,9 +33,8 @@ from pathlib import Path
 
 import yaml
 
-from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.evaluation.generate import KNOBS_ALONE
-from tg_gpudrive.evaluation.report import ReportOptions, report_main
+from tg_gpudrive.evaluation.report import ReportOptions, report_main, run_config
 from tg_gpudrive.learn import bar_watch
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
@@ -86,14 +85,12 @@ def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> 
         metrics = every[-tail:]
         kv = dict(a.split("=", 1) for a in sets)
         cfg_path = out / name / "config.json"  # the run's resolved config: baselines inherit beta / alpha
-        cfg = from_dict(TrainConfig, json.loads(cfg_path.read_text()), str(cfg_path)) if cfg_path.exists() else None
+        cfg = run_config(out / name) if cfg_path.exists() else None
         if cfg is not None:
             kv = {"env.beta": str(cfg.env.beta), "alpha": str(cfg.alpha), **kv}
-        out_of_reach = bar_watch.replay(cfg, every) if cfg is not None else None
         row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),
                "updates": int(metrics[-1]["update"]) if metrics else 0,
-               # the update at which the trainer warned that the constraint's bar was out of reach
-               "bar out of reach": "-" if out_of_reach is None else f"from update {out_of_reach}"}
+               "bar out of reach": bar_watch.label(bar_watch.replay(cfg, every) if cfg is not None else None)}
         for k in FLEX_COLUMNS:
             vals = [float(m[k]) for m in metrics if m.get(k) not in (None, "", "nan")]
             row[k] = sum(vals) / len(vals) if vals else math.nan

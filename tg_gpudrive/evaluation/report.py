@@ -85,10 +85,10 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_episodes, re
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
-from tg_gpudrive.learn import bar_watch
 from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, scene_distances,
                                                  tail_means, worst_scenes)
 from tg_gpudrive.agents.prior import ExpertPrior
+from tg_gpudrive.learn import bar_watch
 from tg_gpudrive.agents.policy import load_actor, load_policy
 from tg_gpudrive.agents.builtin import expert_policy
 from tg_gpudrive.worldmodel.prior import WorldModelDriver, load_world_model
@@ -139,7 +139,7 @@ class ReportOptions:
 
 
 # ------------------------------------------------------------------ helpers
-def _run_config(run: Path):
+def run_config(run: Path) -> TrainConfig:
     """The TrainConfig of a run directory (its config.json)."""
     path = run / "config.json"
     if not path.exists():
@@ -154,7 +154,7 @@ def _run_files(run: Path):
         ckpt = run / "checkpoint.pt"
         if not ckpt.exists():
             raise FileNotFoundError(f"{run}: no checkpoint.pt")
-        return _run_config(run), ckpt
+        return run_config(run), ckpt
     ckpt = checkpoint_path(str(run), "--runs")
     return from_dict(TrainConfig, load_checkpoint(ckpt, "--runs")["config"], str(ckpt)), ckpt
 

@@ -23,6 +23,7 @@ from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.report_stats import (FLEX_CLAIMS, TYPE_FIGURES, flexibility_directions, fmt,
                                                  gap_against_mappo, gap_headroom, group_cells, knob_effects,
                                                  knob_effects_by_type, played_alike)
+from tg_gpudrive.learn import bar_watch
 
 PER_AGENT_CSV, PER_SCENE_CSV = "per_agent.csv", "per_scene.csv"
 PER_AGENT_COLUMNS = ("policy", "agent", "scenario_type", "gap", "gain", "gain_ci95", "j_pi", "j_br",
@@ -146,7 +147,7 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
              r["train_tail"]["mean_min_distance"], r["train_tail"]["mean_speed"], r["train_tail"]["cost"],
              r["risk"].get("mean_min_gap_m"), r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
              r["risk"].get("collision_rate"),
-             "-" if r.get("bar_out_of_reach") is None else f"from update {r['bar_out_of_reach']}"] for r in cce]
+             bar_watch.label(r.get("bar_out_of_reach"))] for r in cce]
     out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "CVaR (train)",
                        "budget (train)", "min distance (train) [m]", "speed (train) [m/s]", "cost (train)",
                        "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)",

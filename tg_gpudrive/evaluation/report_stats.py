@@ -232,7 +232,7 @@ def knob_effects_by_type(cells: list[dict], n_boot: int = 2000, min_episodes: in
     types = sorted(t for t in set(np.concatenate(runs)) if all((r == t).sum() >= min_episodes for r in runs))
     if len(types) < 2:
         return []
-    rows, first = [], FLEX_CLAIMS[next(iter(TYPE_FIGURES))][0]
+    rows, lead_key = [], next(iter(TYPE_FIGURES))  # one row per (type, knob, held): keyed on the first figure
     for t in types:
         sub = [{**c, "figures": {k: [f[kind == t] for f, kind in zip(_run_figures(c, k), of_type)]
                                  for k in (*TYPE_FIGURES, "episode_key")}}
@@ -240,9 +240,9 @@ def knob_effects_by_type(cells: list[dict], n_boot: int = 2000, min_episodes: in
         # knob_effects' rows: figure, knob, held, low -> high, at low, at high, difference, ratio, sign, verdict, ...
         effects = {(r[0], r[1], r[2]): r for r in knob_effects(sub, n_boot)}
         for (name, knob, held), lead in effects.items():
-            if name != first:
+            if name != FLEX_CLAIMS[lead_key][0]:
                 continue
-            row = [t, knob, held, lead[3], min(len(f) for c in sub for f in c["figures"][next(iter(TYPE_FIGURES))])]
+            row = [t, knob, held, lead[3], min(len(f) for c in sub for f in c["figures"][lead_key])]
             for key, read in TYPE_FIGURES.items():
                 e = effects[(FLEX_CLAIMS[key][0], knob, held)]
                 if read == "difference":

@@ -6,6 +6,8 @@ the reward in play."""
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from tg_gpudrive.config import TrainConfig
@@ -24,13 +26,13 @@ class BarWatch:
         self.on, self.cap, self.window = bool(cfg.constraint), float(cfg.lambda_max), window or WINDOW
         self.key = "cvar" if cfg.lambda_on == "cvar" else "cost_to_go"
         self.name = f"CVaR_{cfg.alpha:g} of the cost-to-go" if cfg.lambda_on == "cvar" else "mean cost-to-go"
-        self.recent: list[tuple[float, float, float]] = []
+        self.recent: deque[tuple[float, float, float]] = deque(maxlen=self.window)
         self.warned = False
 
     def add(self, row: dict) -> str | None:
         if not self.on or self.warned:
             return None
-        self.recent = (self.recent + [(row["lambda"], row[self.key], row["cost_budget"])])[-self.window:]
+        self.recent.append((row["lambda"], row[self.key], row["cost_budget"]))
         if len(self.recent) < self.window:
             return None
         lam, con, budget = (np.array(x) for x in zip(*self.recent))
@@ -62,3 +64,8 @@ def replay(cfg: TrainConfig, rows: list[dict]) -> int | None:
         if watch.add({k: float(r[k]) for k in keys}):
             return int(float(r["update"]))
     return None
+
+
+def label(update: int | None) -> str:
+    """A run's verdict as the flexibility tables print it: the update the trainer warned at, or "-"."""
+    return "-" if update is None else f"from update {update}"
