@@ -17,7 +17,8 @@ store path that no longer exists here) for `--rollouts` rollouts of `--num-world
   over CVaR at the first, from the quantiles the critic gives each state (how much the risk level can tell states
   apart: a critic whose atoms crowd towards the mean, see TrainConfig.cost_kappa, gives little more than 1);
 - which way each part of the advantage leans on speed: the correlation of A_r, and of -lambda A_c, with the
-  acceleration of the action taken (negative: the part favours braking over speeding up).
+  acceleration of the action taken (negative: the part favours braking over speeding up); the cost's lean also
+  per alpha in `--alphas`, the same rollouts and critic read at another risk level (0: the mean cost-to-go).
 Numbers only; it never fails on them.
 """
 
@@ -97,8 +98,8 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         "lambda_mean": float(torch.cat(lam_used).mean()),  # over the slots that held agents
         "std_a_r": float(a_r.std()), "std_lambda_a_c": float(own.std()),
         "cost_share": float(own.std() / a_r.std().clamp(min=1e-12)),
-        "per_alpha": {str(a): {"std_lambda_a_c": float(cat[a].std()), "corr_with_own": corr(cat[a], own)}
-                      for a in alphas},
+        "per_alpha": {str(a): {"std_lambda_a_c": float(cat[a].std()), "corr_with_own": corr(cat[a], own),
+                               "cost_lean": corr(-cat[a], acc)} for a in alphas},
         "sign_flips": float(((comb_first > 0) != (comb_last > 0)).float().mean()),
         "mean_abs_change_over_std": float((comb_first - comb_last).abs().mean() / comb_first.std().clamp(min=1e-12)),
         "tail_ratio": float(tail.median()) if len(tail) else float("nan"),
@@ -121,7 +122,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if not args.json:
         print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
-              + " | ".join(f"std at alpha {a} (corr)" for a in args.alphas)
+              + " | ".join(f"std at alpha {a} (corr, cost lean)" for a in args.alphas)
               + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A"
               + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean |")
         print("|" + "---|" * (14 + len(args.alphas)))
@@ -130,7 +131,8 @@ def main(argv=None) -> int:
         if args.json:
             print(json.dumps(r), flush=True)
             continue
-        per = " | ".join(f"{v['std_lambda_a_c']:.4f} ({v['corr_with_own']:.2f})" for v in r["per_alpha"].values())
+        per = " | ".join(f"{v['std_lambda_a_c']:.4f} ({v['corr_with_own']:.2f}, {v['cost_lean']:+.3f})"
+                        for v in r["per_alpha"].values())
         print(f"| {Path(run).name} | {r['beta']} | {r['alpha']} | {r['live_rows']} | {r['lambda_mean']:.2f} | "
               f"{r['std_a_r']:.4f} | {r['std_lambda_a_c']:.4f} | {r['cost_share']:.3f} | {per} | "
               f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} | {r['tail_ratio']:.2f} | "

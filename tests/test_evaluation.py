@@ -1082,6 +1082,8 @@ def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
     act = torch.tensor([[[0, k - 1, 3 * k, 3 * k + 2, 6 * k + k // 2]]])
     assert mod.accelerations(cfg, act).tolist() == [[[-6.0, -6.0, 0.0, 0.0, 6.0]]]
     assert -1.0 <= same["cost_lean"] <= 1.0 and same["cost_lean"] != 0.0
+    assert same["per_alpha"][str(own)]["cost_lean"] == pytest.approx(same["cost_lean"])  # its own alpha: the run's
+    assert moved["per_alpha"][str(other)]["cost_lean"] != pytest.approx(same["cost_lean"])  # another: another lean
     assert same["cost_advantage"] == cfg.cost_advantage
     rule = "tail" if cfg.cost_advantage == "gae" else "gae"
     read = mod.balance("shipped", "procedural:all", [own, own], num_worlds=4, rollouts=1, device="cpu", rule=rule)
