@@ -18,7 +18,10 @@ store path that no longer exists here) for `--rollouts` rollouts of `--num-world
   apart: a critic whose atoms crowd towards the mean, see TrainConfig.cost_kappa, gives little more than 1);
 - which way each part of the advantage leans on speed: the correlation of A_r, and of -lambda A_c, with the
   acceleration of the action taken (negative: the part favours braking over speeding up); the cost's lean also
-  per alpha in `--alphas`, the same rollouts and critic read at another risk level (0: the mean cost-to-go).
+  per alpha in `--alphas`, the same rollouts and critic read at another risk level (0: the mean cost-to-go);
+- where the actions lead in the critic's tail: the correlation of the taken action's acceleration with the change,
+  from its state to the next, of the state's CVaR at the last alpha less its CVaR at the first (positive: speeding
+  up leads into states whose cost tail stands further above their low-alpha reading).
 Numbers only; it never fails on them.
 """
 
@@ -67,7 +70,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         tr = Trainer(cfg, out, progress=False)
         lam = ck["lagrange"]["lam"].to(tr.device) if "lagrange" in ck else torch.zeros((), device=tr.device)
         rows = {"a_r": [], **{a: [] for a in alphas}, "own": []}
-        quant, lam_used, accel = [], [], []
+        quant, lam_used, accel, tail_step, step_accel = [], [], [], [], []
         for _ in range(rollouts):
             b = tr.collector.collect()
             C = b.mask.shape[-1]
@@ -76,6 +79,12 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
             lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
             quant.append(b.quant[:-1][live])
             accel.append(accelerations(cfg, b.act)[live])
+            # the critic's tail beyond its low-alpha reading, and how it changes from each state to the next
+            q_all = b.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
+            excess = L.cvar_from_quantiles(q_all, alphas[-1], True) - L.cvar_from_quantiles(q_all, alphas[0], True)
+            on = live & (b.done == 0)  # the next state is the same agent's
+            tail_step.append((excess[1:] - excess[:-1])[on])
+            step_accel.append(accelerations(cfg, b.act)[on])
             for a in {*alphas, cfg.alpha}:  # the update's own targets (update.advantages) at each risk level
                 tg = advantages(dataclasses.replace(cfg, alpha=a), b)
                 weighted = (lam_c * tg.adv_c)[live]
@@ -105,6 +114,7 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
         "tail_ratio": float(tail.median()) if len(tail) else float("nan"),
         "cost_advantage": cfg.cost_advantage,
         "reward_lean": corr(a_r, acc), "cost_lean": corr(-own, acc),
+        "tail_step_lean": corr(torch.cat(tail_step).float(), torch.cat(step_accel).float()),
     }
 
 
@@ -124,8 +134,8 @@ def main(argv=None) -> int:
         print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
               + " | ".join(f"std at alpha {a} (corr, cost lean)" for a in args.alphas)
               + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A"
-              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean |")
-        print("|" + "---|" * (14 + len(args.alphas)))
+              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean | tail step lean |")
+        print("|" + "---|" * (15 + len(args.alphas)))
     for run in args.runs:
         r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device, args.cost_advantage)
         if args.json:
@@ -136,7 +146,8 @@ def main(argv=None) -> int:
         print(f"| {Path(run).name} | {r['beta']} | {r['alpha']} | {r['live_rows']} | {r['lambda_mean']:.2f} | "
               f"{r['std_a_r']:.4f} | {r['std_lambda_a_c']:.4f} | {r['cost_share']:.3f} | {per} | "
               f"{r['sign_flips']:.3f} | {r['mean_abs_change_over_std']:.3f} | {r['tail_ratio']:.2f} | "
-              f"{r['cost_advantage']} | {r['reward_lean']:+.3f} | {r['cost_lean']:+.3f} |", flush=True)
+              f"{r['cost_advantage']} | {r['reward_lean']:+.3f} | {r['cost_lean']:+.3f} | {r['tail_step_lean']:+.3f} |",
+              flush=True)
     return 0
 
 

@@ -1084,6 +1084,8 @@ def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
     assert -1.0 <= same["cost_lean"] <= 1.0 and same["cost_lean"] != 0.0
     assert same["per_alpha"][str(own)]["cost_lean"] == pytest.approx(same["cost_lean"])  # its own alpha: the run's
     assert moved["per_alpha"][str(other)]["cost_lean"] != pytest.approx(same["cost_lean"])  # another: another lean
+    # where actions lead in the critic's tail: nothing beyond one alpha's own reading; a real tail at two
+    assert same["tail_step_lean"] == 0.0 and -1.0 <= moved["tail_step_lean"] <= 1.0 and moved["tail_step_lean"] != 0.0
     assert same["cost_advantage"] == cfg.cost_advantage
     rule = "tail" if cfg.cost_advantage == "gae" else "gae"
     read = mod.balance("shipped", "procedural:all", [own, own], num_worlds=4, rollouts=1, device="cpu", rule=rule)
