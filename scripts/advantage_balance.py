@@ -78,13 +78,14 @@ def balance(run: str, scenes: str | None, alphas: list[float], num_worlds: int, 
             live = b.mask
             lam_used.append((lam_c * torch.ones(C, device=lam.device))[live.any(0).any(0)])
             quant.append(b.quant[:-1][live])
-            accel.append(accelerations(cfg, b.act)[live])
+            acc_t = accelerations(cfg, b.act)
+            accel.append(acc_t[live])
             # the critic's tail beyond its low-alpha reading, and how it changes from each state to the next
             q_all = b.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma))
             excess = L.cvar_from_quantiles(q_all, alphas[-1], True) - L.cvar_from_quantiles(q_all, alphas[0], True)
             on = live & (b.done == 0)  # the next state is the same agent's
             tail_step.append((excess[1:] - excess[:-1])[on])
-            step_accel.append(accelerations(cfg, b.act)[on])
+            step_accel.append(acc_t[on])
             for a in {*alphas, cfg.alpha}:  # the update's own targets (update.advantages) at each risk level
                 tg = advantages(dataclasses.replace(cfg, alpha=a), b)
                 weighted = (lam_c * tg.adv_c)[live]
@@ -134,7 +135,8 @@ def main(argv=None) -> int:
         print("| run | beta | alpha | live rows | lambda | std A_r | std lambda A_c | cost share | "
               + " | ".join(f"std at alpha {a} (corr, cost lean)" for a in args.alphas)
               + f" | sign flips {args.alphas[0]} -> {args.alphas[-1]} | mean change / std A"
-              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean | tail step lean |")
+              + f" | critic's CVaR {args.alphas[-1]} / {args.alphas[0]} | rule | reward lean | cost lean"
+              + " | tail step lean |")
         print("|" + "---|" * (15 + len(args.alphas)))
     for run in args.runs:
         r = balance(run, args.scenes, args.alphas, args.num_worlds, args.rollouts, args.device, args.cost_advantage)
