@@ -293,6 +293,28 @@ def test_lambda_max_bounds_the_trainers_multipliers(tmp_path):
         TrainConfig(lambda_max=-1.0)
 
 
+@pytest.mark.parametrize("per_vehicle", [False, True], ids=["per-slot", "per-vehicle"])
+def test_lambda_warmup_holds_the_multipliers_while_the_cost_critic_fits(tmp_path, per_vehicle):
+    """lambda_warmup 2: the first two updates leave the multipliers at lambda_init (the rows' lambda), the third
+    steps them as a run without the warm-up steps its first; a negative warm-up is a config error naming it."""
+    from tg_gpudrive.config import ConfigError, TrainConfig
+    from tg_gpudrive.learn.train import Trainer
+
+    from test_train import rows
+
+    sets = dict(lambda_init=0.5, lambda_lr=0.5, cost_limit_mode="absolute", cost_limit=0.0, updates=3,
+                lambda_per_vehicle=per_vehicle)
+    lams = {}
+    for warm in (0, 2):
+        out = tmp_path / f"w{warm}"
+        Trainer(tiny(out, lambda_warmup=warm, **sets), out, progress=False).train()
+        lams[warm] = [float(r["lambda"]) for r in rows(out)]
+    assert lams[2][:2] == [0.5, 0.5] and lams[2][2] > 0.5
+    assert lams[0][0] > 0.5  # without it, the first update already steps them
+    with pytest.raises(ConfigError, match="lambda_warmup"):
+        TrainConfig(lambda_warmup=-1)
+
+
 def test_cost_advantage_names_a_rule():
     from tg_gpudrive.config import ConfigError, TrainConfig
 

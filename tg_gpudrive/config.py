@@ -301,6 +301,11 @@ class TrainConfig:
     # > 0: lambda is projected onto [0, lambda_max], which bounds how far the cost may outweigh the reward in the
     # actor's advantage under a bar it does not meet; 0: no upper bound
     lambda_max: float = 0.0
+    # the first lambda_warmup updates keep the multipliers where they start while the cost critic fits the run's
+    # cost: a fine-tune from a policy whose critic learnt another cost (another shape, horizon or beta) would
+    # otherwise step them on that critic's values, which can lift them many times over in the first updates and
+    # leave them there (they come down by at most lambda_lr x budget an update)
+    lambda_warmup: int = 0
     per_agent_lambda: bool = True  # one multiplier per controlled slot (TrafficGamer's lambda_i)
     # ... and per scene of the source too: one multiplier per vehicle (scene x slot), stepped on that
     # vehicle's own states whenever its scene is in the worlds, as Algorithm 1 has one lambda_i per agent
@@ -379,7 +384,7 @@ class TrainConfig:
         check_ranges(self, {
             "num_scenes": "[1, inf)", "num_worlds": "[1, inf)", "updates": "[1, inf)", "rollout_steps": "[1, inf)",
             "cost_nstep": "[1, inf)", "cost_kappa": "[0, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)",
-            "epochs": "[1, inf)", "lambda_max": "[0, inf)",
+            "epochs": "[1, inf)", "lambda_max": "[0, inf)", "lambda_warmup": "[0, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "act_temperature": "[0, inf)",

@@ -345,7 +345,7 @@ class Trainer:
         try:
             return ppo_update(self.cfg, Rollout.of(batch), self.nets, self.opt, self.lagrange, self.budget,
                               self.gen, self.prior, self.world_keys() if self.cfg.lambda_per_vehicle else None,
-                              self.graphs)
+                              self.graphs, step_lambda=self.update >= self.cfg.lambda_warmup)
         except NonFinite as e:
             raise self._spoilt(f"{e.what} in update {self.update} ({e.detail})") from None
 

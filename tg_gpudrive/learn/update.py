@@ -120,12 +120,12 @@ def compiled_column_targets():
 
 
 def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
-                          budget: Tensor, world_keys: Tensor) -> tuple[Tensor, Tensor]:
+                          budget: Tensor, world_keys: Tensor, step: bool = True) -> tuple[Tensor, Tensor]:
     """`lambda_per_vehicle`: the multipliers are a (scenes, env.max_agents) table; world w holds scene
     `world_keys[w]` (its index in the whole source, the same on every rank), so its slot c is the vehicle
     (world_keys[w], c). Each vehicle's constraint is the mean of `value` over its live states in every world
     that holds its scene, on every rank; only vehicles with states move. (the multipliers before the step
-    per world and slot, (W, C); which vehicles had states)."""
+    per world and slot, (W, C); which vehicles had states). `step` False: the multipliers stay as they are."""
     C = mask.shape[-1]
     S, A = lagrange.value.shape
     total = torch.zeros((S, A), device=mask.device)
@@ -135,19 +135,19 @@ def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrang
     dist_util.all_reduce_sum_({"total": total, "count": count})
     seen = count > 0
     lam = lagrange.value.detach().clone()
-    if cfg.constraint:  # a vehicle without states keeps its multiplier
-        lagrange.update(torch.where(seen, total / count.clamp(min=1), budget), budget)
-    else:
+    if not cfg.constraint:
         lam = torch.zeros_like(lam)
+    elif step:  # a vehicle without states keeps its multiplier
+        lagrange.update(torch.where(seen, total / count.clamp(min=1), budget), budget)
     return lam[world_keys, :C], seen
 
 
 def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
-                  budget: Tensor) -> tuple[Tensor, Tensor]:
+                  budget: Tensor, step: bool = True) -> tuple[Tensor, Tensor]:
     """Step the multipliers on this rollout's constraint (equal on all ranks); `value` (T + 1, W, C) is
     each state's CVaR_alpha or mean cost-to-go (`Targets.constraint`). (the multipliers the actor loss
     uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
-    agents in the rollout on any rank)."""
+    agents in the rollout on any rank). `step` False: the multipliers stay as they are."""
     C = mask.shape[-1]
     # the constraint per agent slot: the mean over its live states of the value
     cnt = mask.sum((0, 1))
@@ -159,11 +159,10 @@ def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.Lag
     if not cfg.per_agent_lambda:  # one multiplier for all: the mean over the slots that had agents
         jc = (jc * seen).sum() / seen.sum().clamp(min=1)
     lam = lagrange.value.detach().clone()
-    if cfg.constraint:
-        # a slot without agents in this rollout keeps its multiplier
-        lagrange.update(jc if not cfg.per_agent_lambda else torch.where(seen, jc, budget), budget)
-    else:
+    if not cfg.constraint:
         lam = torch.zeros_like(lam)
+    elif step:  # a slot without agents in this rollout keeps its multiplier
+        lagrange.update(jc if not cfg.per_agent_lambda else torch.where(seen, jc, budget), budget)
     return (lam[:C] if cfg.per_agent_lambda else lam), seen
 
 
@@ -381,17 +380,20 @@ def optimise(cfg: TrainConfig, b: Groups, lam: Tensor, nets: Networks, opt: torc
 
 def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.optim.Optimizer,
                lagrange: L.LagrangeMultiplier, budget: Tensor, gen: torch.Generator,
-               prior: BehaviourPrior, world_keys: Tensor | None = None, graphs: StepGraphs | None = None) -> dict:
+               prior: BehaviourPrior, world_keys: Tensor | None = None, graphs: StepGraphs | None = None,
+               step_lambda: bool = True) -> dict:
     """Learn from one rollout (steps 1-3 of the module docstring): the update's row of metrics (the mean
     loss parts, CVaR, lambda and the budget). `gen` shuffles the minibatches; `prior` rebuilds a
-    continuous magnet from its stored context; `graphs` replays the optimiser steps from CUDA graphs."""
+    continuous magnet from its stored context; `graphs` replays the optimiser steps from CUDA graphs;
+    `step_lambda` False keeps the multipliers as they are (TrainConfig.lambda_warmup)."""
     with phase("update/advantages"):
         tg = advantages(cfg, batch)
     with phase("update/lagrange"):
         if cfg.lambda_per_vehicle:
-            lam, seen = vehicle_lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, world_keys)
+            lam, seen = vehicle_lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, world_keys,
+                                              step_lambda)
         else:
-            lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget)
+            lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, step_lambda)
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior, graphs)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
