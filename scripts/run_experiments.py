@@ -84,8 +84,8 @@ def flexibility(out: Path, runs: list[tuple[str, list[str]]], tail: int = 5) -> 
         every = list(csv.DictReader(path.open()))
         metrics = every[-tail:]
         kv = dict(a.split("=", 1) for a in sets)
-        cfg_path = out / name / "config.json"  # the run's resolved config: baselines inherit beta / alpha
-        cfg = run_config(out / name) if cfg_path.exists() else None
+        # the run's resolved config: baselines inherit beta / alpha
+        cfg = run_config(out / name) if (out / name / "config.json").exists() else None
         if cfg is not None:
             kv = {"env.beta": str(cfg.env.beta), "alpha": str(cfg.alpha), **kv}
         row = {"run": name, "beta": kv.get("env.beta", "-"), "alpha": kv.get("alpha", "-"),

@@ -20,7 +20,7 @@ from tg_gpudrive.learn.collector import Networks, NonFinite, Rollout, RolloutCol
 from tg_gpudrive.learn.train import make_prior
 from tg_gpudrive.learn.update import advantages, flatten, make_optimizer, ppo_update
 
-from test_train import tiny
+from test_train import rows, tiny
 
 CASES = {"discrete": dict(), "continuous+history": dict(prior="expert", actor_history=3)}
 
@@ -299,8 +299,6 @@ def test_lambda_warmup_holds_the_multipliers_while_the_cost_critic_fits(tmp_path
     steps them as a run without the warm-up steps its first; a negative warm-up is a config error naming it."""
     from tg_gpudrive.config import ConfigError, TrainConfig
     from tg_gpudrive.learn.train import Trainer
-
-    from test_train import rows
 
     sets = dict(lambda_init=0.5, lambda_lr=0.5, cost_limit_mode="absolute", cost_limit=0.0, updates=3,
                 lambda_per_vehicle=per_vehicle)

@@ -556,6 +556,11 @@ def test_the_bar_watch_warns_once_when_the_cost_stalls_above_its_bar():
     assert len(mean) == 1 and "mean cost-to-go" in mean[0]
     assert not fed(BarWatch(dataclasses.replace(cfg, constraint=False), window=10),
                    _watch_rows(np.ones(10), np.full(10, 3.0)))
+    # the warm-up's rows (multipliers held) are not watched: a whole window after it, not from update 1
+    numbered = [dict(r, update=u) for u, r in enumerate(_watch_rows(np.linspace(1, 4, 30), np.full(30, 3.0)), 1)]
+    when = lambda watch: next(r["update"] for r in numbered if watch.add(r))  # noqa: E731
+    assert when(BarWatch(cfg, window=10)) == 10
+    assert when(BarWatch(dataclasses.replace(cfg, lambda_warmup=5), window=10)) == 15
 
 
 def test_training_warns_when_its_bar_is_out_of_reach(tmp_path, monkeypatch, caplog):

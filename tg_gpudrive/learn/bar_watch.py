@@ -20,17 +20,19 @@ STALLED = 0.8  # the window's last tenth of the constraint over its first tenth,
 class BarWatch:
     """Feed every update's metrics row to `add`; it returns the warning once, the first time the last
     `window` updates all held the constraint above MARGIN x its budget and its last tenth came down less
-    than (1 - STALLED) from its first; None otherwise (and always without a constraint)."""
+    than (1 - STALLED) from its first; None otherwise (and always without a constraint). Rows of the warm-up
+    (`update` <= lambda_warmup), whose multipliers were held, are not watched."""
 
     def __init__(self, cfg: TrainConfig, window: int | None = None):
         self.on, self.cap, self.window = bool(cfg.constraint), float(cfg.lambda_max), window or WINDOW
         self.key = "cvar" if cfg.lambda_on == "cvar" else "cost_to_go"
         self.name = f"CVaR_{cfg.alpha:g} of the cost-to-go" if cfg.lambda_on == "cvar" else "mean cost-to-go"
+        self.warmup = cfg.lambda_warmup
         self.recent: deque[tuple[float, float, float]] = deque(maxlen=self.window)
         self.warned = False
 
     def add(self, row: dict) -> str | None:
-        if not self.on or self.warned:
+        if not self.on or self.warned or row.get("update", self.warmup + 1) <= self.warmup:
             return None
         self.recent.append((row["lambda"], row[self.key], row["cost_budget"]))
         if len(self.recent) < self.window:
@@ -57,7 +59,7 @@ def replay(cfg: TrainConfig, rows: list[dict]) -> int | None:
     """The update at which a finished run's metrics rows (metrics.csv, run under `cfg`) first drew the warning;
     None if they never did, or hold no multiplier."""
     watch = BarWatch(cfg)
-    keys = ("lambda", watch.key, "cost_budget")
+    keys = ("update", "lambda", watch.key, "cost_budget")
     for r in rows:
         if any(r.get(k) in (None, "", "nan") for k in keys):
             return None
