@@ -164,6 +164,21 @@ def test_cells_group_their_training_seeds_and_effects_compare_the_extreme_cells(
     assert not any(k[0] == "hard brakes / agent" for k in eff)  # the paper claims no direction there
 
 
+def test_effect_verdicts_count_each_knobs_rows_and_name_the_reversed():
+    """Three beta rows (two hold, one reversed) and two alpha rows (one holds, one not shown), by hand; the
+    knobs keep the order of their first row."""
+    from tg_gpudrive.evaluation.report_stats import effect_verdicts
+
+    def row(fig, knob, held, verdict):
+        return [fig, knob, held, "2 -> 6", 1.0, 2.0, "1 [0.5, 1.5]", "2 [1.5, 2.5]", "+", verdict, "paired"]
+
+    rows = [row("min gap [m]", "beta", "alpha 0.1", "holds"), row("min gap [m]", "alpha", "beta 2", "holds"),
+            row("min gap [m]", "beta", "alpha 0.9", "reversed"), row("collision rate", "beta", "alpha 0.1", "holds"),
+            row("collision rate", "alpha", "beta 2", "not shown")]
+    assert effect_verdicts(rows) == [["beta", 3, 2, 1, 0, "min gap [m] (alpha 0.9)"], ["alpha", 2, 1, 0, 1, "-"]]
+    assert effect_verdicts([]) == []
+
+
 def test_paired_difference_by_hand():
     """a - b = (1, 2, 3): mean 2, median 2, every unit greater; a constant difference has a zero-width interval;
     unequal samples are an error."""

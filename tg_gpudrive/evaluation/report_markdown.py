@@ -20,8 +20,8 @@ import numpy as np
 
 from tg_gpudrive.evaluation import fidelity as fid
 from tg_gpudrive.evaluation import risk as rk
-from tg_gpudrive.evaluation.report_stats import (FLEX_CLAIMS, TYPE_FIGURES, flexibility_directions, fmt,
-                                                 gap_against_mappo, gap_headroom, group_cells, knob_effects,
+from tg_gpudrive.evaluation.report_stats import (FLEX_CLAIMS, TYPE_FIGURES, effect_verdicts, flexibility_directions,
+                                                 fmt, gap_against_mappo, gap_headroom, group_cells, knob_effects,
                                                  knob_effects_by_type, played_alike)
 from tg_gpudrive.learn import bar_watch
 
@@ -179,6 +179,10 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
                    f"{noise}. **holds**: the difference's interval lies on the paper's side of 0.\n\n")
         out.append(_table(["figure", "knob", "held", "knob low -> high", "at low", "at high", "difference [95 %]",
                            "ratio [95 %]", "paper's sign", "verdict", "episodes resampled"], effects))
+        out.append("\nVerdicts of the effect sizes per knob: how many of the rows above move the paper's way with an "
+                   "interval clear of 0, and which go the other way.\n\n")
+        out.append(_table(["knob", "rows", "holds", "reversed", "not shown", "reversed rows"],
+                          effect_verdicts(effects)))
     by_type = knob_effects_by_type(cells)
     if by_type:
         names = [FLEX_CLAIMS[k][0] for k in TYPE_FIGURES]

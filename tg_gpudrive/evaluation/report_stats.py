@@ -217,6 +217,18 @@ def knob_effects(cells: list[dict], n_boot: int = 2000) -> list[list]:
     return rows
 
 
+
+def effect_verdicts(effects: list[list]) -> list[list]:
+    """Rows (knob, rows compared, holds, reversed, not shown, the reversed rows as "figure (held)") counted over
+    `knob_effects`' rows: how many of the paper's claims each knob meets with an interval clear of 0."""
+    out = []
+    for knob in dict.fromkeys(r[1] for r in effects):
+        mine = [r for r in effects if r[1] == knob]
+        count = {v: sum(r[9] == v for r in mine) for v in ("holds", "reversed", "not shown")}
+        out.append([knob, len(mine), count["holds"], count["reversed"], count["not shown"],
+                    "; ".join(f"{r[0]} ({r[2]})" for r in mine if r[9] == "reversed") or "-"])
+    return out
+
 # the per-type table's figures (distance, near miss, crash), each read as the difference or the ratio high / low
 TYPE_FIGURES = {"min_gap": "difference", "ttc_critical": "ratio", "collision": "ratio"}
 
