@@ -33,6 +33,7 @@ from pathlib import Path
 
 import yaml
 
+from tg_gpudrive.config import override_text
 from tg_gpudrive.evaluation.generate import KNOBS_ALONE
 from tg_gpudrive.evaluation.report import ReportOptions, report_main, run_config
 from tg_gpudrive.learn import bar_watch
@@ -40,24 +41,17 @@ from tg_gpudrive.learn import bar_watch
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"  # this checkout's (an installed package has none)
 
 
-
-def _yaml(v) -> str:
-    """A value as `--set` parses it back (YAML: 1e-08 would be a string, 1.0e-08 is a float)."""
-    if isinstance(v, str):
-        return v or "''"  # an empty string, not YAML's null
-    return yaml.safe_dump(v, default_flow_style=True).strip().removesuffix("...").strip()
-
-
 def plan(exp: dict, extra: list[str], seeds: list[int] | None = None) -> list[tuple[str, list[str]]]:
     """(run name, train overrides) for every cell and baseline, once per training seed (`seeds`, else the
     experiment's). Every run starts with the reward terms that keep
     distance whatever beta and alpha say turned off (generate.KNOBS_ALONE: a base such as real_mix.yaml charges
     closing in), so the grid measures the knobs; the grid's own overrides may turn them back on."""
-    common = [f"env.reward.{k}={_yaml(v)}" for k, v in KNOBS_ALONE.items()]
-    common += [f"{k}={_yaml(v)}" for k, v in (exp.get("overrides") or {}).items()]
+    common = [override_text(f"env.reward.{k}", v) for k, v in KNOBS_ALONE.items()]
+    common += [override_text(k, v) for k, v in (exp.get("overrides") or {}).items()]
     cells = [(f"beta{beta}_alpha{alpha}", [f"env.beta={beta}", f"alpha={alpha}"])
              for beta in exp["beta"] for alpha in exp["alpha"]]
-    cells += [(name, [f"{k}={_yaml(v)}" for k, v in over.items()]) for name, over in (exp.get("baselines") or {}).items()]
+    cells += [(name, [override_text(k, v) for k, v in over.items()])
+              for name, over in (exp.get("baselines") or {}).items()]
     seeds = exp.get("seeds") if seeds is None else seeds  # every cell and baseline once each, named <run>_s<seed>
     if seeds is None:
         return [(name, common + sets + extra) for name, sets in cells]

@@ -4,7 +4,9 @@ GPUDrive JSON (which load back as scenes), a GIF each and their risk / fidelity 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 
@@ -49,6 +51,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     (["--beta", "-1", "--alpha", "0.5"], "beta"),
     (["--beta", "4", "--alpha", "1"], "alpha"),
     (["--beta", "4", "--alpha", "0.5", "--max-hellinger", "2"], "--max-hellinger"),
+    (["--beta", "4", "--alpha", "0.5", "--recipe", "no_such_grid.yaml"], "no_such_grid.yaml"),
 ])
 def test_generate_refuses_bad_knobs_before_training(tmp_path, capsys, args, message):
     assert cli.main(["generate", "--scenes", "procedural:merge", "--out", str(tmp_path / "g"), "--device", "cpu",
@@ -70,6 +73,29 @@ def test_generate_set_overrides_the_fine_tunes_config_and_names_a_bad_key():
     with pytest.raises(ConfigError, match="cost_horizn"):
         training_config(GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125,
                                         overrides=("env.cost_horizn=1",)))
+
+
+def test_generate_recipe_takes_a_grids_constraint_but_keeps_its_own_scenes_sizes_and_knobs(tmp_path):
+    """The real grid's recipe sets the cost, bar and multiplier step; the grid's scenes, sizes and seeds stay
+    generate's; --set still comes last; a yaml that is not a grid is an error naming the file."""
+    from tg_gpudrive.config import ConfigError
+    from tg_gpudrive.evaluation.generate import GenerateOptions, training_config
+
+    recipe = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "grid_cvar_real_cap.yaml"
+    opts = GenerateOptions(scenes="procedural:merge", beta=6.0, alpha=0.875, num_scenes=4, seconds=30.0,
+                           recipe=str(recipe), overrides=("lambda_lr=0.02",))
+    cfg, plain = training_config(opts), training_config(dataclasses.replace(opts, recipe=""))
+    assert (cfg.env.cost_shape, cfg.env.cost_horizon, cfg.cost_limit_mode, cfg.cost_limit, cfg.lambda_max,
+            cfg.lambda_init) == ("approach", 1.5, "start", 0.75, 4.0, 1.0)
+    assert (plain.env.cost_shape, plain.lambda_max) != ("approach", 4.0)  # the shipped policy's own recipe
+    assert cfg.lambda_lr == 0.02  # --set after the recipe
+    assert (cfg.scenes, cfg.num_scenes, cfg.num_worlds, cfg.updates, cfg.init_policy, cfg.time_limit_s) == (
+        "procedural:merge", 4, plain.num_worlds, plain.updates, "shipped", 30.0)  # not the grid's 44 real scenes
+    assert (cfg.env.beta, cfg.alpha) == (6.0, 0.875)
+    bad = tmp_path / "not_a_grid.yaml"
+    bad.write_text("lr: 0.001\n")
+    with pytest.raises(ConfigError, match="not_a_grid.yaml"):
+        training_config(dataclasses.replace(opts, recipe=str(bad)))
 
 
 def test_scenarios_are_distinct_scenes_before_a_scene_repeats():

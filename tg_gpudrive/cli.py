@@ -353,6 +353,10 @@ def _generate_parser(sub) -> None:
     p.add_argument("--repeat-scenes", action="store_true",
                    help="rank every episode alike (default: each scene's most critical episode before any second one)")
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
+    p.add_argument("--recipe", default="", metavar="YAML",
+                   help="fine-tune under an experiment grid's constraint recipe (its `overrides:` but the scenes, "
+                        "sizes and knobs), e.g. configs/experiments/grid_cvar_real_cap.yaml (default: the shipped "
+                        "policy's own)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "
                         "--set env.cost_horizon=1 --set env.cost_shape=hinge (repeatable; default: none)")
@@ -675,7 +679,7 @@ def cmd_generate(args) -> int:
     opts = GenerateOptions(scenes=args.scenes, beta=args.beta, alpha=args.alpha, num=args.num, out=args.out,
                            seconds=args.seconds, num_scenes=args.num_scenes, num_worlds=args.worlds or 0,
                            rollout_seeds=args.rollout_seeds, max_hellinger=args.max_hellinger, device=args.device,
-                           seed=args.seed, gif=not args.no_gif, overrides=tuple(args.set),
+                           seed=args.seed, gif=not args.no_gif, recipe=args.recipe, overrides=tuple(args.set),
                            one_per_scene=not args.repeat_scenes)
     res = generate(opts)
     if args.json:

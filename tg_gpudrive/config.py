@@ -499,6 +499,13 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return key.strip().split("."), value
 
 
+def override_text(key: str, value: Any) -> str:
+    """`key=value` as parse_override reads it back (YAML: 1e-08 would be a string, 1.0e-08 is a float)."""
+    if isinstance(value, str):
+        return f"{key}={value or chr(39) * 2}"  # an empty string is '', not YAML's null
+    return f"{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
+
+
 def apply_overrides(data: dict, overrides: list[str]) -> dict:
     data = dict(data)
     for text in overrides or []:

@@ -13,7 +13,9 @@ the most hard brakes; evaluation/risk.py; one per scene before any scene's secon
                                 acceleration, nearest-agent and curvature histograms; 0: the logs' own)
     OUT/policy/                 the fine-tuned policy's run (checkpoint, metrics.csv, curves.png)
 
-`max_hellinger` keeps only episodes at most that far from the logs: critical but realistic.
+`max_hellinger` keeps only episodes at most that far from the logs: critical but realistic. `recipe` fine-tunes
+under the constraint recipe of an experiment grid (configs/experiments/*.yaml) instead of the shipped policy's own:
+the cost, bar and multiplier step under which that grid measured what beta and alpha move.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from tg_gpudrive.checkpoint import load_checkpoint
-from tg_gpudrive.config import AugmentConfig, EngineConfig, TrainConfig, apply_overrides, from_dict, to_dict
+from tg_gpudrive.config import (AugmentConfig, ConfigError, EngineConfig, TrainConfig, apply_overrides, from_dict,
+                                load_yaml, override_text, to_dict)
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.enums import ControlMode
 from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts
@@ -55,6 +58,7 @@ class GenerateOptions:
     device: str = "cpu"
     seed: int = 0
     gif: bool = True
+    recipe: str = ""  # an experiment grid's yaml whose constraint recipe to fine-tune under (recipe_overrides)
     overrides: tuple[str, ...] = ()  # train-config KEY=VALUE, applied last (e.g. env.cost_horizon=1)
     one_per_scene: bool = True  # distinct scenes before a second episode of any scene (pick_scenarios)
 
@@ -77,11 +81,30 @@ FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard
 KNOBS_ALONE = {"ttc": 0.0}
 
 
+# the keys generate's own options set (scenes, sizes, time budget, starting policy, knobs, outputs): a recipe's
+# values for them are the grid's, not the user's, and are left out
+OWN_KEYS = frozenset({"scenes", "num_scenes", "num_worlds", "resample_every", "init_policy", "device", "seed",
+                      "updates", "time_limit_s", "alpha", "env.beta", "checkpoint_every", "keep_policy_every",
+                      "target_goal_rate", "target_heldout", "out_dir"})
+
+
+def recipe_overrides(path: str | Path) -> list[str]:
+    """KEY=VALUE overrides from an experiment grid's yaml (configs/experiments/*.yaml, its `overrides:`): the
+    cost, bar, multiplier step and training steps under which that grid measured what the knobs move, less
+    OWN_KEYS. A file without a non-empty `overrides` mapping is a ConfigError naming it."""
+    over = load_yaml(path).get("overrides")
+    if not isinstance(over, dict) or not over:
+        raise ConfigError(f"{path}: expected an experiment grid with an `overrides:` mapping of train-config keys "
+                          "(e.g. configs/experiments/grid_cvar_real_cap.yaml)")
+    return [override_text(k, v) for k, v in over.items() if k not in OWN_KEYS]
+
+
 def training_config(opts: GenerateOptions) -> TrainConfig:
     """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: fine-tuning's
     steps (FINE_TUNE), no distance-keeping reward terms (KNOBS_ALONE), no augmentation, no resampling, the time
-    budget, one checkpoint at the end, then `opts.overrides` (e.g. env.cost_horizon=1 keeps beta ahead of time,
-    env.cost_shape=hinge). Every value is checked as a config file's are (ConfigError naming the key)."""
+    budget, one checkpoint at the end, then `opts.recipe`'s overrides (recipe_overrides), then `opts.overrides`
+    (e.g. env.cost_horizon=1 keeps beta ahead of time, env.cost_shape=hinge). Every value is checked as a config
+    file's are (ConfigError naming the key)."""
     base = to_dict(from_dict(TrainConfig, load_checkpoint("shipped", "shipped")["config"], "the shipped policy"))
     base["augment"] = to_dict(AugmentConfig())
     worlds = opts.num_worlds or (8 if opts.device == "cpu" else 256)
@@ -92,7 +115,8 @@ def training_config(opts: GenerateOptions) -> TrainConfig:
                 "target_heldout": "", "out_dir": str(Path(opts.out) / "policy"), **FINE_TUNE}
     base.update(settings)
     base["env"] = {**base["env"], "beta": opts.beta, "reward": {**base["env"]["reward"], **KNOBS_ALONE}}
-    return from_dict(TrainConfig, apply_overrides(base, list(opts.overrides)), "tg-gpudrive generate")
+    recipe = recipe_overrides(opts.recipe) if opts.recipe else []
+    return from_dict(TrainConfig, apply_overrides(base, recipe + list(opts.overrides)), "tg-gpudrive generate")
 
 
 def _involved(partners: list[dict], episode: int) -> str:
