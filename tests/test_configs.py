@@ -27,3 +27,13 @@ def test_training_configs_load(path):
 @pytest.mark.parametrize("path", sorted((CONFIGS / "worldmodel").glob("*.yaml")), ids=lambda p: p.name)
 def test_world_model_configs_load(path):
     load_config(WorldModelConfig, path)
+
+
+@pytest.mark.parametrize("value", [1e-08, 0.75, 4, True, None, "", "approach", "0.5", "a: b", "[x", [1, 2], {"a": 1.5}])
+def test_override_text_reads_back_as_the_value(value):
+    """What a grid or a recipe writes as key=value is what --set parses back: a float stays a float (1e-08 is a
+    string to YAML), an empty string stays a string, a string of digits stays a string."""
+    from tg_gpudrive.config import override_text, parse_override
+
+    path, back = parse_override(override_text("env.cost_limit", value))
+    assert path == ["env", "cost_limit"] and back == value and type(back) is type(value)

@@ -500,9 +500,14 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def override_text(key: str, value: Any) -> str:
-    """`key=value` as parse_override reads it back (YAML: 1e-08 would be a string, 1.0e-08 is a float)."""
-    if isinstance(value, str):
-        return f"{key}={value or chr(39) * 2}"  # an empty string is '', not YAML's null
+    """`key=value` as parse_override reads it back: YAML's own writing (1e-08 would be a string, 1.0e-08 is a
+    float; '' and '0.5' stay strings), a plain string as it is."""
+    if isinstance(value, str) and value:
+        try:
+            if yaml.safe_load(value) == value:
+                return f"{key}={value}"
+        except yaml.YAMLError:
+            pass
     return f"{key}={yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()}"
 
 
