@@ -31,9 +31,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import yaml
-
-from tg_gpudrive.config import override_text
+from tg_gpudrive.config import ConfigError, load_experiment, load_yaml, override_text
 from tg_gpudrive.evaluation.generate import KNOBS_ALONE
 from tg_gpudrive.evaluation.report import ReportOptions, report_main, run_config
 from tg_gpudrive.learn import bar_watch
@@ -103,6 +101,31 @@ def done(run: Path, updates: int | None) -> bool:
     return (run / "checkpoint.pt").exists() and updates is not None and len(rows) - 1 >= updates
 
 
+def train_batches(todo: list[tuple[str, list[str]]], base: Path, out: Path, batch: int, gpus: list[str],
+                  dry_run: bool) -> int:
+    """Train `todo`'s runs `batch` at a time (each from the start in its own directory, its GPU dealt from
+    `gpus` in turn); the first failing run's exit code, else 0. `dry_run` prints the commands only."""
+    for i in range(0, len(todo), batch):
+        procs = []
+        for j, (name, sets) in enumerate(todo[i:i + batch]):
+            cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--config", str(base), "--out",
+                   str(out / name), "--overwrite"] + [x for s in sets for x in ("--set", s)]
+            env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[j % len(gpus)]) if gpus else None
+            print((f"CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']} " if env else "") + " ".join(cmd), flush=True)
+            if not dry_run:
+                (out / name).mkdir(parents=True, exist_ok=True)
+                log = (out / name / "train.log").open("w")
+                procs.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log))
+        for name, p, log in procs:
+            rc = p.wait()
+            log.close()
+            print(f"{name}: exit {rc}", flush=True)
+            if rc != 0:
+                print(f"{name} failed; see {out / name / 'train.log'}", file=sys.stderr)
+                return rc
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--config", default=str(CONFIGS / "experiments" / "grid.yaml"))
@@ -131,7 +154,10 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"--report-part: expected K/N with 0 <= K < N, got {args.report_part!r}")
         args.report_only = True
     cfg_path = Path(args.config)
-    exp = yaml.safe_load(cfg_path.read_text())
+    try:
+        exp = load_experiment(cfg_path)
+    except ConfigError as e:
+        ap.error(str(e))
     base = Path(exp["base"])
     if not base.is_absolute():  # beside the experiment config, in its configs/train/, or the repo's
         tries = [cfg_path.parent / base, cfg_path.parent.parent / "train" / base, CONFIGS / "train" / base]
@@ -144,30 +170,17 @@ def main(argv: list[str] | None = None) -> int:
     runs = plan(exp, args.set, seeds)
     updates = dict(a.split("=", 1) for _, sets in runs[:1] for a in sets).get("updates")
     if updates is None:
-        updates = yaml.safe_load(base.read_text()).get("updates")
+        try:
+            updates = load_yaml(base).get("updates")
+        except ConfigError as e:
+            ap.error(f"{cfg_path}: field 'base': {e}")
     batch = args.batch or int(exp.get("batch", 1))
     todo = [(n, s) for n, s in runs if not done(out / n, int(updates) if updates is not None else None)]
     gpus = [g.strip() for g in args.gpus.split(",") if g.strip()]
     if not args.report_only:
-        for i in range(0, len(todo), batch):
-            procs = []
-            for j, (name, sets) in enumerate(todo[i:i + batch]):
-                # an unfinished cell is trained again from the start in its own directory
-                cmd = [sys.executable, "-m", "tg_gpudrive.cli", "train", "--config", str(base), "--out",
-                       str(out / name), "--overwrite"] + [x for s in sets for x in ("--set", s)]
-                env = dict(os.environ, CUDA_VISIBLE_DEVICES=gpus[j % len(gpus)]) if gpus else None
-                print((f"CUDA_VISIBLE_DEVICES={env['CUDA_VISIBLE_DEVICES']} " if env else "") + " ".join(cmd), flush=True)
-                if not args.dry_run:
-                    (out / name).mkdir(parents=True, exist_ok=True)
-                    log = (out / name / "train.log").open("w")
-                    procs.append((name, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log))
-            for name, p, log in procs:
-                rc = p.wait()
-                log.close()
-                print(f"{name}: exit {rc}", flush=True)
-                if rc != 0:
-                    print(f"{name} failed; see {out / name / 'train.log'}", file=sys.stderr)
-                    return rc
+        rc = train_batches(todo, base, out, batch, gpus, args.dry_run)
+        if rc != 0:
+            return rc
     if args.dry_run:
         return 0
     flexibility(out, runs, args.tail)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tg_gpudrive.config import EngineConfig, TrainConfig, load_config, to_dict
+from tg_gpudrive.config import ConfigError, EngineConfig, TrainConfig, load_config, load_experiment, to_dict
 from tg_gpudrive.worldmodel.train import WorldModelConfig
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -27,6 +27,30 @@ def test_training_configs_load(path):
 @pytest.mark.parametrize("path", sorted((CONFIGS / "worldmodel").glob("*.yaml")), ids=lambda p: p.name)
 def test_world_model_configs_load(path):
     load_config(WorldModelConfig, path)
+
+
+@pytest.mark.parametrize("path", sorted((CONFIGS / "experiments").glob("*.yaml")), ids=lambda p: p.name)
+def test_experiment_grids_load(path):
+    exp = load_experiment(path)
+    assert exp["beta"] and exp["alpha"] and (CONFIGS / "train" / exp["base"]).exists()
+
+
+@pytest.mark.parametrize("text, field", [
+    ("beta: [2]\nalpha: [0.5]\n", "'base'"),
+    ("base: gpu.yaml\nbeta: 2\nalpha: [0.5]\n", "'beta'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: []\n", "'alpha'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: [true]\n", "'alpha'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: [0.5]\noverrides: [lr]\n", "'overrides'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: [0.5]\nseeds: [0.5]\n", "'seeds'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: [0.5]\nbatch: 0\n", "'batch'"),
+    ("base: gpu.yaml\nbeta: [2]\nalpha: [0.5]\nbetas: [3]\n", "betas"),
+])
+def test_a_bad_experiment_grid_names_its_file_and_field(tmp_path, text, field):
+    path = tmp_path / "grid.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_experiment(path)
+    assert str(path) in str(e.value) and field in str(e.value)
 
 
 @pytest.mark.parametrize("value", [1e-08, 0.75, 4, True, None, "", "approach", "0.5", "a: b", "[x", [1, 2], {"a": 1.5}])

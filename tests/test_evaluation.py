@@ -932,6 +932,21 @@ def test_run_experiments_takes_the_training_seeds_from_the_command_line():
     assert [n for n, _ in runs] == ["beta2.0_alpha0.5_s2"] and runs[0][1][-2:] == ["seed=2", "device=cuda"]
 
 
+def test_run_experiments_refuses_a_bad_grid_with_one_line_naming_the_file(tmp_path, capsys):
+    """A missing grid, a grid without a base, and a base that does not exist: exit 2 before anything trains."""
+    mod = _script("run_experiments")
+    no_base = tmp_path / "no_base.yaml"
+    no_base.write_text("beta: [2]\nalpha: [0.5]\n")
+    bad_base = tmp_path / "bad_base.yaml"
+    bad_base.write_text("base: no_such_train.yaml\nbeta: [2]\nalpha: [0.5]\n")
+    for path, says in ((tmp_path / "missing.yaml", "not found"), (no_base, "'base'"), (bad_base, "no_such_train")):
+        with pytest.raises(SystemExit) as e:
+            mod.main(["--config", str(path), "--out", str(tmp_path / "runs"), "--dry-run"])
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert e.value.code == 2 and path.name in err and says in err
+    assert not (tmp_path / "runs").exists()
+
+
 def test_worst_scenes_rank_scenes_by_failures_per_agent_episode():
     from types import SimpleNamespace
 

@@ -539,6 +539,42 @@ def load_yaml(path: str | Path) -> dict:
     return data
 
 
+# the fields of an experiment grid (configs/experiments/*.yaml)
+EXPERIMENT_FIELDS = ("base", "beta", "alpha", "overrides", "baselines", "seeds", "batch", "report")
+
+
+def _numbers(v: Any, ints: bool = False) -> bool:
+    kinds = (int,) if ints else (int, float)
+    return isinstance(v, list) and bool(v) and all(isinstance(x, kinds) and not isinstance(x, bool) for x in v)
+
+
+def load_experiment(path: str | Path) -> dict:
+    """An experiment grid: `base` (the train config its runs start from), the `beta` and `alpha` values of its
+    cells, and optionally `overrides` (train keys of every run), `baselines` (name: overrides), `seeds`, `batch`
+    and `report` (the report's options). A missing, unknown or ill-typed field is a ConfigError naming the file
+    and the field."""
+    data = load_yaml(path)
+    unknown = sorted(set(data) - set(EXPERIMENT_FIELDS))
+    if unknown:
+        raise ConfigError(f"{path}: unknown field(s) {', '.join(unknown)} (an experiment grid has "
+                          f"{', '.join(EXPERIMENT_FIELDS)})")
+    if not isinstance(data.get("base"), str) or not data["base"]:
+        raise ConfigError(f"{path}: field 'base': expected the train config its runs start from (e.g. "
+                          f"real_mix.yaml), got {data.get('base')!r}")
+    for knob in ("beta", "alpha"):
+        if not _numbers(data.get(knob)):
+            raise ConfigError(f"{path}: field '{knob}': expected a non-empty list of numbers, got {data.get(knob)!r}")
+    for field in ("overrides", "baselines", "report"):
+        if data.get(field) is not None and not isinstance(data[field], dict):
+            raise ConfigError(f"{path}: field '{field}': expected a mapping, got {data[field]!r}")
+    if data.get("seeds") is not None and not _numbers(data["seeds"], ints=True):
+        raise ConfigError(f"{path}: field 'seeds': expected a non-empty list of integers, got {data['seeds']!r}")
+    batch = data.get("batch")
+    if batch is not None and (not isinstance(batch, int) or isinstance(batch, bool) or batch < 1):
+        raise ConfigError(f"{path}: field 'batch': expected a positive integer, got {batch!r}")
+    return data
+
+
 def load_config(cls, path: str | Path | None = None, overrides: list[str] | None = None):
     data = load_yaml(path) if path else {}
     return from_dict(cls, apply_overrides(data, overrides or []), str(path or "<defaults>"))

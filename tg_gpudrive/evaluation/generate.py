@@ -28,7 +28,7 @@ import numpy as np
 
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.config import (AugmentConfig, ConfigError, EngineConfig, TrainConfig, apply_overrides, from_dict,
-                                load_yaml, override_text, to_dict)
+                                load_experiment, override_text, to_dict)
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.enums import ControlMode
 from tg_gpudrive.evaluation.episodes import logged_episodes, record_rollouts
@@ -91,11 +91,11 @@ OWN_KEYS = frozenset({"scenes", "num_scenes", "num_worlds", "resample_every", "i
 def recipe_overrides(path: str | Path) -> list[str]:
     """KEY=VALUE overrides from an experiment grid's yaml (configs/experiments/*.yaml, its `overrides:`): the
     cost, bar, multiplier step and training steps under which that grid measured what the knobs move, less
-    OWN_KEYS. A file without a non-empty `overrides` mapping is a ConfigError naming it."""
-    over = load_yaml(path).get("overrides")
-    if not isinstance(over, dict) or not over:
-        raise ConfigError(f"{path}: expected an experiment grid with an `overrides:` mapping of train-config keys "
-                          "(e.g. configs/experiments/grid_cvar_real_cap.yaml)")
+    OWN_KEYS. A file that is not a grid (config.load_experiment) or sets no overrides is a ConfigError naming it."""
+    over = load_experiment(path).get("overrides")
+    if not over:
+        raise ConfigError(f"{path}: field 'overrides': the grid sets no train-config keys, so it has no recipe "
+                          "(e.g. configs/experiments/grid_cvar_real_cap.yaml has)")
     return [override_text(k, v) for k, v in over.items() if k not in OWN_KEYS]
 
 
