@@ -30,12 +30,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import tempfile
 from pathlib import Path
 
 import torch
 
 from tg_gpudrive.checkpoint import load_checkpoint
+from tg_gpudrive.cli import one_line_errors
 from tg_gpudrive.config import TrainConfig, apply_overrides, from_dict
 from tg_gpudrive.learn import losses as L
 from tg_gpudrive.learn.train import Trainer
@@ -154,4 +156,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(one_line_errors("advantage_balance.py", main))

@@ -17,11 +17,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import torch
 import yaml
 
-from tg_gpudrive.agents import open_policy
+from tg_gpudrive.agents import check_specs, open_policy
+from tg_gpudrive.cli import one_line_errors
 from tg_gpudrive.config import EngineConfig
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.learn.train import cost_to_go, sample_cvar
@@ -41,6 +43,7 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
+    check_specs([args.checkpoint], "--checkpoint")  # a mistyped run fails before the scenes are built
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
     scenes = [src.get(i) for i in range(min(args.num_scenes, len(src)))]
     rows = []
@@ -71,4 +74,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(one_line_errors("budget_by_knob.py", main))

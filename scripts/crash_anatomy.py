@@ -30,7 +30,8 @@ from tqdm import tqdm
 import torch
 import warp as wp
 
-from tg_gpudrive.agents import open_policy
+from tg_gpudrive.agents import check_specs, open_policy
+from tg_gpudrive.cli import one_line_errors
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.enums import AgentType
 from tg_gpudrive.evaluation.episodes import record_episodes
@@ -140,6 +141,7 @@ def main(argv=None) -> int:
     p.add_argument("--approach", action="append", default=[], metavar="WORLD:AGENT:PARTNER",
                    help="follow this pair (scene agent indices) instead of tabling the collisions")
     args = p.parse_args(argv)
+    check_specs(args.policies, "--policies")  # a mistyped run fails before the scenes are built
     try:
         cases = [tuple(int(x) for x in c.split(":")) for c in args.approach]
     except ValueError:
@@ -177,4 +179,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(one_line_errors("crash_anatomy.py", main))

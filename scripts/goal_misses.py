@@ -22,7 +22,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tg_gpudrive.agents import open_policy
+from tg_gpudrive.agents import check_specs, open_policy
+from tg_gpudrive.cli import one_line_errors
 from tg_gpudrive.data.sources import resolve_scenes
 
 NEAR_M = 5.0  # m: a clean miss ending this close to its goal is a near miss
@@ -75,6 +76,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     p.add_argument("--device", default="cpu")
     args = p.parse_args(argv)
+    check_specs(args.policies, "--policies")  # a mistyped run fails before the scenes are built
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=90000) if args.num_scenes else resolve_scenes(args.scenes)
     scenes = [src.get(i) for i in range(len(src))]
     per: dict[str, list[dict]] = {}
@@ -98,4 +100,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(one_line_errors("goal_misses.py", main))

@@ -23,9 +23,9 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from tg_gpudrive.agents import BUILTIN, open_policy
+from tg_gpudrive.agents import BUILTIN, check_specs, open_policy
 from tg_gpudrive.checkpoint import checkpoint_path, load_checkpoint
-from tg_gpudrive.cli import CONTROL_CHOICES
+from tg_gpudrive.cli import CONTROL_CHOICES, one_line_errors
 from tg_gpudrive.config import TrainConfig, from_dict
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.rollout import run_rollout
@@ -58,6 +58,7 @@ def main(argv=None) -> int:
     p.add_argument("--guard", type=float, default=None, metavar="S",
                    help="the trained runs' safety guard horizon, s; 0: none (default: each checkpoint's act_guard_s)")
     args = p.parse_args(argv)
+    check_specs(args.runs, "--runs")  # a mistyped run fails before the scenes are built
 
     src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
     t0 = time.perf_counter()
@@ -107,4 +108,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(one_line_errors("heldout_eval.py", main))

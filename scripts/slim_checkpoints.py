@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from tg_gpudrive.checkpoint import POLICY, checkpoint_kind, save_atomic
+from tg_gpudrive.cli import one_line_errors
 
 # what a policy checkpoint keeps: what loading it for evaluation or as init_policy needs
 SLIM_KEYS = ("kind", "config", "actor", "critic", "update", "lagrange")
@@ -52,10 +53,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("roots", nargs="+", type=Path, help="directories whose run directories (<root>/*/) are slimmed")
     args = ap.parse_args(argv)
+    missing = [str(r) for r in args.roots if not r.is_dir()]
+    if missing:  # a mistyped folder would otherwise leave every full checkpoint where it was, silently
+        raise FileNotFoundError(f"no such directory: {', '.join(missing)}")
     for root in args.roots:
         slim_runs(root)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(one_line_errors("slim_checkpoints.py", main))

@@ -14,6 +14,7 @@ import socket
 import subprocess
 import sys
 import typing
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,6 +132,46 @@ def test_train_on_a_full_disk_is_one_line(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("tg-gpudrive train: error: could not save") and "No space left" in err[-1]
     assert not list((tmp_path / "run").glob("*.tmp"))
+
+
+def test_one_line_errors_by_hand(capsys):
+    """Bad input exits 2 with one line naming the program, another OS error exits 1 with its file, a clean run
+    keeps its code; a bug (here a KeyError) is not swallowed."""
+    from tg_gpudrive.cli import one_line_errors
+
+    def fail(e):
+        def run():
+            raise e
+        return run
+
+    assert one_line_errors("tool.py", lambda: 0) == 0
+    assert one_line_errors("tool.py", fail(FileNotFoundError("--runs: no checkpoint at /x"))) == 2
+    assert one_line_errors("tool.py", fail(OSError(errno.ENOSPC, "No space left on device", "/d/f"))) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["tool.py: error: --runs: no checkpoint at /x", "tool.py: error: No space left on device: /d/f"]
+    with pytest.raises(KeyError):
+        one_line_errors("tool.py", fail(KeyError("a bug")))
+
+
+@pytest.mark.parametrize("script", ["heldout_eval", "advantage_balance", "crash_anatomy", "goal_misses",
+                                    "budget_by_knob", "slim_checkpoints"])
+def test_a_script_given_a_missing_run_says_so_in_one_line(script, tmp_path):
+    """The analysis scripts follow the CLI's rule: a run that is not there is one line and exit 2, not a
+    traceback, and it says so before any scene is built (the default procedural scenes take minutes here)."""
+    missing = str(tmp_path / "no_such_run")
+    args = {"heldout_eval": ["--runs", missing, "--scenes", "procedural:merge", "--num-scenes", "1",
+                             "--device", "cpu"],
+            "advantage_balance": ["--runs", missing, "--device", "cpu"],
+            "crash_anatomy": ["--policies", missing, "--scenes", "procedural:merge", "--device", "cpu"],
+            "goal_misses": ["--policies", missing, "--scenes", "procedural:merge", "--device", "cpu"],
+            "budget_by_knob": ["--checkpoint", missing, "--scenes", "procedural:merge", "--device", "cpu"],
+            "slim_checkpoints": [missing]}[script]
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, str(root / "scripts" / f"{script}.py"), *args], capture_output=True,
+                         text=True, timeout=300)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and lines and lines[-1].startswith(f"{script}.py: error: "), out.stderr[-800:]
+    assert "no_such_run" in lines[-1] and "Traceback" not in out.stderr
 
 
 # ----------------------------------------------------------------------------- --set with a checkpoint

@@ -703,21 +703,32 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    try:
+
+    def run() -> int:
         # "auto" made concrete; CUDA without one fails here. Not for report: it resolves the device per run
         # and keys its cache by the option as given
         if getattr(args, "device", None) is not None and args.command != "report":
             args.device = resolve_device(args.device, flag="--device")
         return COMMANDS[args.command](args)
+
+    return one_line_errors(f"tg-gpudrive {args.command}", run)
+
+
+def one_line_errors(prog: str, run) -> int:
+    """`run()`'s exit code, with bad input (ConfigError, ValueError, a missing file) as one line `prog: error:
+    ...` and exit 2, an interrupt as 130, and any other OS error (a full disk, a file where a folder should be,
+    no permission) as one line and exit 1: the rule of the CLI and of the scripts."""
+    try:
+        return run()
     except (ConfigError, ValueError, FileNotFoundError) as e:
-        print(f"tg-gpudrive {args.command}: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # a second Ctrl-C, or one outside a training loop
-        print(f"tg-gpudrive {args.command}: interrupted", file=sys.stderr)
+        print(f"{prog}: interrupted", file=sys.stderr)
         return 130
-    except OSError as e:  # a full disk, a file where a folder should be, no permission: one line
+    except OSError as e:
         where = f": {e.filename}" if e.filename else ""
-        print(f"tg-gpudrive {args.command}: error: {e.strerror or e}{where}", file=sys.stderr)
+        print(f"{prog}: error: {e.strerror or e}{where}", file=sys.stderr)
         return 1
 
 

@@ -16,7 +16,7 @@ control rule: an explicit `control`, else the checkpoint's training control, els
 vehicle), the background rows and their driver, then the policy itself.
 """
 
-__all__ = ["BUILTIN", "Opened", "open_policy", "trained_sim"]
+__all__ = ["BUILTIN", "Opened", "check_specs", "open_policy", "trained_sim"]
 
 
 def __getattr__(name: str):

@@ -7,7 +7,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from tg_gpudrive.checkpoint import (evaluation_engine, load_checkpoint, policy_engine_config, usable_checkpoint)
+from tg_gpudrive.checkpoint import (checkpoint_path, evaluation_engine, load_checkpoint, policy_engine_config,
+                                    usable_checkpoint)
 from tg_gpudrive.config import EngineConfig, TrainConfig, from_dict
 from tg_gpudrive.engine.control import control_masks
 from tg_gpudrive.engine.model import sized_for
@@ -67,6 +68,14 @@ def _build(scenes, env, device, collision_mode, auto_reset, masks, background):
     if not auto_reset:  # keep an episode's final state (a rendered last frame)
         env = dataclasses.replace(env, auto_reset=False)
     return Simulator(scenes, env, device, masks, background_masks(scenes, env, background, masks)), masks
+
+
+def check_specs(specs: Sequence[str], option: str) -> None:
+    """Fail at once, before any scene is built, when a spec of `specs` is neither a built-in policy nor a
+    checkpoint (file, run directory or packaged name): FileNotFoundError naming `option` and the spec."""
+    for spec in specs:
+        if spec not in BUILTIN:
+            checkpoint_path(spec, option)
 
 
 def open_policy(spec: str, scenes: Sequence, device: str, *, engine: EngineConfig | None = None,
