@@ -81,22 +81,17 @@ FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard
 KNOBS_ALONE = {"ttc": 0.0}
 
 
-# the keys generate's own options set (scenes, sizes, time budget, starting policy, knobs, outputs): a recipe's
-# values for them are the grid's, not the user's, and are left out
-OWN_KEYS = frozenset({"scenes", "num_scenes", "num_worlds", "resample_every", "init_policy", "device", "seed",
-                      "updates", "time_limit_s", "alpha", "env.beta", "checkpoint_every", "keep_policy_every",
-                      "target_goal_rate", "target_heldout", "out_dir"})
-
-
-def recipe_overrides(path: str | Path) -> list[str]:
+def recipe_overrides(path: str | Path, own: set[str]) -> list[str]:
     """KEY=VALUE overrides from an experiment grid's yaml (configs/experiments/*.yaml, its `overrides:`): the
-    cost, bar, multiplier step and training steps under which that grid measured what the knobs move, less
-    OWN_KEYS. A file that is not a grid (config.load_experiment) or sets no overrides is a ConfigError naming it."""
+    cost, bar, multiplier step and training steps under which that grid measured what the knobs move, less the
+    keys in `own` (what generate's options set: scenes, sizes, time budget, starting policy, knobs, outputs; the
+    grid's values for them are not the user's). A file that is not a grid (config.load_experiment) or sets no
+    overrides is a ConfigError naming it."""
     over = load_experiment(path).get("overrides")
     if not over:
         raise ConfigError(f"{path}: field 'overrides': the grid sets no train-config keys, so it has no recipe "
                           "(e.g. configs/experiments/grid_cvar_real_cap.yaml has)")
-    return [override_text(k, v) for k, v in over.items() if k not in OWN_KEYS]
+    return [override_text(k, v) for k, v in over.items() if k not in own]
 
 
 def training_config(opts: GenerateOptions) -> TrainConfig:
@@ -112,10 +107,10 @@ def training_config(opts: GenerateOptions) -> TrainConfig:
                 "init_policy": "shipped", "device": opts.device, "seed": opts.seed, "updates": opts.updates,
                 "time_limit_s": opts.seconds, "alpha": opts.alpha,
                 "checkpoint_every": opts.updates, "keep_policy_every": 0, "target_goal_rate": 0.0,
-                "target_heldout": "", "out_dir": str(Path(opts.out) / "policy"), **FINE_TUNE}
-    base.update(settings)
+                "target_heldout": "", "out_dir": str(Path(opts.out) / "policy")}
+    base.update(settings, **FINE_TUNE)
     base["env"] = {**base["env"], "beta": opts.beta, "reward": {**base["env"]["reward"], **KNOBS_ALONE}}
-    recipe = recipe_overrides(opts.recipe) if opts.recipe else []
+    recipe = recipe_overrides(opts.recipe, {*settings, "env.beta"}) if opts.recipe else []
     return from_dict(TrainConfig, apply_overrides(base, recipe + list(opts.overrides)), "tg-gpudrive generate")
 
 
