@@ -94,3 +94,23 @@ def test_report_pictures_without_runs(tmp_path):
     plot_multipliers({}, tmp_path / "multipliers.png")
     for name in ("grid", "cce_gap", "multipliers"):
         assert (tmp_path / f"{name}.png").stat().st_size > 0
+
+
+def test_multipliers_colour_a_cells_training_seeds_alike(tmp_path):
+    """Two cells of three training seeds each: every seed's line in its cell's colour, one legend entry a cell
+    naming its runs; without cells (or one run a cell) each run keeps its own colour and entry."""
+    rng = np.random.default_rng(0)
+    cell_of = {f"beta{b}_alpha0.5_s{s}": f"beta {b} / alpha 0.5" for b in (2, 6) for s in range(3)}
+    curves = {lab: [{"update": u, "lambda": rng.random(), "cvar": rng.random(), "cost": rng.random()}
+                    for u in range(1, 20)] for lab in cell_of}
+    fig = plot_multipliers(curves, tmp_path / "multipliers.png", cell_of)
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["beta 2 / alpha 0.5 (3 runs)",
+                                                                 "beta 6 / alpha 0.5 (3 runs)"]
+    for ax in fig.axes:
+        colours = [line.get_color() for line in ax.get_lines()]
+        assert len(colours) == 6 and len(set(colours[:3])) == 1 and len(set(colours[3:])) == 1
+        assert colours[0] != colours[3]
+    for groups in (None, {lab: lab for lab in cell_of}):
+        fig = plot_multipliers(curves, tmp_path / "own.png", groups)
+        assert [t.get_text() for t in fig.legends[0].get_texts()] == list(cell_of)
+        assert len({line.get_color() for line in fig.axes[0].get_lines()}) == 6

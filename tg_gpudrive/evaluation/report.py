@@ -408,6 +408,7 @@ class _Collected:
     results: list = dataclasses.field(default_factory=list)
     generated: dict = dataclasses.field(default_factory=dict)
     curves: dict = dataclasses.field(default_factory=dict)
+    curve_cells: dict = dataclasses.field(default_factory=dict)  # run label -> its cell's, for multipliers.png
     gaps: dict = dataclasses.field(default_factory=dict)
     gap_curves: dict = dataclasses.field(default_factory=dict)
     cells: dict = dataclasses.field(default_factory=dict)
@@ -521,6 +522,8 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     # guarded policy may act otherwise than the policy they are compared with
     res["acting"] = f"T {cfg.act_temperature:g}" + (f", guard {cfg.act_guard_s:g} s" if cfg.act_guard_s else "")
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
+    if res["kind"] == "CCE-MAPPO":
+        got.curve_cells[label] = f"beta {cfg.env.beta:g} / alpha {cfg.alpha:g}"
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost", "cvar",
                                                        "cost_budget"))
     res["constraint"] = constraint_rule(cfg)
@@ -572,7 +575,7 @@ def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, 
 def _write_report(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOptions, out: Path) -> dict:
     """The pictures, report.md, its CSV tables and summary.json of what `got` gathered; returns the summary."""
     plot_grid(got.cells, out / "grid.png", scene=got.grid_scene, notes=got.grid_notes)
-    plot_multipliers(got.curves, out / "multipliers.png")
+    plot_multipliers(got.curves, out / "multipliers.png", got.curve_cells)
     fid.plot_histograms(got.logged, got.generated, out / "fidelity.png")
     # the CCE-gap pictures this pass has, and no earlier report's beside this one's text
     for name, plot, data in (("cce_gap.png", plot_gaps, got.gaps if opts.cce_gap else None),

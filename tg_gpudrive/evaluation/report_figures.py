@@ -1,7 +1,7 @@
 """The report's pictures, each drawn from numbers the report has gathered (no rollouts here).
 
     plot_grid           grid.png: the paper's beta x alpha figure, one frame per CCE-MAPPO cell
-    plot_multipliers    multipliers.png: lambda, CVaR and cost during training, per run
+    plot_multipliers    multipliers.png: lambda, CVaR and cost during training, per run (a colour per cell)
     plot_gaps           cce_gap.png: each agent's CCE-gap per policy, with the mean and its interval
     plot_gap_curves     cce_gap_curve.png: the CCE-gap over each run's training
     plot_worst_scenes   worst_scenes.png: the last frames of the scenes where a policy fails most
@@ -103,23 +103,33 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     return fig
 
 
-def plot_multipliers(curves: dict[str, list[dict]], path: Path):
+def plot_multipliers(curves: dict[str, list[dict]], path: Path, groups: dict[str, str] | None = None):
     """The Lagrange multiplier, the CVaR of the cost-to-go and the cost per agent-step against the
     training update, one line per run in three panels; the legend goes below them in columns (its rows
-    grow the picture, up to MAX_FIG_H)."""
+    grow the picture, up to MAX_FIG_H). `groups` names each run's cell (its training seeds share one):
+    when a cell has several runs, its lines share a colour and the legend has one entry per cell."""
     fig = _fig()
+    groups = {label: (groups or {}).get(label, label) for label in curves}
+    by_cell = len(set(groups.values())) < len(groups)
+    names = list(dict.fromkeys(groups.values())) if by_cell else list(curves)
+    runs = {g: sum(v == g for v in groups.values()) for g in names} if by_cell else {}
     ncol = 4
-    legend_rows = -(-len(curves) // ncol)
+    legend_rows = -(-len(names) // ncol)
     extra = min(0.2 * legend_rows, MAX_FIG_H - 3.4)
     fig.set_size_inches(12, 3.4 + extra)
     styles = ("-", "--", ":", "-.")
     for i, key in enumerate(("lambda", "cvar", "cost")):
         ax = fig.add_subplot(1, 3, i + 1)
-        for j, (label, rows) in enumerate(curves.items()):
+        drawn = set()
+        for label, rows in curves.items():
+            name = groups[label] if by_cell else label
+            j = names.index(name)
             x = [int(r["update"]) for r in rows if r.get(key) not in (None, "", "nan")]
             y = [float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")]
-            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=_short(label, 40),
-                    color=f"C{j % 10}", ls=styles[j // 10 % len(styles)])
+            legend = (f"{name} ({runs[name]} runs)" if runs.get(name, 1) > 1 else name) if name not in drawn else None
+            drawn.add(name)
+            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=_short(legend, 40) if legend else None,
+                    color=f"C{j % 10}", ls=styles[j // 10 % len(styles)], alpha=0.7 if by_cell else 1.0)
         ax.set_xlabel("update", fontsize=8)
         ax.set_title({"lambda": "Lagrange multiplier lambda", "cvar": "CVaR_alpha of cost-to-go",
                       "cost": "cost per agent-step"}[key], fontsize=9)
