@@ -10,13 +10,16 @@ episode per world, with its sampled policy driving the agents it was trained to 
 them: a goal reached after leaving the road is not a goal (the engine does not count it). The
 seed of procedural training runs is 0 with at most a few thousand scenes, so seed 90000 names
 scenes no run has seen. Prints one JSON line per (run, mode) and a table; never fails on the
-numbers.
+numbers. Runs whose training configs differ only in their seed (a grid cell's training seeds) are
+also pooled into one row per cell and mode, episode-weighted.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -39,6 +42,33 @@ def train_config(run: str, fallback: TrainConfig | None) -> TrainConfig:
         return fallback
     ck = load_checkpoint(checkpoint_path(run, "--runs"), "--runs")
     return from_dict(TrainConfig, ck["config"], run)
+
+
+NOT_RECIPE = ("seed", "out_dir", "device")  # what a grid's training seeds of one cell may differ in
+
+
+def recipe_key(cfg: TrainConfig) -> str:
+    """What a run was trained with, less its seed and where it ran: runs that share it are one cell's training
+    seeds."""
+    return json.dumps({k: v for k, v in dataclasses.asdict(cfg).items() if k not in NOT_RECIPE}, sort_keys=True,
+                      default=str)
+
+
+def pooled_rows(rows: list[dict], recipes: dict[str, str]) -> list[dict]:
+    """One row per (recipe, mode) that more than one run shares: goal, collision and off-road weighted by
+    each run's agent-episodes, named after the first run less its `_s<seed>` suffix."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((recipes[r["run"]], r["mode"]), []).append(r)
+    pooled = []
+    for (_, mode), rs in groups.items():
+        if len(rs) < 2:
+            continue
+        n = sum(r["episodes"] for r in rs)
+        pooled.append({"cell": re.sub(r"_s\d+$", "", Path(rs[0]["run"]).name), "mode": mode, "runs": len(rs),
+                       "episodes": n, **{k: sum(r[k] * r["episodes"] for r in rs) / max(n, 1)
+                                         for k in ("goal_rate", "collision_rate", "offroad_rate")}})
+    return pooled
 
 
 def main(argv=None) -> int:
@@ -66,10 +96,11 @@ def main(argv=None) -> int:
     scenes = getter(range(len(src))) if getter else [src.get(i) for i in range(len(src))]
     print(f"{len(scenes)} scenes in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     base = None
-    rows = []
+    rows, recipes = [], {}
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
         trained = train_config(run, base)
         base = base or trained
+        recipes[run] = run if run in BUILTIN else recipe_key(trained)
         for mode in args.modes:
             # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5
             # nearest each conflict point) or --control's, the rest replayed; a built-in policy drives
@@ -104,6 +135,13 @@ def main(argv=None) -> int:
     for r in rows:
         print(f"| {Path(r['run']).name} | {r['mode']} | {r['episodes']} | {r['goal_rate']:.3f} | "
               f"{r['collision_rate']:.3f} | {r['offroad_rate']:.3f} |")
+    pooled = pooled_rows(rows, recipes)
+    if pooled:
+        print("\nPooled over training seeds (runs trained alike but for the seed):\n"
+              "| cell | mode | runs | agent-episodes | goal | collision | off-road |\n|---|---|---:|---:|---:|---:|---:|")
+        for r in pooled:
+            print(f"| {r['cell']} | {r['mode']} | {r['runs']} | {r['episodes']} | {r['goal_rate']:.3f} | "
+                  f"{r['collision_rate']:.3f} | {r['offroad_rate']:.3f} |")
     return 0
 
 

@@ -1106,3 +1106,28 @@ def test_advantage_balance_reads_the_cost_advantage_at_each_alpha():
     read = mod.balance("shipped", "procedural:all", [own, own], num_worlds=4, rollouts=1, device="cpu", rule=rule)
     assert read["cost_advantage"] == rule and read["reward_lean"] == pytest.approx(same["reward_lean"])
     assert read["cost_lean"] != pytest.approx(same["cost_lean"])
+
+
+def test_heldout_eval_pools_a_cells_training_seeds():
+    """Runs trained alike but for the seed pool into one row per mode, weighted by agent-episodes (hand-computed);
+    a run of another recipe, or alone in its recipe, is not pooled."""
+    mod = _script("heldout_eval")
+    base = load_config(TrainConfig, REPO_CONFIGS / "train" / "small_cpu.yaml")
+    seeds = [dataclasses.replace(base, seed=s, out_dir=f"runs/b2_s{s}") for s in (0, 1)]
+    other = dataclasses.replace(base, seed=0, lr=base.lr * 2)
+    assert mod.recipe_key(seeds[0]) == mod.recipe_key(seeds[1]) != mod.recipe_key(other)
+    recipes = {"g/b2_s0": mod.recipe_key(seeds[0]), "g/b2_s1": mod.recipe_key(seeds[1]), "g/lr2_s0": mod.recipe_key(other)}
+
+    def row(run, mode, n, goal, col, off):
+        return {"run": run, "mode": mode, "episodes": n, "goal_rate": goal, "collision_rate": col, "offroad_rate": off}
+
+    rows = [row("g/b2_s0", "ignore", 100, 1.0, 0.0, 0.0), row("g/b2_s1", "ignore", 300, 0.8, 0.1, 0.02),
+            row("g/b2_s0", "stop", 100, 0.5, 0.5, 0.0), row("g/b2_s1", "stop", 100, 0.7, 0.1, 0.1),
+            row("g/lr2_s0", "ignore", 50, 0.2, 0.2, 0.2)]
+    pooled = mod.pooled_rows(rows, recipes)
+    assert [(p["cell"], p["mode"], p["runs"], p["episodes"]) for p in pooled] == [("b2", "ignore", 2, 400),
+                                                                                ("b2", "stop", 2, 200)]
+    assert pooled[0]["goal_rate"] == pytest.approx(0.85) and pooled[0]["collision_rate"] == pytest.approx(0.075)
+    assert pooled[0]["offroad_rate"] == pytest.approx(0.015)
+    assert pooled[1]["goal_rate"] == pytest.approx(0.6) and pooled[1]["offroad_rate"] == pytest.approx(0.05)
+    assert mod.pooled_rows(rows[-1:], recipes) == []
