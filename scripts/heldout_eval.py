@@ -12,6 +12,10 @@ seed of procedural training runs is 0 with at most a few thousand scenes, so see
 scenes no run has seen. Prints one JSON line per (run, mode) and a table; never fails on the
 numbers. Runs whose training configs differ only in their seed (a grid cell's training seeds) are
 also pooled into one row per cell and mode, episode-weighted.
+
+`--own-scenes` evaluates each run on the first `--num-scenes` of the scenes it trained on (its
+`scenes`, `num_scenes` and `seed`) instead, to set a run's training-scene rates beside its held-out
+ones (a built-in policy plays the first run's); `--seed` then seeds only the sampling.
 """
 
 from __future__ import annotations
@@ -71,6 +75,14 @@ def pooled_rows(rows: list[dict], recipes: dict[str, str]) -> list[dict]:
     return pooled
 
 
+def load_scenes(spec: str, n: int, seed: int, first: int | None = None) -> list:
+    """The first `first` (default all `n`) scenes of `spec` with procedural seeds from `seed`."""
+    src = resolve_scenes(spec, n=n, seed=seed)
+    count = len(src) if first is None else min(first, len(src))
+    getter = getattr(src, "get_many", None)
+    return getter(range(count)) if getter else [src.get(i) for i in range(count)]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="+", required=True, help="run directories / checkpoints, or expert|constant|random")
@@ -87,20 +99,27 @@ def main(argv=None) -> int:
                    help="the trained runs' acting temperature (default: each checkpoint's act_temperature)")
     p.add_argument("--guard", type=float, default=None, metavar="S",
                    help="the trained runs' safety guard horizon, s; 0: none (default: each checkpoint's act_guard_s)")
+    p.add_argument("--own-scenes", action="store_true",
+                   help="each run on the first --num-scenes of its own training scenes (not held out) in place of "
+                        "--scenes")
     args = p.parse_args(argv)
     check_specs(args.runs, "--runs")  # a mistyped run fails before the scenes are built
 
-    src = resolve_scenes(args.scenes, n=args.num_scenes, seed=args.seed)
     t0 = time.perf_counter()
-    getter = getattr(src, "get_many", None)
-    scenes = getter(range(len(src))) if getter else [src.get(i) for i in range(len(src))]
-    print(f"{len(scenes)} scenes in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    scenes = None if args.own_scenes else load_scenes(args.scenes, args.num_scenes, args.seed)
+    if scenes is not None:
+        print(f"{len(scenes)} scenes in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     base = None
     rows, recipes = [], {}
     for run in tqdm(args.runs, desc="heldout_eval", unit="run"):
         trained = train_config(run, base)
         base = base or trained
         recipes[run] = run if run in BUILTIN else recipe_key(trained)
+        if args.own_scenes:
+            spec = f"own: {trained.scenes} from seed {trained.seed}"
+            scenes = load_scenes(trained.scenes, trained.num_scenes, trained.seed, args.num_scenes)
+        else:
+            spec = args.scenes
         for mode in args.modes:
             # a slot for every agent of the scenes; the agents the run was trained to drive (e.g. the 5
             # nearest each conflict point) or --control's, the rest replayed; a built-in policy drives
@@ -112,7 +131,7 @@ def main(argv=None) -> int:
             sim = opened.sim
             # the same sampling draws for every run and mode
             out = run_rollout(sim, opened.policy, sim.episode_length, episodes_per_world=1, seed=args.seed)
-            row = {"run": run, "mode": mode, "scenes": args.scenes, "seed": args.seed, "worlds": len(scenes),
+            row = {"run": run, "mode": mode, "scenes": spec, "seed": args.seed, "worlds": len(scenes),
                    "temperature": opened.temperature, "guard_s": opened.guard_s,
                    "dropped_agents": sim.model.report.total_truncated,
                    **{k: out[k] for k in ("episodes", "goal_rate", "collision_rate", "offroad_rate", "mean_speed",

@@ -774,6 +774,13 @@ def test_heldout_eval_drives_the_agents_the_run_was_trained_to_drive(tmp_path, c
     src = resolve_scenes("procedural:merge", n=3, seed=90000)
     vehicles = sum(int(m.sum()) for m in control_masks([src.get(i) for i in range(3)], cfg.env, "vehicles"))
     assert json.loads(every.read_text())["episodes"] == vehicles > 6
+    # --own-scenes: the run on the scenes it trained on (its 2), and a built-in policy on the same
+    own = tmp_path / "own.jsonl"
+    assert mod.main(["--runs", str(tmp_path / "run"), "expert", "--own-scenes", "--num-scenes", "3", "--modes", "ignore",
+                     "--device", "cpu", "--out", str(own)]) in (0, None)
+    rows = [json.loads(line) for line in own.read_text().splitlines()]
+    assert [(r["worlds"], r["episodes"]) for r in rows] == [(2, 4), (2, 4)]
+    assert rows[0]["scenes"] == f"own: {cfg.scenes} from seed {cfg.seed}" == rows[1]["scenes"]
 
 
 def test_run_experiments_deals_the_runs_over_the_gpus(tmp_path, capsys):
