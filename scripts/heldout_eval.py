@@ -60,18 +60,25 @@ def recipe_key(cfg: TrainConfig) -> str:
 
 def pooled_rows(rows: list[dict], recipes: dict[str, str]) -> list[dict]:
     """One row per (recipe, mode) that more than one run shares: goal, collision and off-road weighted by
-    each run's agent-episodes, named after the first run less its `_s<seed>` suffix."""
+    each run's agent-episodes, named after the first run less its `_s<seed>` suffix (and its folder, where
+    runs of another recipe share that name)."""
+    def name(run: str) -> str:
+        return re.sub(r"_s\d+$", "", Path(run).name)
+
     groups: dict[tuple[str, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((recipes[r["run"]], r["mode"]), []).append(r)
     pooled = []
-    for (_, mode), rs in groups.items():
+    for (recipe, mode), rs in groups.items():
         if len(rs) < 2:
             continue
         n = sum(r["episodes"] for r in rs)
-        pooled.append({"cell": re.sub(r"_s\d+$", "", Path(rs[0]["run"]).name), "mode": mode, "runs": len(rs),
-                       "episodes": n, **{k: sum(r[k] * r["episodes"] for r in rs) / max(n, 1)
-                                         for k in ("goal_rate", "collision_rate", "offroad_rate")}})
+        cell = name(rs[0]["run"])
+        if any(name(run) == cell and key != recipe for run, key in recipes.items()):
+            cell = f"{Path(rs[0]['run']).parent.name}/{cell}"
+        pooled.append({"cell": cell, "mode": mode, "runs": len(rs), "episodes": n,
+                       **{k: sum(r[k] * r["episodes"] for r in rs) / max(n, 1)
+                          for k in ("goal_rate", "collision_rate", "offroad_rate")}})
     return pooled
 
 

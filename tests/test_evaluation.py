@@ -1138,3 +1138,9 @@ def test_heldout_eval_pools_a_cells_training_seeds():
     assert pooled[0]["offroad_rate"] == pytest.approx(0.015)
     assert pooled[1]["goal_rate"] == pytest.approx(0.6) and pooled[1]["offroad_rate"] == pytest.approx(0.05)
     assert mod.pooled_rows(rows[-1:], recipes) == []
+    # another recipe's runs of the same name (an ablation's folder): each cell also names its folder
+    third = mod.recipe_key(dataclasses.replace(base, lr=base.lr * 3))
+    recipes.update({"h/b2_s0": third, "h/b2_s1": third})
+    rows += [row("h/b2_s0", "ignore", 10, 0.0, 0.0, 0.0), row("h/b2_s1", "ignore", 10, 1.0, 0.0, 0.0)]
+    assert [(p["cell"], p["mode"], p["episodes"]) for p in mod.pooled_rows(rows, recipes)] == [
+        ("g/b2", "ignore", 400), ("g/b2", "stop", 200), ("h/b2", "ignore", 20)]

@@ -112,6 +112,7 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path, groups: dict[str
     groups = {label: (groups or {}).get(label, label) for label in curves}
     by_cell = len(set(groups.values())) < len(groups)
     names = list(dict.fromkeys(groups.values())) if by_cell else list(curves)
+    colour = {name: k for k, name in enumerate(names)}
     runs = {g: sum(v == g for v in groups.values()) for g in names} if by_cell else {}
     ncol = 4
     legend_rows = -(-len(names) // ncol)
@@ -123,12 +124,14 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path, groups: dict[str
         drawn = set()
         for label, rows in curves.items():
             name = groups[label] if by_cell else label
-            j = names.index(name)
+            j = colour[name]
             x = [int(r["update"]) for r in rows if r.get(key) not in (None, "", "nan")]
             y = [float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")]
-            legend = (f"{name} ({runs[name]} runs)" if runs.get(name, 1) > 1 else name) if name not in drawn else None
+            legend = None  # a cell's first line carries its entry
+            if name not in drawn:
+                legend = _short(f"{name} ({runs[name]} runs)" if runs.get(name, 1) > 1 else name, 40)
             drawn.add(name)
-            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=_short(legend, 40) if legend else None,
+            ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=legend,
                     color=f"C{j % 10}", ls=styles[j // 10 % len(styles)], alpha=0.7 if by_cell else 1.0)
         ax.set_xlabel("update", fontsize=8)
         ax.set_title({"lambda": "Lagrange multiplier lambda", "cvar": "CVaR_alpha of cost-to-go",
