@@ -85,8 +85,8 @@ from tg_gpudrive.evaluation.episodes import logged_episodes, record_episodes, re
 from tg_gpudrive.evaluation.report_figures import (plot_gap_curves, plot_gaps, plot_grid, plot_multipliers,
                                                    plot_worst_scenes)
 from tg_gpudrive.evaluation.report_markdown import PER_AGENT_CSV, PER_SCENE_CSV, write_csv_tables, write_markdown
-from tg_gpudrive.evaluation.report_stats import (episode_figures, gap_curve, knob_scene, measure, scene_distances,
-                                                 tail_means, worst_scenes)
+from tg_gpudrive.evaluation.report_stats import (cell_label, episode_figures, gap_curve, knob_scene, measure,
+                                                 scene_distances, tail_means, worst_scenes)
 from tg_gpudrive.agents.prior import ExpertPrior
 from tg_gpudrive.learn import bar_watch
 from tg_gpudrive.agents.policy import load_actor, load_policy
@@ -408,7 +408,6 @@ class _Collected:
     results: list = dataclasses.field(default_factory=list)
     generated: dict = dataclasses.field(default_factory=dict)
     curves: dict = dataclasses.field(default_factory=dict)
-    curve_cells: dict = dataclasses.field(default_factory=dict)  # run label -> its cell's, for multipliers.png
     gaps: dict = dataclasses.field(default_factory=dict)
     gap_curves: dict = dataclasses.field(default_factory=dict)
     cells: dict = dataclasses.field(default_factory=dict)
@@ -522,8 +521,6 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     # guarded policy may act otherwise than the policy they are compared with
     res["acting"] = f"T {cfg.act_temperature:g}" + (f", guard {cfg.act_guard_s:g} s" if cfg.act_guard_s else "")
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
-    if res["kind"] == "CCE-MAPPO":
-        got.curve_cells[label] = f"beta {cfg.env.beta:g} / alpha {cfg.alpha:g}"
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost", "cvar",
                                                        "cost_budget"))
     res["constraint"] = constraint_rule(cfg)
@@ -575,7 +572,8 @@ def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, 
 def _write_report(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOptions, out: Path) -> dict:
     """The pictures, report.md, its CSV tables and summary.json of what `got` gathered; returns the summary."""
     plot_grid(got.cells, out / "grid.png", scene=got.grid_scene, notes=got.grid_notes)
-    plot_multipliers(got.curves, out / "multipliers.png", got.curve_cells)
+    cells = {r["label"]: cell_label(r["beta"], r["alpha"]) for r in got.results if r.get("kind") == "CCE-MAPPO"}
+    plot_multipliers(got.curves, out / "multipliers.png", cells)
     fid.plot_histograms(got.logged, got.generated, out / "fidelity.png")
     # the CCE-gap pictures this pass has, and no earlier report's beside this one's text
     for name, plot, data in (("cce_gap.png", plot_gaps, got.gaps if opts.cce_gap else None),

@@ -153,13 +153,18 @@ FLEX_CLAIMS = {  # figure: (label, sign with beta, sign with alpha)
 }
 
 
+def cell_label(beta: float, alpha: float) -> str:
+    """How the report names a cell (beta, alpha): its tables' rows and the legend of multipliers.png."""
+    return f"beta {beta:g} / alpha {alpha:g}"
+
+
 def group_cells(results: list[dict]) -> list[dict]:
     """The CCE-MAPPO runs grouped by cell (beta, alpha): one dict per cell with its `runs` (training
     seeds) and, per figure, a list of the runs' per-episode arrays (stats resamples seeds, then
     episodes)."""
     cells: dict[tuple[float, float], dict] = {}
     for r in sorted(results, key=lambda r: (r["beta"], r["alpha"])):
-        c = cells.setdefault((r["beta"], r["alpha"]), {"label": f"beta {r['beta']:g} / alpha {r['alpha']:g}",
+        c = cells.setdefault((r["beta"], r["alpha"]), {"label": cell_label(r["beta"], r["alpha"]),
                                                         "beta": r["beta"], "alpha": r["alpha"], "runs": 0,
                                                         "figures": {}})
         c["runs"] += 1
