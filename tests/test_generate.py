@@ -24,7 +24,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     assert cli.main(["generate", "--scenes", "procedural:merge", "--beta", "2", "--alpha", "0.125", "--num", "2",
                      "--out", str(out), "--seconds", "3", "--num-scenes", "2", "--worlds", "2",
                      "--rollout-seeds", "2", "--device", "cpu", "--json", *traffic]) == 0
-    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    res = json.loads(capsys.readouterr().out)  # stdout is the JSON alone: training notes go to stderr
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
     assert (run["lr"], run["entropy_coef"]) == (FINE_TUNE["lr"], FINE_TUNE["entropy_coef"])  # not the shipped run's
@@ -39,7 +39,8 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     keys = [(-int(r["collisions"]), float(r["min_ttc_s"])) for r in rows]
     assert keys == sorted(keys)
     assert len({r["scene_id"] for r in rows}) == len(rows)  # two scenes, two scenarios: one of each
-    source = {s.scene_id for s in (lambda src: [src[i] for i in range(len(src))])(resolve_scenes("procedural:merge", n=2))}
+    src = resolve_scenes("procedural:merge", n=2)
+    source = {src[i].scene_id for i in range(len(src))}
     for r in rows:
         scene = load_gpudrive_json(out / r["file"])  # a scene GPUDrive and this tool read back
         assert scene.num_agents > 0 and r["scene_id"] in source

@@ -21,6 +21,7 @@ import json
 import logging
 import math
 import random
+import sys
 import time
 from pathlib import Path
 
@@ -412,7 +413,7 @@ class Trainer:
         if interrupted:
             last["interrupted"] = True
         elif out_of_time and not reached and bar is not None:
-            bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}")
+            bar.write(f"time limit {cfg.time_limit_s:.0f} s reached after update {self.update}", file=sys.stderr)
         if reached and not interrupted:
             last["target_reached_s"] = self.wall
             self._record_target(bar)
@@ -527,7 +528,7 @@ class Trainer:
         if bar is not None:
             bar.write(f"target (goal >= {cfg.target_goal_rate}, collision <= {cfg.target_max_collision}, "
                       f"off-road <= {cfg.target_max_offroad}) reached after {self.wall:.0f} s "
-                      f"(update {self.update}, {self.agent_steps:,} agent steps)")
+                      f"(update {self.update}, {self.agent_steps:,} agent steps)", file=sys.stderr)
 
     def _heldout_check(self, bar=None) -> bool:
         """The held-out check (targets.HeldoutCheck), logged to heldout.csv and shown under the bar."""
@@ -535,7 +536,7 @@ class Trainer:
         if self.lead:
             self.runlog.heldout({"update": self.update, "wall_s": self.wall, **self.heldout.rates, "met": int(ok)})
             if bar is not None:
-                bar.write(self.heldout.describe(self.update, ok))
+                bar.write(self.heldout.describe(self.update, ok), file=sys.stderr)
         return ok
 
     def _sync(self) -> None:
