@@ -14,7 +14,8 @@ from tg_gpudrive import cli
 from tg_gpudrive.checkpoint import load_checkpoint
 from tg_gpudrive.data.sources import resolve_scenes
 from tg_gpudrive.data.womd.gpudrive_json import load_gpudrive_json
-from tg_gpudrive.evaluation.generate import FINE_TUNE, KNOBS_ALONE, TABLE, pick_scenarios
+from tg_gpudrive.enums import ControlMode
+from tg_gpudrive.evaluation.generate import FINE_TUNE, KNOB_RECIPE, KNOBS_ALONE, SHIPPED_RECIPE, TABLE, pick_scenarios
 
 
 @pytest.mark.parametrize("traffic", [[], ["--set", "control=nearest_conflict", "--set", "control_k=1",
@@ -27,7 +28,9 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     res = json.loads(capsys.readouterr().out)  # stdout is the JSON alone: training notes go to stderr
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
-    assert (run["lr"], run["entropy_coef"]) == (FINE_TUNE["lr"], FINE_TUNE["entropy_coef"])  # not the shipped run's
+    assert run["entropy_coef"] == FINE_TUNE["entropy_coef"]  # not the shipped run's
+    assert (run["lr"], run["env"]["cost_shape"], run["lambda_lr"]) == (
+        KNOB_RECIPE["lr"], "approach", KNOB_RECIPE["lambda_lr"])  # the built-in constraint recipe
     assert run["act_temperature"] == 1.0 != load_checkpoint("shipped", "shipped")["config"]["act_temperature"]
     assert run["act_guard_s"] == 0.0  # its scenarios are not filtered by the shipped policy's guard
     shipped = load_checkpoint("shipped", "shipped")["config"]["env"]["reward"]
@@ -85,7 +88,7 @@ def test_generate_recipe_takes_a_grids_constraint_but_keeps_its_own_scenes_sizes
     recipe = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "grid_cvar_real_cap.yaml"
     opts = GenerateOptions(scenes="procedural:merge", beta=6.0, alpha=0.875, num_scenes=4, seconds=30.0,
                            recipe=str(recipe), overrides=("lambda_lr=0.02",))
-    cfg, plain = training_config(opts), training_config(dataclasses.replace(opts, recipe=""))
+    cfg, plain = training_config(opts), training_config(dataclasses.replace(opts, recipe=SHIPPED_RECIPE))
     assert (cfg.env.cost_shape, cfg.env.cost_horizon, cfg.cost_limit_mode, cfg.cost_limit, cfg.lambda_max,
             cfg.lambda_init) == ("approach", 1.5, "start", 0.75, 4.0, 1.0)
     assert (plain.env.cost_shape, plain.lambda_max) != ("approach", 4.0)  # the shipped policy's own recipe
@@ -97,6 +100,23 @@ def test_generate_recipe_takes_a_grids_constraint_but_keeps_its_own_scenes_sizes
     bad.write_text("lr: 0.001\n")
     with pytest.raises(ConfigError, match="not_a_grid.yaml"):
         training_config(dataclasses.replace(opts, recipe=str(bad)))
+
+
+def test_generate_fine_tunes_under_the_approach_grids_recipe_unless_told_otherwise():
+    """The built-in recipe is configs/experiments/grid_cvar_approach.yaml's, the grid whose knobs were measured;
+    `shipped` keeps the shipped policy's own constraint settings (and FINE_TUNE's learning rate)."""
+    from tg_gpudrive.evaluation.generate import GenerateOptions, training_config
+
+    grid = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "grid_cvar_approach.yaml"
+    opts = GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125)
+    built_in = training_config(opts)
+    assert built_in == training_config(dataclasses.replace(opts, recipe=str(grid)))
+    assert (built_in.env.cost_shape, built_in.control, built_in.lambda_lr) == (
+        "approach", ControlMode.NEAREST_CONFLICT, 0.08)
+    own = training_config(dataclasses.replace(opts, recipe=SHIPPED_RECIPE))
+    shipped = load_checkpoint("shipped", "shipped")["config"]
+    assert (own.env.cost_shape, own.lambda_lr, own.lr) == (shipped["env"]["cost_shape"], shipped["lambda_lr"],
+                                                           FINE_TUNE["lr"])
 
 
 def test_scenarios_are_distinct_scenes_before_a_scene_repeats():

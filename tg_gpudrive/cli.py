@@ -354,9 +354,10 @@ def _generate_parser(sub) -> None:
                    help="rank every episode alike (default: each scene's most critical episode before any second one)")
     p.add_argument("--json", action="store_true", help="print one JSON object (default: a table)")
     p.add_argument("--recipe", default="", metavar="YAML",
-                   help="fine-tune under an experiment grid's constraint recipe (its `overrides:` but the scenes, "
-                        "sizes and knobs), e.g. configs/experiments/grid_cvar_real_cap.yaml (default: the shipped "
-                        "policy's own)")
+                   help="fine-tune under another experiment grid's constraint recipe (its `overrides:` but the "
+                        "scenes, sizes and knobs), e.g. configs/experiments/grid_cvar_real_cap.yaml, or `shipped`: "
+                        "the shipped policy's own settings, under which the knobs hardly act (default: "
+                        "configs/experiments/grid_cvar_approach.yaml's, built in)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "
                         "--set env.cost_horizon=1 --set env.cost_shape=hinge (repeatable; default: none)")

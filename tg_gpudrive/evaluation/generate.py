@@ -13,9 +13,11 @@ the most hard brakes; evaluation/risk.py; one per scene before any scene's secon
                                 acceleration, nearest-agent and curvature histograms; 0: the logs' own)
     OUT/policy/                 the fine-tuned policy's run (checkpoint, metrics.csv, curves.png)
 
-`max_hellinger` keeps only episodes at most that far from the logs: critical but realistic. `recipe` fine-tunes
-under the constraint recipe of an experiment grid (configs/experiments/*.yaml) instead of the shipped policy's own:
-the cost, bar and multiplier step under which that grid measured what beta and alpha move.
+`max_hellinger` keeps only episodes at most that far from the logs: critical but realistic. The fine-tune runs
+under a constraint recipe, the cost, bar and multiplier step under which an experiment grid measured what beta and
+alpha move: KNOB_RECIPE (configs/experiments/grid_cvar_approach.yaml's) unless `recipe` names another grid's yaml,
+or `shipped` for the shipped policy's own settings, under which the multiplier barely leaves 0 and the knobs
+hardly move the traffic.
 """
 
 from __future__ import annotations
@@ -58,7 +60,7 @@ class GenerateOptions:
     device: str = "cpu"
     seed: int = 0
     gif: bool = True
-    recipe: str = ""  # an experiment grid's yaml whose constraint recipe to fine-tune under (recipe_overrides)
+    recipe: str = ""  # "": KNOB_RECIPE; an experiment grid's yaml (recipe_overrides); SHIPPED_RECIPE: none
     overrides: tuple[str, ...] = ()  # train-config KEY=VALUE, applied last (e.g. env.cost_horizon=1)
     one_per_scene: bool = True  # distinct scenes before a second episode of any scene (pick_scenarios)
 
@@ -81,6 +83,17 @@ FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard
 KNOBS_ALONE = {"ttc": 0.0}
 
 
+# the constraint recipe of a fine-tune unless `recipe` names another: configs/experiments/grid_cvar_approach.yaml's
+# `overrides:` less generate's own keys (a test keeps them in step). A pass costs the depth of its closest approach
+# within beta over a 1.5 s look-ahead, bar 0.75 x the starting policy's mean cost-to-go, a fast multiplier step,
+# the game played by the 5 vehicles nearest a conflict: the recipe under which the knobs move gap, near misses and
+# speed on held-out and on own scenes without costing goals (BENCHMARKS.md)
+KNOB_RECIPE = {"control": "nearest_conflict", "control_k": 5, "lr": 0.001, "minibatches": 8,
+               "cost_limit_mode": "start", "cost_limit": 0.75, "lambda_on": "cvar", "lambda_init": 1.0, "lambda_lr": 0.08,
+               "env.cost_shape": "approach", "env.cost_partners": "all", "env.cost_horizon": 1.5}
+SHIPPED_RECIPE = "shipped"  # `recipe`: the shipped policy's own constraint settings, no grid's
+
+
 def recipe_overrides(path: str | Path, own: set[str]) -> list[str]:
     """KEY=VALUE overrides from an experiment grid's yaml (configs/experiments/*.yaml, its `overrides:`): the
     cost, bar, multiplier step and training steps under which that grid measured what the knobs move, less the
@@ -97,9 +110,9 @@ def recipe_overrides(path: str | Path, own: set[str]) -> list[str]:
 def training_config(opts: GenerateOptions) -> TrainConfig:
     """The shipped policy's training config, fine-tuning it on `opts.scenes` under the knobs: fine-tuning's
     steps (FINE_TUNE), no distance-keeping reward terms (KNOBS_ALONE), no augmentation, no resampling, the time
-    budget, one checkpoint at the end, then `opts.recipe`'s overrides (recipe_overrides), then `opts.overrides`
-    (e.g. env.cost_horizon=1 keeps beta ahead of time, env.cost_shape=hinge). Every value is checked as a config
-    file's are (ConfigError naming the key)."""
+    budget, one checkpoint at the end, then the constraint recipe (KNOB_RECIPE, `opts.recipe`'s grid through
+    recipe_overrides, or none for SHIPPED_RECIPE), then `opts.overrides` (e.g. env.cost_horizon=1 keeps beta ahead
+    of time, env.cost_shape=hinge). Every value is checked as a config file's are (ConfigError naming the key)."""
     base = to_dict(from_dict(TrainConfig, load_checkpoint("shipped", "shipped")["config"], "the shipped policy"))
     base["augment"] = to_dict(AugmentConfig())
     worlds = opts.num_worlds or (8 if opts.device == "cpu" else 256)
@@ -110,7 +123,12 @@ def training_config(opts: GenerateOptions) -> TrainConfig:
                 "target_heldout": "", "out_dir": str(Path(opts.out) / "policy")}
     base.update(settings, **FINE_TUNE)
     base["env"] = {**base["env"], "beta": opts.beta, "reward": {**base["env"]["reward"], **KNOBS_ALONE}}
-    recipe = recipe_overrides(opts.recipe, {*settings, "env.beta"}) if opts.recipe else []
+    if opts.recipe == SHIPPED_RECIPE:
+        recipe = []
+    elif opts.recipe:
+        recipe = recipe_overrides(opts.recipe, {*settings, "env.beta"})
+    else:
+        recipe = [override_text(k, v) for k, v in KNOB_RECIPE.items()]
     return from_dict(TrainConfig, apply_overrides(base, recipe + list(opts.overrides)), "tg-gpudrive generate")
 
 
