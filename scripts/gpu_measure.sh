@@ -22,8 +22,8 @@
 #             GRID_REPORT_PER_GPU parts per GPU
 #   generate  `tg-gpudrive generate` under two constraint recipes (GEN_RECIPES: builtin = its default, shipped = the
 #             shipped policy's own; or grid yamls) at beta 2 / 6 x alpha 0.125 / 0.875, all at once on one GPU
-#             (GEN_GPU), GEN_SECONDS of fine-tuning each on GEN_SCENES scenes; the policies come back slim, for a
-#             report on their own scenes (--scene-seed -1)
+#             (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of fine-tuning each on
+#             GEN_SCENES scenes; the policies come back slim, for a report on their own scenes (--scene-seed -1)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
@@ -213,15 +213,16 @@ grid)
     "${SETS[@]}" 2>&1 | tail -3
   ;;
 generate)
-  G=$RES
+  G=$RES; gpus=(${GEN_GPUS:-0}); k=0
+  for seed in ${GEN_SEEDS:-0}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
   for rec in ${GEN_RECIPES:-builtin shipped}; do for b in 2 6; do for a in 0.125 0.875; do
-    d=$G/$(basename "$rec" .yaml)/b${b}_a$a; mkdir -p "$d"
+    d=$G/$(basename "$rec" .yaml)/b${b}_a${a}_s$seed; mkdir -p "$d"
     recipe=(); [ "$rec" != builtin ] && recipe=(--recipe "$rec")
-    CUDA_VISIBLE_DEVICES=${GEN_GPU:-0} timeout ${GEN_TIMEOUT:-480} python3 -m tg_gpudrive.cli generate \
+    CUDA_VISIBLE_DEVICES=$gpu timeout ${GEN_TIMEOUT:-480} python3 -m tg_gpudrive.cli generate --seed $seed \
       --scenes ${GEN_SPEC:-procedural:all} --num-scenes ${GEN_SCENES:-64} --beta $b --alpha $a --num 10 \
       --seconds ${GEN_SECONDS:-240} --rollout-seeds 4 --no-gif --json --device ${GEN_DEVICE:-cuda} --out "$d" \
       "${recipe[@]}" "${SETS[@]}" > "$d/generate.json" 2> "$d/generate.err" &
-  done; done; done
+  done; done; done; done
   wait
   python3 "$R"/scripts/slim_checkpoints.py "$G"/*/*
   find "$G" -name '*.tfevents*' -delete; find "$G" -path '*/scenarios/*.json' -delete  # the table keeps their risk
