@@ -356,7 +356,7 @@ def _generate_parser(sub) -> None:
     p.add_argument("--recipe", default="", metavar="YAML",
                    help="fine-tune under another experiment grid's constraint recipe (its `overrides:` but the "
                         "scenes, sizes and knobs), e.g. configs/experiments/grid_cvar_real_cap.yaml, or `shipped`: "
-                        "the shipped policy's own settings, under which the knobs hardly act (default: "
+                        "the shipped policy's own settings, under which the knobs move little but speed (default: "
                         "configs/experiments/grid_cvar_approach.yaml's, built in)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "

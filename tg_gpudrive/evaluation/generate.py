@@ -16,8 +16,8 @@ the most hard brakes; evaluation/risk.py; one per scene before any scene's secon
 `max_hellinger` keeps only episodes at most that far from the logs: critical but realistic. The fine-tune runs
 under a constraint recipe, the cost, bar and multiplier step under which an experiment grid measured what beta and
 alpha move: KNOB_RECIPE (configs/experiments/grid_cvar_approach.yaml's) unless `recipe` names another grid's yaml,
-or `shipped` for the shipped policy's own settings, under which the multiplier barely leaves 0 and the knobs
-hardly move the traffic.
+or `shipped` for the shipped policy's own settings, under which the multiplier stays near 0 and the knobs move
+little but the traffic's speed.
 """
 
 from __future__ import annotations
@@ -89,8 +89,8 @@ KNOBS_ALONE = {"ttc": 0.0}
 # the game played by the 5 vehicles nearest a conflict: the recipe under which the knobs move gap, near misses and
 # speed on held-out and on own scenes without costing goals (BENCHMARKS.md)
 KNOB_RECIPE = {"control": "nearest_conflict", "control_k": 5, "lr": 0.001, "minibatches": 8,
-               "cost_limit_mode": "start", "cost_limit": 0.75, "lambda_on": "cvar", "lambda_init": 1.0, "lambda_lr": 0.08,
-               "env.cost_shape": "approach", "env.cost_partners": "all", "env.cost_horizon": 1.5}
+               "cost_limit_mode": "start", "cost_limit": 0.75, "lambda_on": "cvar", "lambda_init": 1.0,
+               "lambda_lr": 0.08, "env.cost_shape": "approach", "env.cost_partners": "all", "env.cost_horizon": 1.5}
 SHIPPED_RECIPE = "shipped"  # `recipe`: the shipped policy's own constraint settings, no grid's
 
 
