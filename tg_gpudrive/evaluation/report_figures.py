@@ -12,6 +12,8 @@ MAX_FIG_H at any number of runs. matplotlib (the render extra) is imported only 
 
 from __future__ import annotations
 
+from collections import Counter
+
 import textwrap
 from pathlib import Path
 
@@ -111,11 +113,11 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path, groups: dict[str
     fig = _fig()
     groups = {label: (groups or {}).get(label, label) for label in curves}
     by_cell = len(set(groups.values())) < len(groups)
-    names = list(dict.fromkeys(groups.values())) if by_cell else list(curves)
-    colour = {name: k for k, name in enumerate(names)}
-    runs = {g: sum(v == g for v in groups.values()) for g in names} if by_cell else {}
+    line_of = groups if by_cell else {label: label for label in curves}  # a run's colour and legend entry
+    runs = Counter(line_of.values())
+    colour = {name: k for k, name in enumerate(runs)}
     ncol = 4
-    legend_rows = -(-len(names) // ncol)
+    legend_rows = -(-len(runs) // ncol)
     extra = min(0.2 * legend_rows, MAX_FIG_H - 3.4)
     fig.set_size_inches(12, 3.4 + extra)
     styles = ("-", "--", ":", "-.")
@@ -123,13 +125,13 @@ def plot_multipliers(curves: dict[str, list[dict]], path: Path, groups: dict[str
         ax = fig.add_subplot(1, 3, i + 1)
         drawn = set()
         for label, rows in curves.items():
-            name = groups[label] if by_cell else label
+            name = line_of[label]
             j = colour[name]
             x = [int(r["update"]) for r in rows if r.get(key) not in (None, "", "nan")]
             y = [float(r[key]) for r in rows if r.get(key) not in (None, "", "nan")]
             legend = None  # a cell's first line carries its entry
             if name not in drawn:
-                legend = _short(f"{name} ({runs[name]} runs)" if runs.get(name, 1) > 1 else name, 40)
+                legend = _short(f"{name} ({runs[name]} runs)" if runs[name] > 1 else name, 40)
             drawn.add(name)
             ax.plot(x, y, marker="." if len(x) < 10 else None, lw=1, label=legend,
                     color=f"C{j % 10}", ls=styles[j // 10 % len(styles)], alpha=0.7 if by_cell else 1.0)
