@@ -21,8 +21,8 @@
 #             GRID_GPUS=0,1 GRID_BATCH=8 trains four cells on each at a time, and the report runs in
 #             GRID_REPORT_PER_GPU parts per GPU
 #   generate  `tg-gpudrive generate` under two constraint recipes (GEN_RECIPES: builtin = its default, shipped = the
-#             shipped policy's own; or grid yamls) at beta 2 / 6 x alpha 0.125 / 0.875, all at once on one GPU
-#             (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of fine-tuning each on
+#             shipped policy's own; or grid yamls) at beta 2 / 6 x alpha 0.125 / 0.875 (GEN_BETAS, GEN_ALPHAS), all
+#             at once on one GPU (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of fine-tuning each on
 #             GEN_SCENES scenes; the policies come back slim, for a report on their own scenes (--scene-seed -1)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
@@ -215,7 +215,7 @@ grid)
 generate)
   G=$RES; gpus=(${GEN_GPUS:-0}); k=0
   for seed in ${GEN_SEEDS:-0}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
-  for rec in ${GEN_RECIPES:-builtin shipped}; do for b in 2 6; do for a in 0.125 0.875; do
+  for rec in ${GEN_RECIPES:-builtin shipped}; do for b in ${GEN_BETAS:-2 6}; do for a in ${GEN_ALPHAS:-0.125 0.875}; do
     d=$G/$(basename "$rec" .yaml)/b${b}_a${a}_s$seed; mkdir -p "$d"
     recipe=(); [ "$rec" != builtin ] && recipe=(--recipe "$rec")
     CUDA_VISIBLE_DEVICES=$gpu timeout ${GEN_TIMEOUT:-480} python3 -m tg_gpudrive.cli generate --seed $seed \

@@ -337,7 +337,9 @@ def _generate_parser(sub) -> None:
                        help="the main job in one command: fine-tune under beta and alpha, export the most critical scenarios")
     p.add_argument("--scenes", required=True,
                    help="scene spec: procedural:<type>, a store, .json/.tfrecord file or directory, mix:... (required)")
-    p.add_argument("--beta", type=float, required=True, help="m, the distance constraint (required)")
+    p.add_argument("--beta", type=float, required=True,
+                   help="m, the distance constraint (required); under the built-in recipe it acts from 2 up: below 2 "
+                        "its bar is out of the cost critic's reach and the traffic presses no closer than at 2")
     p.add_argument("--alpha", type=float, required=True, help="the CVaR risk level in [0, 1): lower is less risk-averse (required)")
     p.add_argument("--num", type=positive_int, default=d.num, help="scenarios to export")
     p.add_argument("--out", default=d.out, metavar="DIR", help="where the scenarios, their table and the policy go")
