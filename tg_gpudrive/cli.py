@@ -338,8 +338,8 @@ def _generate_parser(sub) -> None:
     p.add_argument("--scenes", required=True,
                    help="scene spec: procedural:<type>, a store, .json/.tfrecord file or directory, mix:... (required)")
     p.add_argument("--beta", type=float, required=True,
-                   help="m, the distance constraint (required); under the built-in recipe it acts from 2 up: below 2 "
-                        "its bar is out of the cost critic's reach and the traffic presses no closer than at 2")
+                   help="m, the distance constraint (required); under the built-in recipe a beta below 2 adds near "
+                        "misses but no collisions: its bar falls under what the cost critic resolves")
     p.add_argument("--alpha", type=float, required=True, help="the CVaR risk level in [0, 1): lower is less risk-averse (required)")
     p.add_argument("--num", type=positive_int, default=d.num, help="scenarios to export")
     p.add_argument("--out", default=d.out, metavar="DIR", help="where the scenarios, their table and the policy go")
