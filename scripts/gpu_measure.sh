@@ -22,8 +22,9 @@
 #             GRID_REPORT_PER_GPU parts per GPU
 #   generate  `tg-gpudrive generate` under two constraint recipes (GEN_RECIPES: builtin = its default, shipped = the
 #             shipped policy's own; or grid yamls) at beta 2 / 6 x alpha 0.125 / 0.875 (GEN_BETAS, GEN_ALPHAS), all
-#             at once on one GPU (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of fine-tuning each on
-#             GEN_SCENES scenes; the policies come back slim, for a report on their own scenes (--scene-seed -1)
+#             at once on one GPU (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of
+#             fine-tuning each on GEN_SCENES scenes; the policies come back slim, for a report on their own scenes
+#             (--scene-seed -1)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
