@@ -12,9 +12,8 @@ MAX_FIG_H at any number of runs. matplotlib (the render extra) is imported only 
 
 from __future__ import annotations
 
-from collections import Counter
-
 import textwrap
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
