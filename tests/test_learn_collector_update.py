@@ -483,3 +483,30 @@ def test_training_with_a_multiplier_per_vehicle(tmp_path):
     assert 1 <= int(moved.sum()) <= 6 and bool((lam[~moved] == 0).all())
     again = Trainer(dataclasses.replace(cfg, updates=4), resume=tmp_path / "run", progress=False)
     torch.testing.assert_close(again.lagrange.value, lam)
+
+
+@pytest.mark.parametrize("mode", ["start", "logs"])
+def test_cost_limit_beta_measures_the_bar_under_the_reference_beta(tmp_path, mode):
+    """cost_limit_beta: a run at beta 3 gets the bar a run at beta 12 measures on the same worlds (the
+    starting policy's or the logs' cost under beta 12, a heavier one than its own beta's), while it trains
+    under its own beta; an absolute bar with a reference beta is a config error naming the key."""
+    from tg_gpudrive.config import ConfigError, TrainConfig
+    from tg_gpudrive.learn.train import Trainer
+
+    from test_train import tiny
+
+    def trainer(name, beta, **kw):
+        cfg = tiny(tmp_path / name, lambda_on="cvar", num_worlds=4, updates=1, cost_limit_mode=mode,
+                   cost_limit=1.0, alpha=0.5, **kw)
+        return Trainer(dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=beta)), progress=False)
+
+    ref = trainer("ref", 12.0)
+    low = trainer("low", 3.0, cost_limit_beta=12.0)
+    own = trainer("own", 3.0)
+    assert float(low.budget) == pytest.approx(float(ref.budget)) and float(ref.budget) > 0
+    assert float(own.budget) < float(low.budget)
+    assert low.sim.model.beta == 3.0 and low.first_worlds is None
+    same = trainer("same", 12.0, cost_limit_beta=12.0)
+    assert float(same.budget) == pytest.approx(float(ref.budget))
+    with pytest.raises(ConfigError, match="cost_limit_beta"):
+        TrainConfig(cost_limit_mode="absolute", cost_limit_beta=2.0)

@@ -118,6 +118,8 @@ def test_the_flexibility_section_names_each_cells_constraint_rule(tmp_path):
             == "the mean of the cost-to-go against 1 x the logs' mean")
     assert (constraint_rule(dataclasses.replace(cfg, cost_limit_mode="absolute", cost_limit=0.0))
             == "CVaR 0.875 of the cost-to-go against 0")
+    assert (constraint_rule(dataclasses.replace(cfg, cost_limit_beta=2.0))
+            == "CVaR 0.875 of the cost-to-go against 0.5 x the starting policy's mean at beta 2")
     assert constraint_rule(dataclasses.replace(cfg, constraint=False)) == "no constraint"
     rng = np.random.default_rng(0)
     cells = [_result(rng, f"beta{b}_alpha{a}", "CCE-MAPPO", 4, 1, b, a) for b in (2.0, 6.0) for a in (0.125, 0.875)]

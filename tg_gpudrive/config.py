@@ -292,6 +292,11 @@ class TrainConfig:
     # itself; start: cost_limit x the starting policy's mean cost-to-go, one budget per beta for every alpha, so
     # with lambda_on: cvar a higher alpha holds a heavier tail to the same bar
     cost_limit_mode: str = "logs"
+    # > 0: the logs' or the starting policy's cost (cost_limit_mode logs / start) is measured under this beta,
+    # not the run's: one bar for every beta, so a beta below it is held to a bar its lighter cost already meets
+    # (the constraint loosens: lambda comes down) and one above it to a bar its heavier cost exceeds (it
+    # tightens); 0: under the run's own beta, which asks the same relative cut at every beta
+    cost_limit_beta: float = 0.0
     # what lambda is stepped on: cvar, the CVaR_alpha of the discounted cost-to-go; mean, its expectation
     # E[c] (TrafficGamer's Algorithm 1), whose "logs" budget is the logs' mean, one per beta for every alpha
     # (alpha then shapes the actor's cost advantage alone)
@@ -364,6 +369,9 @@ class TrainConfig:
             raise ConfigError(f"alpha: CVaR level must lie in [0, 1), got {self.alpha}")
         if self.cost_limit_mode not in ("logs", "absolute", "start"):
             raise ConfigError(f"cost_limit_mode: expected logs, absolute or start, got {self.cost_limit_mode!r}")
+        if self.cost_limit_beta and self.cost_limit_mode == "absolute":
+            raise ConfigError("cost_limit_beta: an absolute bar (cost_limit_mode: absolute) is measured under no "
+                              "beta; set cost_limit_mode to logs or start, or cost_limit_beta to 0")
         if self.lambda_per_vehicle and not self.per_agent_lambda:
             raise ConfigError("lambda_per_vehicle: needs per_agent_lambda (a multiplier per slot of each scene)")
         if self.actor_history_partners and not self.actor_history:
@@ -385,6 +393,7 @@ class TrainConfig:
             "num_scenes": "[1, inf)", "num_worlds": "[1, inf)", "updates": "[1, inf)", "rollout_steps": "[1, inf)",
             "cost_nstep": "[1, inf)", "cost_kappa": "[0, inf)", "resample_every": "[0, inf)", "control_k": "[1, inf)",
             "epochs": "[1, inf)", "lambda_max": "[0, inf)", "lambda_warmup": "[0, inf)",
+            "cost_limit_beta": "[0, inf)",
             "minibatches": "[1, inf)", "lr": "(0, inf)", "gamma": "(0, 1]", "gae_lambda": "[0, 1]", "clip": "(0, inf)",
             "entropy_coef": "[0, inf)", "value_coef": "[0, inf)", "max_grad_norm": "(0, inf)", "hidden": "[1, 65536]",
             "heads": "[1, 1024]", "actor_history": "[0, 1024]", "actor_history_partners": "[0, 1024]", "act_temperature": "[0, inf)",

@@ -543,7 +543,8 @@ def constraint_rule(cfg: TrainConfig) -> str:
     if cfg.cost_limit_mode == "absolute":
         return f"{value} of the cost-to-go against {cfg.cost_limit:g}"
     bar = {"logs": f"the logs' {level}", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
-    return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}"
+    under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
+    return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}{under}"
 
 
 def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, sim, gsim, scenes, masks, logged,

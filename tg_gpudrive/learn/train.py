@@ -17,6 +17,7 @@ sampler position and the engine State mid-episode.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -185,23 +186,31 @@ class Trainer:
         self.bar_watch = BarWatch(cfg)  # warns once when lambda climbs and the cost stays far above its bar
         if ck is not None and "cost_budget" in ck:
             self.budget.fill_(float(ck["cost_budget"]))
-        elif cfg.cost_limit_mode == "logs" and cfg.constraint:  # plain MAPPO needs no budget
-            # the logs' own value of what lambda is stepped on: their CVaR_alpha, or their mean (alpha 0)
-            level = cfg.alpha if cfg.lambda_on == "cvar" else 0.0
-            self.budget = cfg.cost_limit * dist_util.all_reduce_mean(logged_cost_cvar(self.sim, level, cfg.gamma))
-        elif cfg.cost_limit_mode == "start" and cfg.constraint:
-            self.budget = cfg.cost_limit * dist_util.all_reduce_mean(self._start_cost())
+        elif cfg.cost_limit_mode != "absolute" and cfg.constraint:  # plain MAPPO needs no budget
+            self.budget = cfg.cost_limit * dist_util.all_reduce_mean(self._bar_cost())
+        self.first_worlds = None
         self.sim.reset()
         if ck is not None:
             self._load(ck, mine)
 
-    def _start_cost(self) -> torch.Tensor:
-        """The starting policy's mean discounted cost-to-go over one sampled episode in every world: the
-        budget of `cost_limit_mode: start`, an alpha-free level, so one per beta holds every alpha's CVaR
-        to the same bar (a higher alpha, a heavier tail held to it: the tighter constraint)."""
-        with torch.random.fork_rng(devices=[self.device] if self.sim.is_cuda else []):  # training's stream kept
-            torch.manual_seed(self.cfg.seed + self.stream)
-            ctg = cost_to_go(self.sim, self.cfg.gamma, actor_policy(self.actor, self.sim, self.cfg.actor_history))
+    def _bar_cost(self) -> torch.Tensor:
+        """The cost the budget is cost_limit times, on this rank's first worlds, under cost_limit_beta when it
+        is set (the same worlds in a simulator of their own, freed after) or the run's beta. `logs`: the logs'
+        own value of what lambda is stepped on, their CVaR_alpha or their mean (alpha 0). `start`: the starting
+        policy's mean discounted cost-to-go over one sampled episode in every world, an alpha-free level, so one
+        per beta holds every alpha's CVaR to the same bar (a higher alpha, a heavier tail held to it: the
+        tighter constraint)."""
+        cfg, sim = self.cfg, self.sim
+        if cfg.cost_limit_beta and cfg.cost_limit_beta != cfg.env.beta:
+            scenes, masks = self.first_worlds
+            env = sized_for(dataclasses.replace(cfg.env, beta=cfg.cost_limit_beta), scenes)
+            sim = Simulator(scenes, env, self.device, controlled=masks,
+                            background=background_masks(scenes, env, cfg.background, masks))
+        if cfg.cost_limit_mode == "logs":
+            return logged_cost_cvar(sim, cfg.alpha if cfg.lambda_on == "cvar" else 0.0, cfg.gamma)
+        with torch.random.fork_rng(devices=[self.device] if sim.is_cuda else []):  # training's stream kept
+            torch.manual_seed(cfg.seed + self.stream)
+            ctg = cost_to_go(sim, cfg.gamma, actor_policy(self.actor, sim, cfg.actor_history))
         return ctg.mean() if ctg.numel() else torch.zeros((), device=self.device)
 
     # ------------------------------------------------------------ setup bits
@@ -221,6 +230,7 @@ class Trainer:
             scenes = self.sampler.sample()
         self.left_to_replay = 0  # policy agents beyond env.max_agents per world, replayed instead (`_worlds`)
         scenes, masks = self._worlds(scenes)
+        self.first_worlds = (scenes, masks)  # what the bar is measured on (_bar_cost)
         env = sized_for(cfg.env, scenes)
         self.sim = Simulator(scenes, env, self.device, controlled=masks,
                              background=background_masks(scenes, env, cfg.background, masks))
