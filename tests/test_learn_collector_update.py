@@ -375,7 +375,7 @@ def test_lambda_on_mean_steps_the_multipliers_on_the_expected_cost_to_go(tmp_pat
     tg = advantages(cfg, batch)
     want_value = batch.quant.clamp(0.0, L.cost_to_go_bound(cfg.gamma)).mean(-1)
     torch.testing.assert_close(tg.ctg_mean, want_value)
-    assert torch.equal(tg.constraint(cfg), tg.ctg_mean)
+    assert torch.equal(tg.constraint(cfg, batch.cost), tg.ctg_mean)
     assert float(tg.cvar.mean()) > float(tg.ctg_mean.mean()) + 0.5
     m = batch.mask
     C = m.shape[-1]
@@ -383,7 +383,7 @@ def test_lambda_on_mean_steps_the_multipliers_on_the_expected_cost_to_go(tmp_pat
     jc = (want_value[:-1] * m).sum((0, 1)) / cnt.clamp(min=1)
     budget = torch.tensor(0.5)
     lam0 = lagrange.value.clone()
-    lagrange_step(cfg, m, tg.constraint(cfg), lagrange, budget)
+    lagrange_step(cfg, m, tg.constraint(cfg, batch.cost), lagrange, budget)
     seen = cnt > 0
     want = (lam0[:C] + cfg.lambda_lr * (jc - budget)).clamp(min=0)
     torch.testing.assert_close(lagrange.value[:C][seen], want[seen])
@@ -510,3 +510,48 @@ def test_cost_limit_beta_measures_the_bar_under_the_reference_beta(tmp_path, mod
     assert float(same.budget) == pytest.approx(float(ref.budget))
     with pytest.raises(ConfigError, match="cost_limit_beta"):
         TrainConfig(cost_limit_mode="absolute", cost_limit_beta=2.0)
+
+
+def test_sampled_lambda_steps_on_the_rollouts_cost_rate_not_the_critic():
+    """lambda_on sampled: the constraint of a slot is its live steps' mean sampled cost x 1 / (1 - gamma),
+    whatever the critic's quantiles say; cvar reads the critic."""
+    from tg_gpudrive.config import ConfigError, TrainConfig
+    from tg_gpudrive.learn.update import Targets, lagrange_step
+
+    T, W, C = 4, 2, 2
+    cfg = dataclasses.replace(TrainConfig(), lambda_on="sampled", lambda_lr=0.5, gamma=0.9,
+                              env=dataclasses.replace(TrainConfig().env, max_agents=C))
+    cost = torch.tensor([0.1, 0.0, 0.3, 0.0]).reshape(T, 1, 1).expand(T, W, C).clone()
+    mask = torch.ones(T, W, C, dtype=torch.bool)
+    mask[3] = False  # the last step's 0 is not lived, so the mean is 0.4 / 3 per slot
+    high = torch.full((T + 1, W, C), 7.0)  # a critic far above the truth
+    tg = Targets(adv_r=None, ret_r=None, adv_c=None, cvar=high, q_target=None, ctg_mean=high)
+    value = tg.constraint(cfg, cost)
+    assert value.shape == (T + 1, W, C)
+    lagrange = L.LagrangeMultiplier(1.0, 0.5, shape=(C,))
+    lagrange_step(cfg, mask, value, lagrange, torch.tensor(1.0))
+    want = 1.0 + 0.5 * ((0.4 / 3) / (1 - 0.9) - 1.0)
+    assert lagrange.value.tolist() == pytest.approx([want, want])
+    assert torch.equal(tg.constraint(dataclasses.replace(cfg, lambda_on="cvar"), cost), high)
+    with pytest.raises(ConfigError, match="gamma"):
+        TrainConfig(lambda_on="sampled", gamma=1.0)
+
+
+def test_sampled_start_budget_is_the_starting_policys_cost_rate(tmp_path):
+    """lambda_on sampled with cost_limit_mode start: the budget is cost_limit x the starting actor's mean
+    per-step cost over one sampled episode in every world x 1 / (1 - gamma), the figure lambda is stepped on."""
+    from tg_gpudrive.agents.policy import actor_policy
+    from tg_gpudrive.learn.train import Trainer, episode_costs
+
+    from test_train import tiny
+
+    def trainer(name, **kw):
+        cfg = tiny(tmp_path / name, num_worlds=4, updates=1, lambda_on="sampled", **kw)
+        return Trainer(dataclasses.replace(cfg, env=dataclasses.replace(cfg.env, beta=12.0)), progress=False)
+
+    got = trainer("start", cost_limit_mode="start", cost_limit=0.5)
+    ref = trainer("ref", cost_limit_mode="absolute", cost_limit=1.0)
+    torch.manual_seed(ref.cfg.seed)
+    cost, live = episode_costs(ref.sim, actor_policy(ref.actor, ref.sim))
+    want = 0.5 * float(cost[live].mean()) / (1 - ref.cfg.gamma)
+    assert want > 0 and float(got.budget) == pytest.approx(want, rel=1e-5)

@@ -299,7 +299,10 @@ class TrainConfig:
     cost_limit_beta: float = 0.0
     # what lambda is stepped on: cvar, the CVaR_alpha of the discounted cost-to-go; mean, its expectation
     # E[c] (TrafficGamer's Algorithm 1), whose "logs" budget is the logs' mean, one per beta for every alpha
-    # (alpha then shapes the actor's cost advantage alone)
+    # (alpha then shapes the actor's cost advantage alone); sampled, the rollout's own mean per-step cost
+    # x 1 / (1 - gamma) (the discounted cost-to-go that rate adds up to), no critic in it: a critic still fitting
+    # a fine-tune's new cost reads it several times too high and would lift lambda on a bar the policy meets;
+    # its budget is the same figure of the logs' or the starting policy's driving (alpha again the actor's alone)
     lambda_on: str = "cvar"
     lambda_init: float = 0.0
     lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
@@ -379,8 +382,10 @@ class TrainConfig:
         if self.actor_history_partners > self.env.partner_k:
             raise ConfigError(f"actor_history_partners: at most env.partner_k ({self.env.partner_k}) partners have "
                               f"a window, got {self.actor_history_partners}")
-        if self.lambda_on not in ("cvar", "mean"):
-            raise ConfigError(f"lambda_on: expected cvar or mean, got {self.lambda_on!r}")
+        if self.lambda_on not in ("cvar", "mean", "sampled"):
+            raise ConfigError(f"lambda_on: expected cvar, mean or sampled, got {self.lambda_on!r}")
+        if self.lambda_on == "sampled" and self.gamma >= 1.0:
+            raise ConfigError("lambda_on: sampled scales the cost rate by 1 / (1 - gamma), which needs gamma < 1")
         if self.lambda_max > 0 and self.lambda_init > self.lambda_max:
             raise ConfigError(f"lambda_init: must not exceed lambda_max ({self.lambda_max}), got {self.lambda_init}")
         if self.cost_advantage not in ("gae", "tail"):

@@ -538,12 +538,17 @@ def constraint_rule(cfg: TrainConfig) -> str:
     """What a run's multipliers were stepped on and against which budget, in words."""
     if not cfg.constraint:
         return "no constraint"
+    under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
+    if cfg.lambda_on == "sampled":
+        if cfg.cost_limit_mode == "absolute":
+            return f"the sampled cost rate / (1 - gamma) against {cfg.cost_limit:g}"
+        whose = {"logs": "the logs'", "start": "the starting policy's"}[cfg.cost_limit_mode]
+        return f"the sampled cost rate / (1 - gamma) against {cfg.cost_limit:g} x {whose}{under}"
     level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
     value = level if cfg.lambda_on == "cvar" else "the mean"
     if cfg.cost_limit_mode == "absolute":
         return f"{value} of the cost-to-go against {cfg.cost_limit:g}"
     bar = {"logs": f"the logs' {level}", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
-    under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
     return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}{under}"
 
 

@@ -25,8 +25,9 @@ class BarWatch:
 
     def __init__(self, cfg: TrainConfig, window: int | None = None):
         self.on, self.cap, self.window = bool(cfg.constraint), float(cfg.lambda_max), window or WINDOW
-        self.key = "cvar" if cfg.lambda_on == "cvar" else "cost_to_go"
-        self.name = f"CVaR_{cfg.alpha:g} of the cost-to-go" if cfg.lambda_on == "cvar" else "mean cost-to-go"
+        self.key = {"cvar": "cvar", "mean": "cost_to_go", "sampled": "constraint"}[cfg.lambda_on]
+        self.name = {"cvar": f"CVaR_{cfg.alpha:g} of the cost-to-go", "mean": "mean cost-to-go",
+                     "sampled": "sampled cost rate x 1 / (1 - gamma)"}[cfg.lambda_on]
         self.warmup = cfg.lambda_warmup
         self.recent: deque[tuple[float, float, float]] = deque(maxlen=self.window)
         self.warned = False

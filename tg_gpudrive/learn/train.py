@@ -104,6 +104,18 @@ def cost_to_go(sim: Simulator, gamma: float, act=None) -> torch.Tensor:
     controlled policy agent at every step it was driven, over one episode in every world, as a flat
     tensor. `act(sim)` writes the actions before each step; None replays the expert. Leaves the
     simulator to be reset by the caller."""
+    cost, live = episode_costs(sim, act)
+    ctg = torch.zeros_like(cost)
+    run = torch.zeros_like(cost[0])
+    for t in range(cost.shape[0] - 1, -1, -1):
+        run = (cost[t] + gamma * run) * live[t]  # a step the agent did not act cuts the sum
+        ctg[t] = run
+    return ctg[live]
+
+
+def episode_costs(sim: Simulator, act=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every step's cost of the controlled policy agents over one episode in every world, (steps, W, C),
+    and where an agent acted (the same shape, bool); `act` as in cost_to_go."""
     sim.reset()
     C = max(sim.max_controlled, 1)
     steps = sim.episode_length
@@ -119,12 +131,7 @@ def cost_to_go(sim: Simulator, gamma: float, act=None) -> torch.Tensor:
         sim.step()
         cost[t] = sim.cost[:, :C] * live[t]
         first &= sim.world_ended == 0
-    ctg = torch.zeros_like(cost)
-    run = torch.zeros_like(cost[0])
-    for t in range(steps - 1, -1, -1):
-        run = (cost[t] + gamma * run) * live[t]  # a step the agent did not act cuts the sum
-        ctg[t] = run
-    return ctg[live]
+    return cost, live
 
 
 class Trainer:
@@ -199,18 +206,22 @@ class Trainer:
         own value of what lambda is stepped on, their CVaR_alpha or their mean (alpha 0). `start`: the starting
         policy's mean discounted cost-to-go over one sampled episode in every world, an alpha-free level, so one
         per beta holds every alpha's CVaR to the same bar (a higher alpha, a heavier tail held to it: the
-        tighter constraint)."""
+        tighter constraint). With `lambda_on: sampled`, either one's mean per-step cost x 1 / (1 - gamma)."""
         cfg, sim = self.cfg, self.sim
         if cfg.cost_limit_beta and cfg.cost_limit_beta != cfg.env.beta:
             scenes, masks = self.first_worlds
             env = sized_for(dataclasses.replace(cfg.env, beta=cfg.cost_limit_beta), scenes)
             sim = Simulator(scenes, env, self.device, controlled=masks,
                             background=background_masks(scenes, env, cfg.background, masks))
-        if cfg.cost_limit_mode == "logs":
-            return logged_cost_cvar(sim, cfg.alpha if cfg.lambda_on == "cvar" else 0.0, cfg.gamma)
+        act = None if cfg.cost_limit_mode == "logs" else actor_policy(self.actor, sim, cfg.actor_history)
         with torch.random.fork_rng(devices=[self.device] if sim.is_cuda else []):  # training's stream kept
             torch.manual_seed(cfg.seed + self.stream)
-            ctg = cost_to_go(sim, cfg.gamma, actor_policy(self.actor, sim, cfg.actor_history))
+            if cfg.lambda_on == "sampled":  # the same figure lambda is stepped on: the cost rate / (1 - gamma)
+                cost, live = episode_costs(sim, act)
+                return cost[live].mean() / (1.0 - cfg.gamma) if live.any() else torch.zeros((), device=self.device)
+            if cfg.cost_limit_mode == "logs":
+                return logged_cost_cvar(sim, cfg.alpha if cfg.lambda_on == "cvar" else 0.0, cfg.gamma)
+            ctg = cost_to_go(sim, cfg.gamma, act)
         return ctg.mean() if ctg.numel() else torch.zeros((), device=self.device)
 
     # ------------------------------------------------------------ setup bits

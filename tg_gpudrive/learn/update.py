@@ -53,8 +53,12 @@ class Targets:
     q_target: Tensor
     ctg_mean: Tensor
 
-    def constraint(self, cfg: TrainConfig) -> Tensor:
-        """The per-state value lambda is stepped on (`lambda_on`)."""
+    def constraint(self, cfg: TrainConfig, cost: Tensor) -> Tensor:
+        """The per-state value lambda is stepped on (`lambda_on`), (T + 1, W, C) like the critic's (row T
+        unused): the critic's CVaR_alpha or mean, or each step's sampled cost `cost` (T, W, C) x 1 / (1 - gamma)."""
+        if cfg.lambda_on == "sampled":
+            rate = cost / (1.0 - cfg.gamma)
+            return torch.cat([rate, torch.zeros_like(rate[:1])])
         return self.cvar if cfg.lambda_on == "cvar" else self.ctg_mean
 
 
@@ -389,14 +393,15 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
     with phase("update/advantages"):
         tg = advantages(cfg, batch)
     with phase("update/lagrange"):
+        value = tg.constraint(cfg, batch.cost)
         if cfg.lambda_per_vehicle:
-            lam, seen = vehicle_lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, world_keys,
-                                              step_lambda)
+            lam, seen = vehicle_lagrange_step(cfg, batch.mask, value, lagrange, budget, world_keys, step_lambda)
         else:
-            lam, seen = lagrange_step(cfg, batch.mask, tg.constraint(cfg), lagrange, budget, step_lambda)
+            lam, seen = lagrange_step(cfg, batch.mask, value, lagrange, budget, step_lambda)
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior, graphs)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
+    out["constraint"] = float(L.masked_mean(value[:-1], batch.mask))  # what lambda was stepped on
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
     out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
     out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
