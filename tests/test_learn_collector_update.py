@@ -112,7 +112,7 @@ def test_one_update_moves_the_weights_and_reports_finite_numbers(tmp_path, case)
     lam0 = lagrange.value.detach().clone()
     out = ppo_update(cfg, batch, nets, opt, lagrange, budget, gen, prior)
     want = {"loss/policy", "loss/value", "loss/cost_quantile", "kl/prior", "kl/prev", "entropy", "clip_frac",
-            "cvar", "cost_to_go", "lambda", "lambda_max", "cost_budget"}
+            "cvar", "cost_to_go", "constraint", "lambda", "lambda_max", "cost_budget"}
     assert set(out) == want and all(math.isfinite(v) for v in out.values()), out
     after = [p.detach() for p in (*nets.actor.parameters(), *nets.critic.parameters())]
     moved = [not torch.equal(a, b) for a, b in zip(before, after)]

@@ -141,3 +141,14 @@ def test_the_per_agent_check_finds_a_per_agent_row(tmp_path):
     agents = csv_rows(tmp_path / "per_agent.csv", PER_AGENT_COLUMNS)
     md = (tmp_path / "report.md").read_text() + f"\n| world model | {agents[0]['agent']} | merge | 0.1 |\n"
     assert per_agent_lines(md, agents)
+
+
+def test_the_flexibility_table_shows_what_lambda_was_stepped_on():
+    """The training column beside the budget is the logged `constraint` (in the budget's units whatever
+    lambda_on), and the critic's CVaR for runs logged before that column."""
+    from tg_gpudrive.evaluation.report_markdown import stepped_on
+
+    assert stepped_on({"cvar": 0.4, "constraint": 0.07}) == 0.07
+    assert stepped_on({"cvar": 0.4, "constraint": float("nan")}) == 0.4
+    assert stepped_on({"cvar": 0.4}) == 0.4
+    assert stepped_on({}) == "-"

@@ -522,7 +522,7 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     res["acting"] = f"T {cfg.act_temperature:g}" + (f", guard {cfg.act_guard_s:g} s" if cfg.act_guard_s else "")
     res["beta"], res["alpha"], res["seed"] = cfg.env.beta, cfg.alpha, cfg.seed
     res["train_tail"] = tail_means(got.curves[label], ("lambda", "mean_min_distance", "mean_speed", "cost", "cvar",
-                                                       "cost_budget"))
+                                                       "constraint", "cost_budget"))
     res["constraint"] = constraint_rule(cfg)
     res["bar_out_of_reach"] = bar_watch.replay(cfg, got.curves[label])  # the update the trainer warned at, or None
     if res["kind"] == "CCE-MAPPO" and (cfg.env.beta, cfg.alpha) not in got.cell_runs:  # a cell's first training seed

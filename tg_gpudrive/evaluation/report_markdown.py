@@ -129,6 +129,13 @@ def _closest_section(results: list[dict]) -> list[str]:
                    [[r["label"], *(r["risk"].get(k, "-") for k in keys)] for r in results])]
 
 
+def stepped_on(tail: dict):
+    """What a run's multipliers were stepped on over its last updates: the `constraint` column (the critic's CVaR
+    or mean, or the sampled cost rate), or the critic's CVaR for runs logged before that column; "-" without."""
+    value = tail.get("constraint", float("nan"))
+    return tail.get("cvar", "-") if value != value else value
+
+
 def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[str]:
     """The report's beta x alpha section: the runs' training and evaluation means, and (three cells or
     more) the direction of every figure with each knob, and its change between each knob's extreme
@@ -143,12 +150,12 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
            "rollouts above. Paper's direction: larger beta (tighter) -> larger lambda and gaps; lower "
            f"alpha (less risk-averse) -> faster, smaller gaps.{rule}\n\n"]
     rows = [[r["beta"], r["alpha"], r.get("seed", "-"), r["train_tail"]["lambda"],
-             r["train_tail"].get("cvar", "-"), r["train_tail"].get("cost_budget", "-"),
+             stepped_on(r["train_tail"]), r["train_tail"].get("cost_budget", "-"),
              r["train_tail"]["mean_min_distance"], r["train_tail"]["mean_speed"], r["train_tail"]["cost"],
              r["risk"].get("mean_min_gap_m"), r["fidelity"]["per_feature"].get("speed", {}).get("mean_generated"),
              r["risk"].get("collision_rate"),
              bar_watch.label(r.get("bar_out_of_reach"))] for r in cce]
-    out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "CVaR (train)",
+    out.append(_table(["beta [m]", "alpha", "training seed", "lambda (train)", "stepped on (train)",
                        "budget (train)", "min distance (train) [m]", "speed (train) [m/s]", "cost (train)",
                        "min gap (eval) [m]", "speed (eval) [m/s]", "collision rate (eval)",
                        "bar out of reach (train)"], rows))
