@@ -555,3 +555,30 @@ def test_sampled_start_budget_is_the_starting_policys_cost_rate(tmp_path):
     cost, live = episode_costs(ref.sim, actor_policy(ref.actor, ref.sim))
     want = 0.5 * float(cost[live].mean()) / (1 - ref.cfg.gamma)
     assert want > 0 and float(got.budget) == pytest.approx(want, rel=1e-5)
+
+
+def test_sampled_cvar_steps_each_slot_on_the_tail_of_its_vehicles_cost_rates():
+    """lambda_on sampled_cvar: a slot's constraint is the mean of the largest ceil((1 - alpha) x n) of its n
+    vehicles' mean sampled cost rates (hand-computed), so a higher alpha reads a heavier tail of the same
+    rollout; a slot no vehicle held keeps its multiplier."""
+    from tg_gpudrive.config import ConfigError, TrainConfig
+    from tg_gpudrive.learn.update import lagrange_step, vehicle_cvar
+
+    T, W, C = 2, 4, 2
+    cost = torch.zeros(T, W, C)
+    cost[:, :, 0] = torch.tensor([[0.0, 0.2, 0.4, 0.8], [0.0, 0.0, 0.4, 0.4]])  # slot 0 rates 0, .1, .4, .6
+    mask = torch.ones(T, W, C, dtype=torch.bool)
+    mask[:, :, 1] = False  # slot 1: no vehicle
+    mask[1, 3, 0] = False  # vehicle 3 lived one step: its rate is 0.8
+    # rates of slot 0: 0, 0.1, 0.4, 0.8; alpha 0.5: top 2 -> 0.6; alpha 0.875: top 1 -> 0.8; alpha 0: all -> 0.325
+    for alpha, want in ((0.5, 0.6), (0.875, 0.8), (0.0, 0.325)):
+        got = vehicle_cvar(cost, mask, alpha)
+        assert got.tolist() == pytest.approx([want, 0.0])
+    cfg = dataclasses.replace(TrainConfig(), lambda_on="sampled_cvar", alpha=0.5, lambda_lr=1.0, gamma=0.5,
+                              env=dataclasses.replace(TrainConfig().env, max_agents=C))
+    value = torch.cat([cost / (1 - cfg.gamma), torch.zeros(1, W, C)])
+    lagrange = L.LagrangeMultiplier(1.0, 1.0, shape=(C,))
+    lagrange_step(cfg, mask, value, lagrange, torch.tensor(0.5))
+    assert lagrange.value.tolist() == pytest.approx([1.0 + 0.6 / 0.5 - 0.5, 1.0])
+    with pytest.raises(ConfigError, match="sampled_cvar"):
+        TrainConfig(lambda_on="sampled_cvar", lambda_per_vehicle=True)

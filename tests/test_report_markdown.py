@@ -119,7 +119,9 @@ def test_the_flexibility_section_names_each_cells_constraint_rule(tmp_path):
     assert (constraint_rule(dataclasses.replace(cfg, cost_limit_mode="absolute", cost_limit=0.0))
             == "CVaR 0.875 of the cost-to-go against 0")
     assert (constraint_rule(dataclasses.replace(cfg, lambda_on="sampled", cost_limit_beta=2.0))
-            == "the sampled cost rate / (1 - gamma) against 0.5 x the starting policy's at beta 2")
+            == "the sampled cost rate / (1 - gamma) against 0.5 x the starting policy's mean at beta 2")
+    assert (constraint_rule(dataclasses.replace(cfg, lambda_on="sampled_cvar", cost_limit_mode="logs"))
+            == "CVaR 0.875 over the vehicles of their sampled cost rate / (1 - gamma) against 0.5 x the logs' mean")
     assert (constraint_rule(dataclasses.replace(cfg, cost_limit_beta=2.0))
             == "CVaR 0.875 of the cost-to-go against 0.5 x the starting policy's mean at beta 2")
     assert constraint_rule(dataclasses.replace(cfg, constraint=False)) == "no constraint"

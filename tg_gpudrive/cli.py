@@ -339,7 +339,9 @@ def _generate_parser(sub) -> None:
                    help="scene spec: procedural:<type>, a store, .json/.tfrecord file or directory, mix:... (required)")
     p.add_argument("--beta", type=float, required=True,
                    help="m, the distance constraint (required); under the built-in recipe a beta below 2 adds near "
-                        "misses but no collisions: its bar falls under what the cost critic resolves")
+                        "misses but no collisions (lambda is stepped on a cost critic that reads the cost too high); "
+                        "--recipe configs/experiments/grid_sampled_ref.yaml holds every beta to beta 2's bar on the "
+                        "sampled cost, so below 2 the traffic presses closer and collides more")
     p.add_argument("--alpha", type=float, required=True, help="the CVaR risk level in [0, 1): lower is less risk-averse (required)")
     p.add_argument("--num", type=positive_int, default=d.num, help="scenarios to export")
     p.add_argument("--out", default=d.out, metavar="DIR", help="where the scenarios, their table and the policy go")

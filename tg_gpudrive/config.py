@@ -302,7 +302,10 @@ class TrainConfig:
     # (alpha then shapes the actor's cost advantage alone); sampled, the rollout's own mean per-step cost
     # x 1 / (1 - gamma) (the discounted cost-to-go that rate adds up to), no critic in it: a critic still fitting
     # a fine-tune's new cost reads it several times too high and would lift lambda on a bar the policy meets;
-    # its budget is the same figure of the logs' or the starting policy's driving (alpha again the actor's alone)
+    # its budget is the same figure of the logs' or the starting policy's driving (alpha again the actor's alone);
+    # sampled_cvar, per slot the CVaR_alpha over the rollout's vehicles of their sampled cost rate x 1 / (1 - gamma),
+    # against the same alpha-free bar (the logs' or the starting policy's mean rate): a higher alpha holds the
+    # riskiest vehicles to it, the tighter constraint, with no critic in either
     lambda_on: str = "cvar"
     lambda_init: float = 0.0
     lambda_lr: float = 0.01  # lambda += lambda_lr * (CVaR - budget) per update (projected at 0)
@@ -382,10 +385,14 @@ class TrainConfig:
         if self.actor_history_partners > self.env.partner_k:
             raise ConfigError(f"actor_history_partners: at most env.partner_k ({self.env.partner_k}) partners have "
                               f"a window, got {self.actor_history_partners}")
-        if self.lambda_on not in ("cvar", "mean", "sampled"):
-            raise ConfigError(f"lambda_on: expected cvar, mean or sampled, got {self.lambda_on!r}")
-        if self.lambda_on == "sampled" and self.gamma >= 1.0:
-            raise ConfigError("lambda_on: sampled scales the cost rate by 1 / (1 - gamma), which needs gamma < 1")
+        if self.lambda_on not in ("cvar", "mean", "sampled", "sampled_cvar"):
+            raise ConfigError(f"lambda_on: expected cvar, mean, sampled or sampled_cvar, got {self.lambda_on!r}")
+        if self.lambda_on.startswith("sampled") and self.gamma >= 1.0:
+            raise ConfigError(f"lambda_on: {self.lambda_on} scales the cost rate by 1 / (1 - gamma), which needs "
+                              "gamma < 1")
+        if self.lambda_on == "sampled_cvar" and self.lambda_per_vehicle:
+            raise ConfigError("lambda_on: sampled_cvar takes its tail over the vehicles of a slot, one a world; "
+                              "lambda_per_vehicle has one vehicle a multiplier (use sampled)")
         if self.lambda_max > 0 and self.lambda_init > self.lambda_max:
             raise ConfigError(f"lambda_init: must not exceed lambda_max ({self.lambda_max}), got {self.lambda_init}")
         if self.cost_advantage not in ("gae", "tail"):

@@ -539,11 +539,14 @@ def constraint_rule(cfg: TrainConfig) -> str:
     if not cfg.constraint:
         return "no constraint"
     under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
-    if cfg.lambda_on == "sampled":
+    if cfg.lambda_on.startswith("sampled"):
+        value = "the sampled cost rate / (1 - gamma)"
+        if cfg.lambda_on == "sampled_cvar":
+            value = f"CVaR {cfg.alpha:g} over the vehicles of their sampled cost rate / (1 - gamma)"
         if cfg.cost_limit_mode == "absolute":
-            return f"the sampled cost rate / (1 - gamma) against {cfg.cost_limit:g}"
-        whose = {"logs": "the logs'", "start": "the starting policy's"}[cfg.cost_limit_mode]
-        return f"the sampled cost rate / (1 - gamma) against {cfg.cost_limit:g} x {whose}{under}"
+            return f"{value} against {cfg.cost_limit:g}"
+        whose = {"logs": "the logs' mean", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
+        return f"{value} against {cfg.cost_limit:g} x {whose}{under}"
     level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
     value = level if cfg.lambda_on == "cvar" else "the mean"
     if cfg.cost_limit_mode == "absolute":

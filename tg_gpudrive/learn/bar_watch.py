@@ -25,9 +25,11 @@ class BarWatch:
 
     def __init__(self, cfg: TrainConfig, window: int | None = None):
         self.on, self.cap, self.window = bool(cfg.constraint), float(cfg.lambda_max), window or WINDOW
-        self.key = {"cvar": "cvar", "mean": "cost_to_go", "sampled": "constraint"}[cfg.lambda_on]
+        self.key = {"cvar": "cvar", "mean": "cost_to_go"}.get(cfg.lambda_on, "constraint")
         self.name = {"cvar": f"CVaR_{cfg.alpha:g} of the cost-to-go", "mean": "mean cost-to-go",
-                     "sampled": "sampled cost rate x 1 / (1 - gamma)"}[cfg.lambda_on]
+                     "sampled": "sampled cost rate x 1 / (1 - gamma)",
+                     "sampled_cvar": f"CVaR_{cfg.alpha:g} over the vehicles of the sampled cost rate x 1 / (1 - gamma)",
+                     }[cfg.lambda_on]
         self.warmup = cfg.lambda_warmup
         self.recent: deque[tuple[float, float, float]] = deque(maxlen=self.window)
         self.warned = False

@@ -206,7 +206,8 @@ class Trainer:
         own value of what lambda is stepped on, their CVaR_alpha or their mean (alpha 0). `start`: the starting
         policy's mean discounted cost-to-go over one sampled episode in every world, an alpha-free level, so one
         per beta holds every alpha's CVaR to the same bar (a higher alpha, a heavier tail held to it: the
-        tighter constraint). With `lambda_on: sampled`, either one's mean per-step cost x 1 / (1 - gamma)."""
+        tighter constraint). With `lambda_on: sampled` or `sampled_cvar`, either one's mean per-step cost x
+        1 / (1 - gamma)."""
         cfg, sim = self.cfg, self.sim
         if cfg.cost_limit_beta and cfg.cost_limit_beta != cfg.env.beta:
             scenes, masks = self.first_worlds
@@ -216,7 +217,7 @@ class Trainer:
         act = None if cfg.cost_limit_mode == "logs" else actor_policy(self.actor, sim, cfg.actor_history)
         with torch.random.fork_rng(devices=[self.device] if sim.is_cuda else []):  # training's stream kept
             torch.manual_seed(cfg.seed + self.stream)
-            if cfg.lambda_on == "sampled":  # the same figure lambda is stepped on: the cost rate / (1 - gamma)
+            if cfg.lambda_on.startswith("sampled"):  # the cost rate / (1 - gamma): lambda's figure, or its mean
                 cost, live = episode_costs(sim, act)
                 return cost[live].mean() / (1.0 - cfg.gamma) if live.any() else torch.zeros((), device=self.device)
             if cfg.cost_limit_mode == "logs":

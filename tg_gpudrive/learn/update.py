@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from tg_gpudrive.learn.graphs import StepGraphs
 
 Tensor = torch.Tensor
+SAMPLED = ("sampled", "sampled_cvar")  # lambda_on values stepped on the rollout's own costs, no critic
 MAX_TARGET_SAMPLES = 16  # target quantiles per row in the quantile loss (its N x M term is the update's largest)
 
 
@@ -56,7 +57,7 @@ class Targets:
     def constraint(self, cfg: TrainConfig, cost: Tensor) -> Tensor:
         """The per-state value lambda is stepped on (`lambda_on`), (T + 1, W, C) like the critic's (row T
         unused): the critic's CVaR_alpha or mean, or each step's sampled cost `cost` (T, W, C) x 1 / (1 - gamma)."""
-        if cfg.lambda_on == "sampled":
+        if cfg.lambda_on in SAMPLED:
             rate = cost / (1.0 - cfg.gamma)
             return torch.cat([rate, torch.zeros_like(rate[:1])])
         return self.cvar if cfg.lambda_on == "cvar" else self.ctg_mean
@@ -146,6 +147,28 @@ def vehicle_lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrang
     return lam[world_keys, :C], seen
 
 
+def vehicle_cvar(value: Tensor, mask: Tensor, alpha: float) -> Tensor:
+    """(C,): per slot, CVaR_alpha over the vehicles that held it (one a world) of each one's mean `value` (T, W, C)
+    over its live steps: the mean of the largest ceil((1 - alpha) x vehicles), at least one; 0 for a slot no
+    vehicle held."""
+    n = mask.sum(0)
+    per_vehicle = (value * mask).sum(0) / n.clamp(min=1)
+    held = n > 0
+    count = held.sum(0)
+    k = torch.ceil((1.0 - alpha) * count).clamp(min=1)
+    ranked = torch.where(held, per_vehicle, -torch.inf).sort(0, descending=True).values
+    top = torch.arange(ranked.shape[0], device=value.device)[:, None] < torch.minimum(k, count)
+    return torch.where(top, ranked, 0.0).sum(0) / k
+
+
+def slot_constraint(cfg: TrainConfig, mask: Tensor, value: Tensor) -> Tensor:
+    """(C,): each slot's constraint of the rollout: the mean of `value` (T + 1, W, C) over its live states, or
+    with `lambda_on: sampled_cvar` the CVaR_alpha over its vehicles of theirs (vehicle_cvar)."""
+    if cfg.lambda_on == "sampled_cvar":
+        return vehicle_cvar(value[:-1], mask, cfg.alpha)
+    return (value[:-1] * mask).sum((0, 1)) / mask.sum((0, 1)).clamp(min=1)
+
+
 def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.LagrangeMultiplier,
                   budget: Tensor, step: bool = True) -> tuple[Tensor, Tensor]:
     """Step the multipliers on this rollout's constraint (equal on all ranks); `value` (T + 1, W, C) is
@@ -153,10 +176,9 @@ def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.Lag
     uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
     agents in the rollout on any rank). `step` False: the multipliers stay as they are."""
     C = mask.shape[-1]
-    # the constraint per agent slot: the mean over its live states of the value
     cnt = mask.sum((0, 1))
     jc = torch.zeros(cfg.env.max_agents, device=mask.device)
-    jc[:C] = (value[:-1] * mask).sum((0, 1)) / cnt.clamp(min=1)
+    jc[:C] = slot_constraint(cfg, mask, value)
     seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=mask.device)
     seen[:C] = cnt > 0
     jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0
@@ -401,7 +423,11 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior, graphs)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
-    out["constraint"] = float(L.masked_mean(value[:-1], batch.mask))  # what lambda was stepped on
+    if cfg.lambda_on == "sampled_cvar":  # what lambda was stepped on: the slots' tails, over the slots held
+        held = batch.mask.any((0, 1))
+        out["constraint"] = float(slot_constraint(cfg, batch.mask, value)[held].mean()) if held.any() else 0.0
+    else:
+        out["constraint"] = float(L.masked_mean(value[:-1], batch.mask))
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
     out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
     out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
