@@ -75,8 +75,10 @@ class GenerateOptions:
 # the steps of a fine-tune, whatever the shipped policy was trained with: a trained driver moved with the
 # from-scratch recipe's learning rate and entropy bonus unlearns its driving within a hundred updates. The
 # scenarios are the fine-tuned policy's samples at temperature 1 and without a safety guard, not the shipped
-# policy's sharper, guarded acting: the knobs, not a sharper sampling or a filter, decide how close the traffic presses
-FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard_s": 0.0}
+# policy's sharper, guarded acting: the knobs, not a sharper sampling or a filter, decide how close the traffic presses.
+# The multipliers are held for the first updates while the cost critic the shipped policy brings, fitted to another
+# cost, learns this one: stepped on its first values they climb several-fold at every beta and alpha alike
+FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard_s": 0.0, "lambda_warmup": 20}
 # reward terms that hold a driver back from its neighbours whatever the knobs (the shipped policy trains with a
 # time-to-collision charge): off in a fine-tune and in every run of a knob grid (scripts/run_experiments.py), so
 # that beta and alpha alone decide how close the traffic presses
