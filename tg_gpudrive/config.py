@@ -295,7 +295,8 @@ class TrainConfig:
     # > 0: the logs' or the starting policy's cost (cost_limit_mode logs / start) is measured under this beta,
     # not the run's: one bar for every beta, so a beta below it is held to a bar its lighter cost already meets
     # (the constraint loosens: lambda comes down) and one above it to a bar its heavier cost exceeds (it
-    # tightens); 0: under the run's own beta, which asks the same relative cut at every beta
+    # tightens); 0: under the run's own beta, which asks the same relative cut at every beta. On a cost critic
+    # that reads the cost too high (a fine-tune's, still fitting) lambda can stay up below it: lambda_on sampled
     cost_limit_beta: float = 0.0
     # what lambda is stepped on: cvar, the CVaR_alpha of the discounted cost-to-go; mean, its expectation
     # E[c] (TrafficGamer's Algorithm 1), whose "logs" budget is the logs' mean, one per beta for every alpha

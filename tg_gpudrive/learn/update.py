@@ -37,7 +37,6 @@ if TYPE_CHECKING:
     from tg_gpudrive.learn.graphs import StepGraphs
 
 Tensor = torch.Tensor
-SAMPLED = ("sampled", "sampled_cvar")  # lambda_on values stepped on the rollout's own costs, no critic
 MAX_TARGET_SAMPLES = 16  # target quantiles per row in the quantile loss (its N x M term is the update's largest)
 
 
@@ -57,7 +56,7 @@ class Targets:
     def constraint(self, cfg: TrainConfig, cost: Tensor) -> Tensor:
         """The per-state value lambda is stepped on (`lambda_on`), (T + 1, W, C) like the critic's (row T
         unused): the critic's CVaR_alpha or mean, or each step's sampled cost `cost` (T, W, C) x 1 / (1 - gamma)."""
-        if cfg.lambda_on in SAMPLED:
+        if cfg.lambda_on.startswith("sampled"):  # the rollout's own costs, no critic
             rate = cost / (1.0 - cfg.gamma)
             return torch.cat([rate, torch.zeros_like(rate[:1])])
         return self.cvar if cfg.lambda_on == "cvar" else self.ctg_mean
