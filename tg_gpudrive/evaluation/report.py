@@ -538,21 +538,18 @@ def constraint_rule(cfg: TrainConfig) -> str:
     """What a run's multipliers were stepped on and against which budget, in words."""
     if not cfg.constraint:
         return "no constraint"
-    under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
     if cfg.lambda_on.startswith("sampled"):
-        value = "the sampled cost rate / (1 - gamma)"
+        level, value = "mean", "the sampled cost rate / (1 - gamma)"
         if cfg.lambda_on == "sampled_cvar":
             value = f"CVaR {cfg.alpha:g} over the vehicles of their sampled cost rate / (1 - gamma)"
-        if cfg.cost_limit_mode == "absolute":
-            return f"{value} against {cfg.cost_limit:g}"
-        whose = {"logs": "the logs' mean", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
-        return f"{value} against {cfg.cost_limit:g} x {whose}{under}"
-    level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
-    value = level if cfg.lambda_on == "cvar" else "the mean"
+    else:
+        level = f"CVaR {cfg.alpha:g}" if cfg.lambda_on == "cvar" else "mean"
+        value = (level if cfg.lambda_on == "cvar" else "the mean") + " of the cost-to-go"
     if cfg.cost_limit_mode == "absolute":
-        return f"{value} of the cost-to-go against {cfg.cost_limit:g}"
+        return f"{value} against {cfg.cost_limit:g}"
     bar = {"logs": f"the logs' {level}", "start": "the starting policy's mean"}[cfg.cost_limit_mode]
-    return f"{value} of the cost-to-go against {cfg.cost_limit:g} x {bar}{under}"
+    under = f" at beta {cfg.cost_limit_beta:g}" if cfg.cost_limit_beta else ""
+    return f"{value} against {cfg.cost_limit:g} x {bar}{under}"
 
 
 def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, sim, gsim, scenes, masks, logged,

@@ -175,11 +175,10 @@ def lagrange_step(cfg: TrainConfig, mask: Tensor, value: Tensor, lagrange: L.Lag
     uses: those from before the step, per slot [0, C) or one; which of the env.max_agents slots had
     agents in the rollout on any rank). `step` False: the multipliers stay as they are."""
     C = mask.shape[-1]
-    cnt = mask.sum((0, 1))
     jc = torch.zeros(cfg.env.max_agents, device=mask.device)
     jc[:C] = slot_constraint(cfg, mask, value)
     seen = torch.zeros(cfg.env.max_agents, dtype=torch.bool, device=mask.device)
-    seen[:C] = cnt > 0
+    seen[:C] = mask.any((0, 1))
     jc, seen = dist_util.all_reduce_mean(jc), dist_util.all_reduce_mean(seen.float()) > 0
     if not cfg.per_agent_lambda:  # one multiplier for all: the mean over the slots that had agents
         jc = (jc * seen).sum() / seen.sum().clamp(min=1)
@@ -422,11 +421,8 @@ def ppo_update(cfg: TrainConfig, batch: Rollout, nets: Networks, opt: torch.opti
     out = optimise(cfg, flatten(batch, tg, nets.head.discrete), lam, nets, opt, gen, prior, graphs)
     out["cvar"] = float(L.masked_mean(tg.cvar[:-1], batch.mask))
     out["cost_to_go"] = float(L.masked_mean(tg.ctg_mean[:-1], batch.mask))
-    if cfg.lambda_on == "sampled_cvar":  # what lambda was stepped on: the slots' tails, over the slots held
-        held = batch.mask.any((0, 1))
-        out["constraint"] = float(slot_constraint(cfg, batch.mask, value)[held].mean()) if held.any() else 0.0
-    else:
-        out["constraint"] = float(L.masked_mean(value[:-1], batch.mask))
+    held = batch.mask.any((0, 1))  # what lambda was stepped on: each held slot's constraint, their mean
+    out["constraint"] = float(slot_constraint(cfg, batch.mask, value)[held].mean()) if held.any() else 0.0
     lam_now = lagrange.value[seen] if cfg.per_agent_lambda else lagrange.value
     out["lambda"] = float(lam_now.mean()) if cfg.constraint and lam_now.numel() else 0.0
     out["lambda_max"] = float(lam_now.max()) if cfg.constraint and lam_now.numel() else 0.0
