@@ -103,17 +103,20 @@ def test_generate_recipe_takes_a_grids_constraint_but_keeps_its_own_scenes_sizes
         training_config(dataclasses.replace(opts, recipe=str(bad)))
 
 
-def test_generate_fine_tunes_under_the_approach_grids_recipe_unless_told_otherwise():
-    """The built-in recipe is configs/experiments/grid_cvar_approach.yaml's, the grid whose knobs were measured;
+def test_generate_fine_tunes_under_the_sampled_cvar_grids_recipe_unless_told_otherwise():
+    """The built-in recipe is configs/experiments/grid_sampled_cvar_ref.yaml's, the grid whose knobs were measured;
     `shipped` keeps the shipped policy's own constraint settings (and FINE_TUNE's learning rate)."""
     from tg_gpudrive.evaluation.generate import GenerateOptions, training_config
 
-    grid = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "grid_cvar_approach.yaml"
-    opts = GenerateOptions(scenes="procedural:merge", beta=2.0, alpha=0.125)
+    grid = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "grid_sampled_cvar_ref.yaml"
+    opts = GenerateOptions(scenes="procedural:merge", beta=0.5, alpha=0.875)
     built_in = training_config(opts)
     assert built_in == training_config(dataclasses.replace(opts, recipe=str(grid)))
     assert (built_in.env.cost_shape, built_in.control, built_in.lambda_lr) == (
         "approach", ControlMode.NEAREST_CONFLICT, 0.08)
+    # one bar for every beta, measured under beta 2; the multiplier answers to the alpha tail of the vehicles, capped
+    assert (built_in.env.beta, built_in.alpha, built_in.cost_limit_beta) == (0.5, 0.875, 2.0)
+    assert (built_in.lambda_on, built_in.lambda_max) == ("sampled_cvar", 6.0)
     own = training_config(dataclasses.replace(opts, recipe=SHIPPED_RECIPE))
     shipped = load_checkpoint("shipped", "shipped")["config"]
     assert (own.env.cost_shape, own.lambda_lr, own.lr) == (shipped["env"]["cost_shape"], shipped["lambda_lr"],

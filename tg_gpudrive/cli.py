@@ -338,11 +338,11 @@ def _generate_parser(sub) -> None:
     p.add_argument("--scenes", required=True,
                    help="scene spec: procedural:<type>, a store, .json/.tfrecord file or directory, mix:... (required)")
     p.add_argument("--beta", type=float, required=True,
-                   help="m, the distance constraint (required); under the built-in recipe a beta below 2 adds near "
-                        "misses but no collisions (lambda is stepped on a cost critic that reads the cost too high); "
-                        "--recipe configs/experiments/grid_sampled_ref.yaml holds every beta to beta 2's bar on the "
-                        "sampled cost, so below 2 the traffic presses closer and collides more")
-    p.add_argument("--alpha", type=float, required=True, help="the CVaR risk level in [0, 1): lower is less risk-averse (required)")
+                   help="m, the distance constraint (required): under the built-in recipe every beta is held to "
+                        "one bar, beta 2's, so below 2 the traffic presses closer and above 2 it keeps its distance")
+    p.add_argument("--alpha", type=float, required=True,
+                   help="the CVaR risk level in [0, 1): under the built-in recipe the multiplier answers to the worst "
+                        "1 - alpha of the vehicles' costs, so lower is less risk-averse (required)")
     p.add_argument("--num", type=positive_int, default=d.num, help="scenarios to export")
     p.add_argument("--out", default=d.out, metavar="DIR", help="where the scenarios, their table and the policy go")
     p.add_argument("--seconds", type=float, default=d.seconds, help="training time budget (s)")
@@ -361,7 +361,7 @@ def _generate_parser(sub) -> None:
                    help="fine-tune under another experiment grid's constraint recipe (its `overrides:` but the "
                         "scenes, sizes and knobs), e.g. configs/experiments/grid_cvar_real_cap.yaml, or `shipped`: "
                         "the shipped policy's own settings, under which the knobs move little but speed (default: "
-                        "configs/experiments/grid_cvar_approach.yaml's, built in)")
+                        "configs/experiments/grid_sampled_cvar_ref.yaml's, built in)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a key of the fine-tune's train config, after the knobs above, e.g. "
                         "--set env.cost_horizon=1 --set env.cost_shape=hinge (repeatable; default: none)")

@@ -15,8 +15,8 @@ the most hard brakes; evaluation/risk.py; one per scene before any scene's secon
 
 `max_hellinger` keeps only episodes at most that far from the logs: critical but realistic. The fine-tune runs
 under a constraint recipe, the cost, bar and multiplier step under which an experiment grid measured what beta and
-alpha move: KNOB_RECIPE (configs/experiments/grid_cvar_approach.yaml's) unless `recipe` names another grid's yaml,
-or `shipped` for the shipped policy's own settings, under which the multiplier stays near 0 and the knobs move
+alpha move: KNOB_RECIPE (configs/experiments/grid_sampled_cvar_ref.yaml's) unless `recipe` names another grid's
+yaml, or `shipped` for the shipped policy's own settings, under which the multiplier stays near 0 and the knobs move
 little but the traffic's speed.
 """
 
@@ -76,8 +76,9 @@ class GenerateOptions:
 # from-scratch recipe's learning rate and entropy bonus unlearns its driving within a hundred updates. The
 # scenarios are the fine-tuned policy's samples at temperature 1 and without a safety guard, not the shipped
 # policy's sharper, guarded acting: the knobs, not a sharper sampling or a filter, decide how close the traffic presses.
-# The multipliers are held for the first updates while the cost critic the shipped policy brings, fitted to another
-# cost, learns this one: stepped on its first values they climb several-fold at every beta and alpha alike
+# The multipliers are held for the first updates: under a recipe that steps them on the cost critic (lambda_on: cvar),
+# the critic the shipped policy brings is fitted to another cost, and stepped on its first values they climb
+# several-fold at every beta and alpha alike
 FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard_s": 0.0, "lambda_warmup": 20}
 # reward terms that hold a driver back from its neighbours whatever the knobs (the shipped policy trains with a
 # time-to-collision charge): off in a fine-tune and in every run of a knob grid (scripts/run_experiments.py), so
@@ -85,14 +86,16 @@ FINE_TUNE = {"lr": 3e-4, "entropy_coef": 0.0, "act_temperature": 1.0, "act_guard
 KNOBS_ALONE = {"ttc": 0.0}
 
 
-# the constraint recipe of a fine-tune unless `recipe` names another: configs/experiments/grid_cvar_approach.yaml's
+# the constraint recipe of a fine-tune unless `recipe` names another: configs/experiments/grid_sampled_cvar_ref.yaml's
 # `overrides:` less generate's own keys (a test keeps them in step). A pass costs the depth of its closest approach
-# within beta over a 1.5 s look-ahead, bar 0.75 x the starting policy's mean cost-to-go, a fast multiplier step,
-# the game played by the 5 vehicles nearest a conflict: the recipe under which the knobs move gap, near misses and
-# speed on held-out and on own scenes without costing goals (BENCHMARKS.md)
+# within beta over a 1.5 s look-ahead; each slot's multiplier steps fast on the CVaR_alpha over its vehicles of
+# their sampled cost rate against one bar for every beta and alpha, 0.75 x the starting policy's mean cost rate
+# under beta 2, capped; the game is played by the 5 vehicles nearest a conflict. Beta then loosens below 2 as well
+# as tightens above it, and a higher alpha holds a higher multiplier at every beta (BENCHMARKS.md)
 KNOB_RECIPE = {"control": "nearest_conflict", "control_k": 5, "lr": 0.001, "minibatches": 8,
-               "cost_limit_mode": "start", "cost_limit": 0.75, "lambda_on": "cvar", "lambda_init": 1.0,
-               "lambda_lr": 0.08, "env.cost_shape": "approach", "env.cost_partners": "all", "env.cost_horizon": 1.5}
+               "cost_limit_mode": "start", "cost_limit": 0.75, "cost_limit_beta": 2.0, "lambda_on": "sampled_cvar",
+               "lambda_init": 1.0, "lambda_lr": 0.08, "lambda_max": 6.0, "env.cost_shape": "approach",
+               "env.cost_partners": "all", "env.cost_horizon": 1.5}
 SHIPPED_RECIPE = "shipped"  # `recipe`: the shipped policy's own constraint settings, no grid's
 
 
