@@ -29,7 +29,7 @@ def test_generate_exports_critical_scenarios_that_load_back(tmp_path, capsys, tr
     run = json.loads((out / "policy" / "config.json").read_text())
     assert run["env"]["beta"] == 2.0 and run["alpha"] == 0.125 and run["init_policy"] == "shipped"
     assert run["entropy_coef"] == FINE_TUNE["entropy_coef"]  # not the shipped run's
-    assert run["lambda_warmup"] == FINE_TUNE["lambda_warmup"] > 0  # the multipliers wait for the cost critic
+    assert run["lambda_warmup"] == FINE_TUNE["lambda_warmup"] > 0  # held while a critic recipe's cost critic learns
     assert (run["lr"], run["env"]["cost_shape"], run["lambda_lr"]) == (
         KNOB_RECIPE["lr"], "approach", KNOB_RECIPE["lambda_lr"])  # the built-in constraint recipe
     assert run["act_temperature"] == 1.0 != load_checkpoint("shipped", "shipped")["config"]["act_temperature"]
