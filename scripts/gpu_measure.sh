@@ -229,6 +229,36 @@ generate)
   find "$G" -name '*.tfevents*' -delete; find "$G" -path '*/scenarios/*.json' -delete  # the table keeps their risk
   pack
   ;;
+ccegap)
+  # GAP_RUNS (run directories, e.g. a carried folder of generate's slim fine-tunes): each one report process with
+  # the CCE-gap in both games on GAP_SCENES (the runs' own scenes, their config's path rewritten to this
+  # machine's), all side by side on GAP_GPUS. GAP_MAPPO_SEEDS: first trains plain MAPPO from scratch in the
+  # game of GAP_RUNS' first run (its scenes, control and reward; no magnet, no proximal term, no constraint; the
+  # shipped recipe's from-scratch steps) for GAP_MAPPO_SECONDS each, side by side, into $RES/mappo_s<seed>.
+  # GAP_REPORT: the directories under $RES to report on (copied runs, mappo_s<seed> of this call or an earlier
+  # one on the same machine)
+  gpus=(${GAP_GPUS:-0}); k=0; first=""
+  for run in ${GAP_RUNS:-}; do d=$RES/$(basename "$run"); mkdir -p "$d"; first=${first:-$d}
+    cp "$R/$run"/* "$d"/
+    python3 -c "import json,sys; p=sys.argv[1]; c=json.load(open(p)); c['scenes']=sys.argv[2]; json.dump(c,open(p,'w'))" \
+      "$d/config.json" "$R/${GAP_SCENES:?GAP_SCENES}"
+  done
+  for seed in ${GAP_MAPPO_SEEDS:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
+    CUDA_VISIBLE_DEVICES=$gpu timeout $(( ${GAP_MAPPO_SECONDS:-480} + 60 )) python3 -m tg_gpudrive.cli train \
+      --config "$first/config.json" --out "$RES/mappo_s$seed" --overwrite --set seed=$seed --set device=${GAP_DEVICE:-cuda} \
+      --set eta1=0 --set eta2=.inf --set constraint=false --set init_policy= --set lr=0.004 --set minibatches=16 \
+      --set entropy_coef=0.01 --set num_worlds=1024 --set updates=714 --set checkpoint_every=714 \
+      --set time_limit_s=${GAP_MAPPO_SECONDS:-480} "${SETS[@]}" --json > "$RES/mappo_s$seed.json" 2> "$RES/mappo_s$seed.err" &
+  done
+  for d in ${GAP_REPORT:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
+    CUDA_VISIBLE_DEVICES=$gpu timeout ${GAP_TIMEOUT:-540} python3 -m tg_gpudrive.cli report --runs "$RES/$d" \
+      --out "$RES/report_$d" --scenes 12 --scene-seed -1 --seeds 0 --br-scenes 12 --br-seeds ${GAP_BR_SEEDS:-0 1} \
+      --br-iters ${GAP_BR_ITERS:-100} --no-baselines --top 0 --device ${GAP_DEVICE:-cuda} > "$RES/report_$d.log" 2>&1 &
+  done
+  wait
+  slim
+  pack
+  ;;
 wm)
   # the shipped world model's two steps (configs/worldmodel/gpu.yaml) and a continuous one, side by
   # side, then every model as traffic on 512 held-out scenes (scripts/wm_traffic.py); the models
