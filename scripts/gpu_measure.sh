@@ -25,6 +25,8 @@
 #             at once on one GPU (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of
 #             fine-tuning each on GEN_SCENES scenes; the policies come back slim, for a report on their own scenes
 #             (--scene-seed -1)
+#   ccegap    the CCE-gap in both games of runs carried in (GAP_RUNS, e.g. generate's fine-tunes) on their own
+#             scenes, beside plain MAPPO trained from scratch in their game (GAP_MAPPO_SEEDS)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
 #   scale     both GPUs: 1 vs 2 processes, the same worlds per GPU, with each rank's phases (timing.csv)
 #   urban     real-scene transfer: world model and CCE-MAPPO on a mix with parked cars, stop-line
