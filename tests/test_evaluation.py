@@ -27,8 +27,8 @@ from tg_gpudrive.evaluation import report_markdown as rm
 from tg_gpudrive.evaluation import risk as rk
 from tg_gpudrive.evaluation.export import generated_scene, write_scene_json
 from tg_gpudrive.engine.control import control_masks
-from tg_gpudrive.evaluation.episodes import (logged_episodes, path_kinematics, record_episodes, record_rollouts,
-                                             replay_episodes)
+from tg_gpudrive.evaluation.episodes import (Trajectories, logged_episodes, nearest_distance, path_kinematics,
+                                             record_episodes, record_rollouts, replay_episodes)
 from tg_gpudrive.agents.builtin import expert_policy, make_random_policy
 from tg_gpudrive.scene import make_scene
 from tg_gpudrive.engine.simulator import Simulator
@@ -384,6 +384,112 @@ def test_closest_partners_by_hand():
     assert rm._closest_section([{"label": "old cache", "risk": {"collision_rate": 0.0}}]) == []
 
 
+def _hand_episode(pos, yaw, valid=None, policy=(True,)) -> Trajectories:
+    """One recorded episode built by hand from each agent's centres (A, K, 2) and headings (A, K) alone: what the
+    moments of risk.py read (the rest zero; `policy` marks the first agents as the policy's)."""
+    pos = np.asarray(pos, np.float32)[None]
+    A, K = pos.shape[1:3]
+    valid = np.ones((1, A, K), bool) if valid is None else np.asarray(valid, bool)[None]
+    zero = np.zeros((1, A, K), np.float32)
+    return Trajectories(pos=pos, yaw=np.broadcast_to(np.asarray(yaw, np.float32), (A, K))[None].copy(),
+                        vel=np.zeros_like(pos), speed=zero, accel=zero, curvature=zero,
+                        nearest=nearest_distance(pos, valid), valid=valid, kin_valid=np.zeros_like(valid),
+                        collided=np.zeros_like(valid), offroad=np.zeros_like(valid),
+                        policy=(np.arange(A) < len(policy))[None] & np.pad(policy, (0, A - len(policy)))[None],
+                        length=np.full((1, A), 4.0, np.float32), width=np.full((1, A), 2.0, np.float32),
+                        slot_agent=np.arange(A)[None], scene_index=np.zeros(1, np.int64), seed=np.zeros(1, np.int64),
+                        scenes=[], init_step=0, dt=0.1)
+
+
+def _lane_and_abreast(ahead_gap=(20.0, 14.0, 10.0, 8.0, 7.0, 6.0, 8.0, 12.0)):
+    """A policy car heading north (yaw pi/2) up x = 0, 1 m a step; a replayed car abreast in the next lane (3.5 m
+    to its right, beside it throughout); a replayed car ahead in its lane, 0.5 m to the side, `ahead_gap` m ahead
+    along the lane at each step. In the world's frame the abreast car is the one with the same y: a test of the
+    agent's frame."""
+    y = np.arange(len(ahead_gap), dtype=np.float64)
+    pos = np.stack([np.stack([np.zeros_like(y), y], -1), np.stack([np.full_like(y, 3.5), y], -1),
+                    np.stack([np.full_like(y, -0.5), y + np.asarray(ahead_gap)], -1)])
+    return _hand_episode(pos, np.pi / 2)
+
+
+def test_lane_approach_moment_takes_the_car_ahead_not_the_one_abreast():
+    tr = _lane_and_abreast()
+    assert rk.closest_moment(tr)[2:] == (1, pytest.approx(3.5))  # the nearest of all: abreast, 3.5 m all along
+    k, a, b, d = rk.lane_approach_moment(tr)
+    assert (k, a, b) == (5, 0, 2) and d == pytest.approx(np.hypot(6.0, 0.5), abs=1e-5)
+    assert rk.lane_gap(tr, 0, 0, 5) == (2, pytest.approx(d), True)
+    assert rk.lane_gap(tr, 0, 2, 5) == (0, pytest.approx(d), False)  # the policy car is behind the one ahead
+    assert rk.lane_gap(tr, 0, 1, 5) is None  # the abreast car has no one in its lane
+    tr.valid[0, 0, 5] = False
+    assert rk.lane_gap(tr, 0, 0, 5) is None  # gone then
+    assert rk.lane_approach_moment(tr)[:3] == (4, 0, 2)  # the next nearest step it is there
+
+
+def test_lane_approach_moment_leaves_out_the_agents_first_step():
+    """The nearest in-lane approach is the agent's first step (the state the log hands over) and, before that,
+    a step it was not there: both left out, the least later one taken."""
+    tr = _lane_and_abreast((1.0, 4.0, 8.0, 9.0, 7.0, 10.0))
+    tr.valid[0, 0, 0] = False  # the agent enters at step 1, 4 m behind the car ahead
+    assert rk.lane_approach_moment(tr)[:3] == (4, 0, 2)
+    assert rk.lane_approach_moment(tr)[3] == pytest.approx(np.hypot(7.0, 0.5), abs=1e-5)
+
+
+def test_lane_approach_moment_is_none_without_anyone_in_the_lane():
+    tr = _lane_and_abreast()
+    tr.valid[0, 2, 1:] = False  # the car ahead is there only at the agent's first step
+    assert rk.lane_approach_moment(tr) is None and rk.closest_moment(tr) is not None
+    tr = _lane_and_abreast()
+    tr.policy[0] = [False, True, False]  # the abreast car drives: it has no one ahead or behind in its lane
+    assert rk.lane_approach_moment(tr) is None
+
+
+def test_grid_moment_is_the_most_pressing_cells_lane_approach_drawn_in_every_cell():
+    from tg_gpudrive.evaluation.report import grid_moment
+
+    ref = _lane_and_abreast()
+    wider = _lane_and_abreast((20.0, 18.0, 16.0, 15.0, 14.0, 12.0, 12.0, 12.0))
+    gone = _lane_and_abreast((5.0,) * 8)
+    gone.valid[0, 0, 4:] = False
+    far = _lane_and_abreast((30.0,) * 8)
+    cells = {(2.0, 0.125): gone, (0.5, 0.875): wider, (0.5, 0.125): ref}  # least beta, then least alpha: ref
+    m = grid_moment(cells, margin=8.0)
+    assert (m.step, m.agent, m.cell) == (5, 0, (0.5, 0.125)) and m.centre == pytest.approx((0.0, 5.0))
+    assert m.gaps[(0.5, 0.875)][1] == pytest.approx(np.hypot(12.0, 0.5), abs=1e-5)
+    assert m.gaps[(2.0, 0.125)] is None and m.present == {(2.0, 0.125): False, (0.5, 0.875): True,
+                                                           (0.5, 0.125): True}
+    assert m.radius == pytest.approx(np.hypot(12.0, 0.5) + 8.0, abs=1e-5)  # the widest cell's gap fits
+    # a car farther than twice the pressing cell's gap is left out of view rather than widen every zoom
+    m = grid_moment({**cells, (6.0, 0.125): far}, margin=8.0)
+    assert m.gaps[(6.0, 0.125)][1] == pytest.approx(np.hypot(30.0, 0.5), abs=1e-5)
+    assert m.radius == pytest.approx(2 * np.hypot(6.0, 0.5) + 8.0, abs=1e-5)
+    # a cell with a nearer lane approach but a larger beta does not choose the moment; without one in the
+    # most pressing cell, none is shared
+    ref.valid[0, 2, 1:] = False
+    assert grid_moment(cells) is None and grid_moment({}) is None
+
+
+def test_moment_frame_draws_the_shared_moment_and_a_car_that_has_left(tmp_path):
+    from tg_gpudrive.evaluation.report import GridMoment, _moment_frame
+    from tg_gpudrive.render import render_episode
+
+    sim = _passing_cars()
+    kw = dict(world=0, size=(200, 200), legend=False, seed=0)
+    cell = (0.5, 0.125)
+    here = GridMoment(5, 0, cell, (5.0, 0.0), 12.0, {cell: (1, 4.0, True)}, {cell: True})
+    sim.reset()
+    start = int(sim.world_step[0])
+    near = _moment_frame(here, cell)(sim, lambda: expert_policy, tmp_path / "here.png", kw)
+    assert near.shape == (200, 200, 3) and int(sim.world_step[0]) == start + 5
+    # the car has left this cell's episode: the view holds still at its place in the reference cell
+    gone = dataclasses.replace(here, agent=1, centre=(10.0, 4.0), gaps={cell: None}, present={cell: False})
+    left = _moment_frame(gone, cell)(sim, lambda: expert_policy, tmp_path / "gone.png", kw)
+    on_car = render_episode(sim, expert_policy, steps=5, **dict(kw, center_agent=1, view_radius=12.0,
+                                                                 title="0.5 s: car 1 has left the scene"))[-1]
+    # car 1 stands at (10, 4): centred on its place or on it, the same picture
+    assert left.shape == (200, 200, 3) and np.abs(left.astype(int) - on_car.astype(int)).mean() < 2.0
+    assert not np.array_equal(near, left)
+
+
 # ----------------------------------------------------------------- CCE-gap
 def test_plateau_rule_stops_on_flat_and_continues_on_rising():
     rule = ex.PlateauRule(window=3, patience=5, tol=0.01, max_iters=50, min_iters=0)
@@ -647,16 +753,17 @@ def test_report_on_tiny_runs(tmp_path):
     for f in FILES:
         assert (out / f).stat().st_size > 0, f
     assert (out / "frames" / "cce.gif").stat().st_size > 0 and not (out / "frames" / "mappo.png").exists()
-    # the grid's cell: its whole paths beside its closest approach, both as frames/ keeps them
+    # the grid's cell: its whole paths beside its zoom on the grid's shared moment, both as frames/ keeps them
     whole, near = (np.asarray(Image.open(out / "frames" / f)) for f in ("cce.png", "cce_closest.png"))
     assert near.shape == whole.shape
     md = (out / "report.md").read_text()
     for label in ("log replay", "expert (inverse dynamics)", "behaviour prior", "world model",
                   "| cce | CCE-MAPPO | T 1 |", "| mappo | MAPPO | T 1 |", "acts at", "realism (ours)",
-                  "grid.png shows scene ", "on the right the moment one of its cars came nearest another",
+                  "grid.png shows scene ", "ahead of or behind it in its lane",
                   "bottom right, the mean over that run's episodes", "| bar out of reach (train) |"):
         assert label in md
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["meta"]["grid_zoom"] and f"on the right {summary['meta']['grid_zoom']}." in md
     assert {r["label"] for r in summary["results"]} == {"log replay", "expert (inverse dynamics)", "behaviour prior",
                                                          "world model", "cce", "mappo"}
     wm = next(r for r in summary["results"] if r["label"] == "world model")

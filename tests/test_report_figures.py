@@ -86,6 +86,10 @@ def test_grid_writes_each_cells_note_under_its_picture(tmp_path, wide):
             assert own.x0 <= box.x0 and box.x1 <= own.x1 and own.y0 <= box.y0 and box.y1 <= own.y1, t.get_text()
     assert sorted(drawn) == sorted(notes.values()) and _apart(fig)
     assert not any(ax.texts for ax in plot_grid(cells, tmp_path / "bare.png").axes)
+    # the title says what the right-hand zooms show (the report's shared moment), beside the whole paths only
+    zoom = "every cell at 3.3 s, zoomed in on car 0"
+    title = " ".join(plot_grid(cells, tmp_path / "zoom.png", zoom=zoom)._suptitle.get_text().split())
+    assert (f"right, {zoom}" in title) == (wide == 2)
 
 
 def test_report_pictures_without_runs(tmp_path):

@@ -32,7 +32,8 @@ Writes into `out`:
     per_agent.csv       the CCE-gap of every agent of every policy (report_markdown.PER_AGENT_COLUMNS)
     per_scene.csv       every exported critical scenario of every run (report_markdown.PER_SCENE_COLUMNS)
     grid.png            the paper's beta x alpha figure: one scene per CCE-MAPPO cell, beta down the rows,
-                        alpha across, whole trajectories drawn; the scene is --grid-scene, or by default
+                        alpha across, whole trajectories drawn beside every cell at one shared moment zoomed
+                        in (grid_moment); the scene is --grid-scene, or by default
                         the one where the knob moves the distance the cells' agents keep most
                         (report_stats.knob_scene)
     frames/<run>.gif    with --grid-gifs: that scene's episode per cell
@@ -211,37 +212,44 @@ def world_model_policy(cfg: TrainConfig, sim) -> WorldModelDriver:
     return WorldModelDriver(load_world_model(cfg.prior_model or "shipped", sim), rows="policy", seed=0)
 
 
-def _last_frame(cfg, scene, mask, ckpt, device, size: int, path: Path, gif: bool = False) -> np.ndarray:
-    """Last frame of the scene's episode under the run's policy, with every agent's whole trajectory
-    (engine without auto-reset, so the final state is still there to draw), saved to `path`, and to its right
-    the same episode's closest approach zoomed in (`_closest_frame`, saved as *_closest.png): the two side by
-    side are returned. With `gif` also the whole episode (`path` with .gif)."""
+def _frame_sim(cfg, scene, mask, device) -> Simulator:
+    """One world of `scene` with the run's controlled agents `mask` and without auto-reset (the final state stays
+    to be drawn): what the report's pictures of one episode drive."""
+    return Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
+
+
+def _last_frame(sim, ckpt, size: int, path: Path, gif: bool = False, zoom=None) -> np.ndarray:
+    """Last frame of world 0's episode (`_frame_sim`) under the run's policy, with every agent's whole trajectory,
+    saved to `path`, and to its right a zoom on one moment of the same episode, saved as *_closest.png:
+    `zoom(sim, make_policy, zoom_path, kw)` draws it (the grid's shared moment, `_moment_frame`), by default
+    `_closest_frame` (the episode's own closest approach). The two side by side are returned. With `gif` also
+    the whole episode (`path` with .gif)."""
     # drawing needs the render extra (matplotlib, Pillow): imported when a report draws, so that the
     # report's parser and its numbers do not need it
     from PIL import Image
 
     from tg_gpudrive.render import render_episode
 
-    sim = Simulator([scene], dataclasses.replace(cfg.env, auto_reset=False), device, controlled=[mask])
     path.parent.mkdir(parents=True, exist_ok=True)
     # the view fits the controlled cars' paths: the interaction the knobs change, not the whole map; the
     # same seed makes the GIF the picture's episode; a dot on each trail every second shows the cells'
     # timing and spacing, which whole trajectories of the same routes alone do not
     kw = dict(world=0, size=(size, size), legend=False, fit="controlled", seed=0,
-              trail_ticks=max(1, round(1.0 / scene.dt)))
+              trail_ticks=max(1, round(1.0 / sim.model.scenes[0].dt)))
     render_episode(sim, load_policy(ckpt, sim), out=path, **kw)
     if gif:
         render_episode(sim, load_policy(ckpt, sim), out=path.with_suffix(".gif"), **kw)
     whole = np.asarray(Image.open(path).convert("RGB"))
-    near = _closest_frame(sim, lambda: load_policy(ckpt, sim), path.with_name(path.stem + "_closest.png"), kw)
+    near = (zoom or _closest_frame)(sim, lambda: load_policy(ckpt, sim), path.with_name(path.stem + "_closest.png"),
+                                    kw)
     return whole if near is None else np.concatenate([whole, near[:whole.shape[0], :, :3]], axis=1)
 
 
 def _closest_frame(sim, make_policy, path: Path, kw: dict, margin: float = 8.0) -> np.ndarray | None:
     """The moment of world 0's episode (kw's seed: the same episode as kw's other pictures) when a policy car came
     nearest another (risk.closest_moment over its recording), drawn centred on that car with half-side the
-    distance plus `margin` m (at least 10) and saved to `path`: where two cells' whole paths look alike at a
-    scene's scale, the gap they kept shows here. None when no car ever had company."""
+    distance plus `margin` m (at least 10) and saved to `path`: the zoom of a picture drawn alone (the worst
+    scenes; the grid's cells where its shared moment finds none). None when no car ever had company."""
     from tg_gpudrive.render import render_episode
 
     moment = rk.closest_moment(record_episodes(sim, make_policy(), seed=kw["seed"]))
@@ -253,26 +261,104 @@ def _closest_frame(sim, make_policy, path: Path, kw: dict, margin: float = 8.0) 
                                                                          view_radius=max(10.0, dist + margin)))[-1]
 
 
+@dataclasses.dataclass
+class GridMoment:
+    """The one moment every grid cell's zoom draws (`grid_moment`), so that the cells differ by what their
+    policies did and not by which moment each picked: step `step` of world 0's episode, centred on policy agent
+    `agent`, half-side `radius` m. `cell` is the cell it was chosen in, `centre` the agent's place there then
+    (the view's centre in a cell whose episode no longer has the agent), `gaps` each cell's `risk.lane_gap` of
+    the agent then and `present` whether its episode still has the agent then."""
+
+    step: int
+    agent: int
+    cell: tuple[float, float]
+    centre: tuple[float, float]
+    radius: float
+    gaps: dict
+    present: dict
+
+
+def grid_moment(episodes: dict, margin: float = 8.0, reach: float = 2.0) -> GridMoment | None:
+    """The grid's shared zoom from each cell's recorded episode ({(beta, alpha): Trajectories}, world 0 as its
+    pictures draw it): `risk.lane_approach_moment` in the most pressing cell (the least beta, then the least
+    alpha), with the half-side every cell's distance there fits in (the largest plus `margin` m, at least 10),
+    but for distances beyond `reach` times the most pressing cell's: those cars are left out of view (their
+    titles say how far) rather than shrink every cell's cars to the scale of the whole paths.
+    None when that cell has no such approach (each cell then zooms on its own closest approach)."""
+    if not episodes:
+        return None
+    ref = min(episodes)
+    found = rk.lane_approach_moment(episodes[ref])
+    if found is None:
+        return None
+    k, a, _, dist = found
+    gaps = {cell: rk.lane_gap(tr, 0, a, k) for cell, tr in episodes.items()}
+    radius = max([10.0] + [min(g[1], reach * dist) + margin for g in gaps.values() if g is not None])
+    centre = tuple(float(v) for v in episodes[ref].pos[0, a, k])
+    present = {cell: bool(tr.valid[0, a, k]) for cell, tr in episodes.items()}
+    return GridMoment(k, a, ref, centre, radius, gaps, present)
+
+
+def _moment_frame(moment: GridMoment, cell):
+    """The zoom of `_last_frame` for one grid cell: its episode at the shared moment, centred on the shared agent
+    (on the agent's place in the reference cell when this episode no longer has it), titled with this cell's own
+    distance from the agent to its nearest car ahead or behind in its lane then."""
+    from tg_gpudrive.render import render_episode
+
+    def draw(sim, make_policy, path: Path, kw: dict) -> np.ndarray:
+        t = f"{moment.step * sim.model.scenes[0].dt:.1f} s"
+        gap = moment.gaps.get(cell)
+        if not moment.present.get(cell):
+            title, view = f"{t}: car {moment.agent} has left the scene", dict(center_point=moment.centre)
+        elif gap is None:
+            title, view = f"{t}: no car ahead or behind in its lane", dict(center_agent=moment.agent)
+        else:
+            title = f"{t}: {gap[1]:.1f} m to the car {'ahead' if gap[2] else 'behind'} in its lane"
+            view = dict(center_agent=moment.agent)
+        return render_episode(sim, make_policy(), steps=moment.step, out=path,
+                              **dict(kw, title=title, view_radius=moment.radius, **view))[-1]
+
+    return draw
+
+
 def _grid_frames(got: _Collected, opts: ReportOptions, out: Path) -> None:
     """Each cell's picture for grid.png, of one scene: --grid-scene, or the one where the knob moves the
     distance kept most (knob_scene over the cells' recorded episodes; scene 0 when it finds none), and its
-    note: the same episodes' mean least distance on that scene."""
+    note: the same episodes' mean least distance on that scene. Each cell's zoom draws its episode at one shared
+    moment (`grid_moment`), which `got.grid_zoom` describes; each its own closest approach where there is none."""
     if not got.cell_runs:
         return
     dists = {cell: scene_distances(got.generated[run[-1]]) for cell, run in got.cell_runs.items()}
     pick = None if opts.grid_scene is not None else knob_scene(dists)
+    sims, episodes = {}, {}
     for cell, (cfg, scenes, masks, ckpt, device, label) in got.cell_runs.items():
         g = opts.grid_scene
         if g is None:
             g = next((k for k, s in enumerate(scenes) if pick and s.scene_id == pick[0]), 0)
-        got.cells[cell] = _last_frame(cfg, scenes[g], masks[g], ckpt, device, opts.frame_size,
-                                      out / "frames" / f"{label}.png", gif=opts.grid_gifs)
+        sims[cell] = _frame_sim(cfg, scenes[g], masks[g], device)
+        # the pictures' episode (their seed, world 0): where the shared moment is found and measured
+        episodes[cell] = record_episodes(sims[cell], load_policy(ckpt, sims[cell]), seed=0)
         got.grid_scene = scenes[g].scene_id
         here = dists[cell].get(got.grid_scene)
         if here is not None:
             got.grid_notes[cell] = f"mean least distance here {here:.1f} m"
+    moment = grid_moment(episodes)
+    for cell, (_, _, _, ckpt, _, label) in got.cell_runs.items():
+        got.cells[cell] = _last_frame(sims[cell], ckpt, opts.frame_size, out / "frames" / f"{label}.png",
+                                      gif=opts.grid_gifs, zoom=None if moment is None else _moment_frame(moment, cell))
+    got.grid_zoom = _zoom_text(moment, episodes[moment.cell].dt if moment else 0.0)
     if pick:
         got.grid_scene += f" (where the knob moves the distance kept most: {pick[1]:+.2f} m)"
+
+
+def _zoom_text(moment: GridMoment | None, dt: float) -> str:
+    """What the grid's right-hand zooms show (`dt`: the episodes' step in s), for its title and report.md."""
+    if moment is None:
+        return "each cell's own closest approach zoomed in (no car came near another in its lane)"
+    b, a = moment.cell
+    t = moment.step * dt
+    return (f"every cell at {t:.1f} s, zoomed in on car {moment.agent}, where at beta {b:g}, alpha {a:g} it came "
+            "nearest a car ahead or behind in its lane")
 
 
 def _br_copies(opts: ReportOptions, device: str) -> int:
@@ -413,6 +499,7 @@ class _Collected:
     cells: dict = dataclasses.field(default_factory=dict)
     cell_runs: dict = dataclasses.field(default_factory=dict)
     grid_scene: str = ""
+    grid_zoom: str = ""
     grid_notes: dict = dataclasses.field(default_factory=dict)
     logged: object = None
     worst: dict | None = None
@@ -503,7 +590,7 @@ def _report_run(i: int, run: Path, got: _Collected, opts: ReportOptions, out: Pa
     got.keep(res, gen)
     if i == 0:  # where the report's first policy fails most, drawn as its episodes end
         worst = worst_scenes(gen)
-        frames = [_last_frame(cfg, scenes[w["scene"]], masks[w["scene"]], ckpt, device, opts.frame_size,
+        frames = [_last_frame(_frame_sim(cfg, scenes[w["scene"]], masks[w["scene"]], device), ckpt, opts.frame_size,
                               out / "frames" / f"worst_{k}.png") for k, w in enumerate(worst)]
         if frames:
             plot_worst_scenes(frames, worst, label, out / "worst_scenes.png")
@@ -577,7 +664,7 @@ def _baselines(got: _Collected, opts: ReportOptions, out: Path, bar, cfg, ckpt, 
 
 def _write_report(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOptions, out: Path) -> dict:
     """The pictures, report.md, its CSV tables and summary.json of what `got` gathered; returns the summary."""
-    plot_grid(got.cells, out / "grid.png", scene=got.grid_scene, notes=got.grid_notes)
+    plot_grid(got.cells, out / "grid.png", scene=got.grid_scene, notes=got.grid_notes, zoom=got.grid_zoom)
     cells = {r["label"]: cell_label(r["beta"], r["alpha"]) for r in got.results if r.get("kind") == "CCE-MAPPO"}
     plot_multipliers(got.curves, out / "multipliers.png", cells)
     fid.plot_histograms(got.logged, got.generated, out / "fidelity.png")
@@ -600,7 +687,7 @@ def _meta(got: _Collected, runs: list[Path], first: TrainConfig, opts: ReportOpt
     """The settings a report ran with (summary.json's "meta", report.md's opening)."""
     return {"runs": [str(r) for r in runs], "scenes": opts.scenes, "seeds": list(opts.seeds),
             "eval_scenes": eval_scenes_text(first, opts), "cce_gap": opts.cce_gap, "worst_scenes": got.worst,
-            "grid_scene": got.grid_scene,
+            "grid_scene": got.grid_scene, "grid_zoom": got.grid_zoom,
             "br_seeds": list(opts.br_seeds),
             "best_response": {"max_iters": opts.br_iters, "tol": opts.br_tol, "window": opts.br_window,
                               "patience": opts.br_patience, "min_iters": opts.br_min_iters,

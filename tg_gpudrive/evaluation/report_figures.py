@@ -47,13 +47,13 @@ def _short(label: str, n: int = 26) -> str:
 
 
 def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows: int = 8, scene: str = "",
-              notes: dict[tuple[float, float], str] | None = None):
-    """The paper's beta x alpha figure: one picture per CCE-MAPPO cell (the report's: the whole paths beside the
-    closest approach), beta down the rows, alpha across the columns, each cell's line of `notes` at its
-    picture's foot (what it measured on the scene, which a picture of metres at a crossing's scale does not
-    show). More than `max_rows` betas wrap into further blocks side by side (each block all the alphas); cells
-    shrink (from 2.4 in tall) and labels with them, so the picture stays within MAX_FIG_W x MAX_FIG_H; the title
-    wraps to the picture's width."""
+              notes: dict[tuple[float, float], str] | None = None, zoom: str = ""):
+    """The paper's beta x alpha figure: one picture per CCE-MAPPO cell (the report's: the whole paths beside a
+    zoom on one moment, the report's shared moment, which `zoom` says in the title), beta down the rows, alpha
+    across the columns, each cell's line of `notes` at its picture's foot (what it measured on the scene, which a
+    picture of metres at a crossing's scale does not show). More than `max_rows` betas wrap into further blocks
+    side by side (each block all the alphas); cells shrink (from 2.4 in tall) and labels with them, so the picture
+    stays within MAX_FIG_W x MAX_FIG_H; the title wraps to the picture's width."""
     from tg_gpudrive.render.draw import legend_handles  # the render extra, as the cells' frames
 
     betas = sorted({b for b, _ in cells}) or [0.0]
@@ -68,8 +68,8 @@ def plot_grid(cells: dict[tuple[float, float], np.ndarray], path: Path, max_rows
     fs = max(5.0, min(9.0, cell * 72 / (0.6 * 13)))  # "beta = 10.5 m" fits beside a cell
     width = max(4.0, ncols * cell * aspect + 0.3 * len(blocks) + 0.8)
     where = f" on scene {scene}" if scene else ""
-    what = ("left, whole trajectories (a dot each second); right, the closest approach zoomed in" if aspect > 1.5
-            else "whole trajectories (a dot each second)")
+    what = (f"left, whole trajectories (a dot each second); right, {zoom or 'the closest approach zoomed in'}"
+            if aspect > 1.5 else "whole trajectories (a dot each second)")
     title = _wrapped(f"CCE-MAPPO{where}: beta (distance constraint, rows) x alpha (CVaR level, columns); {what}; "
                      "controlled vehicles blue", width - 0.2, 9)
     head = 0.25 + 0.18 * (title.count("\n") + 1)  # inches above the panels for the title

@@ -78,9 +78,14 @@ def _opening(meta: dict) -> list[str]:
             "not the official challenge metric.\n",
             "![grid](grid.png)\n",
             *([f"grid.png shows scene {meta['grid_scene']}, one episode of each cell's first training seed: on the "
-               "left its whole paths, on the right the moment one of its cars came nearest another, zoomed in; at "
-               "each picture's bottom right, the mean over that run's episodes of its cars' least distance to "
-               "another on this scene.\n"] if meta.get("grid_scene") else [])]
+               f"left its whole paths; on the right {meta.get('grid_zoom') or 'every cell at one shared moment'}. "
+               "That moment is the step and policy car at which, in the most pressing cell (least beta, then least "
+               "alpha), a policy car came nearest another ahead of or behind it in its lane after its first step (not "
+               "the logged start, nor a car abreast in the next lane, which are the same in every cell), and each "
+               "zoom's title is its cell's own distance from that car to its nearest in its lane then; where no car "
+               "came near another in its lane, each zoom is its cell's own closest approach. At each picture's "
+               "bottom right, the mean over that run's episodes of its cars' least distance to another on this "
+               "scene.\n"] if meta.get("grid_scene") else [])]
 
 
 def _comparison_section(results: list[dict]) -> list[str]:

@@ -35,6 +35,10 @@ faster than PARKED_SPEED in the episode, "policy" as above; its place in the age
 "abreast" when its centre lies more than ABREAST_OFFSET to the side (the next lane, a parked car at the
 kerb, crossing traffic: a gap a car cannot widen by its speed alone), else "ahead" or "behind".
 `closest_moment` is the same moment for an episode's nearest pair of all (the report's zoomed pictures).
+`lane_approach_moment` is the moment a policy car came nearest another ahead of or behind it in its lane
+(within ABREAST_OFFSET of its heading line) after its first step, which the log hands over: a gap the policy
+keeps by its speed, where a car abreast in the next lane or the handed-over start often is the nearest of all
+(the moment the report's grid draws every cell at; `lane_gap` is that distance at a given step).
 
 Scenario criticality ranks episodes by (any collision, lowest min TTC, lowest
 min gap, most hard brakes), most critical first.
@@ -215,6 +219,46 @@ def closest_moment(tr: Trajectories, e: int = 0) -> tuple[int, int, int, float] 
     others[a] = False
     b, _, _ = _nearest_in_frame(tr, e, int(a), int(k), others)
     return int(k), int(a), int(b), float(near[a, k])
+
+
+def _lane_distances(tr: Trajectories, e: int, a: int) -> np.ndarray:
+    """(A, K) centre distance from agent a of episode e to every other agent at every step where both are present
+    and the other is ahead of or behind a in its lane (|its offset to a's side| <= ABREAST_OFFSET, as
+    closest_partners places it), inf elsewhere."""
+    rel = tr.pos[e] - tr.pos[e, a][None]  # (A, K, 2)
+    c, s = np.cos(tr.yaw[e, a])[None], np.sin(tr.yaw[e, a])[None]  # (1, K)
+    side = c * rel[..., 1] - s * rel[..., 0]
+    ok = tr.valid[e] & tr.valid[e, a][None] & (np.abs(side) <= ABREAST_OFFSET)
+    ok[a] = False
+    return np.where(ok, np.linalg.norm(rel, axis=-1), np.inf)
+
+
+def lane_gap(tr: Trajectories, e: int, a: int, k: int) -> tuple[int, float, bool] | None:
+    """Agent a's nearest other agent ahead of or behind it in its lane at step k of episode e (see
+    `_lane_distances`): (its slot, their centre distance in m, whether it is ahead); None when a is not present
+    then or no other agent is in its lane."""
+    d = _lane_distances(tr, e, a)[:, k]
+    b = int(np.argmin(d))
+    if not np.isfinite(d[b]):
+        return None
+    rel = tr.pos[e, b, k] - tr.pos[e, a, k]
+    along = np.cos(tr.yaw[e, a, k]) * rel[0] + np.sin(tr.yaw[e, a, k]) * rel[1]
+    return b, float(d[b]), bool(along >= 0)
+
+
+def lane_approach_moment(tr: Trajectories, e: int = 0) -> tuple[int, int, int, float] | None:
+    """Episode `e`'s closest approach of a policy agent to another ahead of or behind it in its lane, at a step
+    after the agent's first (the logged start state no policy chose): (its step, the agent, the partner, their
+    centre distance in m); None when no such pair came within NEAREST_CAP. The report's grid draws every cell
+    at this moment of its most pressing cell, where `closest_moment` is often the start or a car abreast."""
+    best = None
+    for a in np.nonzero(tr.policy[e] & tr.valid[e].any(-1))[0]:
+        d = _lane_distances(tr, e, int(a))
+        d[:, :int(np.argmax(tr.valid[e, a])) + 1] = np.inf  # from the step after the agent's first on
+        b, k = np.unravel_index(int(np.argmin(d)), d.shape)
+        if d[b, k] < NEAREST_CAP and (best is None or d[b, k] < best[3]):
+            best = (int(k), int(a), int(b), float(d[b, k]))
+    return best
 
 
 def episode_risk(tr: Trajectories) -> dict[str, np.ndarray]:

@@ -117,15 +117,15 @@ class FrameRenderer:
     """One figure for one world of `sim`: static road artists built once, agents redrawn per frame.
 
     `draw(trails)` returns an (H, W, 3) uint8 frame of the simulator's current
-    state. A fixed view (the default: all the scene's agents and controlled
-    goals with a margin) caches the road layer as a bitmap and only blits the
+    state (keywords as `render_frame`'s). A fixed view (the default: all the scene's agents and controlled
+    goals with a margin; or around `center_point`) caches the road layer as a bitmap and only blits the
     moving artists over it; an agent-centred view redraws everything.
     """
 
     def __init__(self, sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640),
                  center_agent: int | None = None, view_radius: float | None = None, show_goals: bool = True,
                  title: str | None = None, legend: bool | None = None, highlight: str = "controlled",
-                 fit: str = "scene", trail_ticks: int = 0):
+                 fit: str = "scene", trail_ticks: int = 0, center_point: tuple[float, float] | None = None):
         if highlight not in HIGHLIGHT:
             raise ValueError(f"highlight: expected one of {', '.join(HIGHLIGHT)}, got {highlight!r}")
         if not 0 <= int(world) < sim.num_worlds:
@@ -147,6 +147,7 @@ class FrameRenderer:
         self.trail_ticks = int(trail_ticks)
         self.sim, self.world, self.size = sim, int(world), (w_px, h_px)
         self.center_agent = None if center_agent is None else int(center_agent)
+        self.center_point = None if center_point is None else tuple(float(v) for v in center_point)
         self.view_radius = view_radius
         self.show_goals, self.title, self.highlight = show_goals, title, highlight
         self.model = sim.model
@@ -183,7 +184,8 @@ class FrameRenderer:
         self.ax_px = (w_px, h_px - strip)
         self.fixed = self.center_agent is None
         if self.fixed:
-            xlim, ylim = self._fit_view()
+            xlim, ylim = self._fit_view() if self.center_point is None else self._limits(
+                *self.center_point, self.view_radius or DEFAULT_VIEW_RADIUS)
             self.ax.set_xlim(*xlim)
             self.ax.set_ylim(*ylim)
         self._add_roads()
@@ -449,14 +451,16 @@ def legend_handles() -> list[tuple[object, str]]:
 def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640), center_agent: int | None = None,
                  view_radius: float | None = None, trails: dict | None = None, show_goals: bool = True,
                  title: str | None = None, legend: bool | None = None,
-                 highlight: str = "controlled", fit: str = "scene", trail_ticks: int = 0) -> np.ndarray:
+                 highlight: str = "controlled", fit: str = "scene", trail_ticks: int = 0,
+                 center_point: tuple[float, float] | None = None) -> np.ndarray:
     """Top-down picture of world `world`'s current state: (H, W, 3) uint8, `size` = (width, height) pixels.
 
     `center_agent` (a slot index of that world) centres the view on that agent
     with half-side `view_radius` (default 40 m); otherwise the view fits the
     scene's agents and controlled goals with a margin (or, with only
-    `view_radius`, their centre). `trails` maps agent slots to (k, 2) past
-    positions. `legend` (default: when the picture is at least 400x300) adds a
+    `view_radius`, their centre); `center_point` (x, y) in m, without `center_agent`, holds the view
+    still there with half-side `view_radius` (an agent's place after it has left). `trails` maps agent
+    slots to (k, 2) past positions. `legend` (default: when the picture is at least 400x300) adds a
     colour key below the map. `highlight` says whose collisions and off-road
     events are outlined: "controlled" (default; logged parked cars are often
     "off-road" in WOMD), "all" or "none". `fit` "controlled" fits the view to
@@ -468,7 +472,7 @@ def render_frame(sim, world: int = 0, *, size: tuple[int, int] | int = (640, 640
     """
     r = FrameRenderer(sim, world, size=size, center_agent=center_agent, view_radius=view_radius,
                       show_goals=show_goals, title=title, legend=legend, highlight=highlight, fit=fit,
-                      trail_ticks=trail_ticks)
+                      trail_ticks=trail_ticks, center_point=center_point)
     try:
         return r.draw(trails)
     finally:
