@@ -276,8 +276,18 @@ def test_knob_effects_pair_cells_that_played_the_same_episodes_and_gap_headroom_
     del old[0]["figures"]["episode_key"]
     assert not played_alike(old)
     [row] = gap_headroom(group_cells([run(2.0, 0, [1.0, 3.0, 8.0]), run(6.0, 0, [5.0, 5.0, 5.0])]))
-    assert row[:2] == ["alpha 0.5", "2 -> 6"] and row[2:5] == [4.0, 5.0, 1.0]
+    assert row[:2] == ["alpha 0.5", "beta 2 -> 6"] and row[2:5] == [4.0, 5.0, 1.0]
     assert row[5:] == [2.0, 0.5]
+    # alpha at a held beta 2 can lift only the agent at 1 m, to 2 m: a ceiling of 1/3 m, reached in full
+    lo, hi = run(2.0, 0, [1.0, 3.0, 8.0]), run(2.0, 0, [2.0, 3.0, 8.0])
+    lo["alpha"], hi["alpha"] = 0.1, 0.9
+    [row] = gap_headroom(group_cells([lo, hi]))
+    assert row[:2] == ["beta 2", "alpha 0.1 -> 0.9"] and row[2:4] == [4.0, pytest.approx(13 / 3)]
+    assert row[5] == pytest.approx(1 / 3) and row[6] == pytest.approx(1.0)
+    # a beta the agents come within by millimetres leaves a ceiling too small to take a share of
+    lo["figures"]["min_gap"] = np.array([1.99, 3.0, 8.0])
+    [row] = gap_headroom(group_cells([lo, hi]))
+    assert row[5] == pytest.approx(0.01 / 3) and np.isnan(row[6])
 
 
 def test_effects_per_scenario_type_say_where_a_knob_acts():

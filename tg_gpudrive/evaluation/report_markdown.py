@@ -205,11 +205,12 @@ def _flexibility_section(results: list[dict], logged_hist: dict | None) -> list[
                           by_type))
     headroom = gap_headroom(cells)
     if headroom:
-        out.append("\nHow much min gap beta can buy: the ceiling is the change if every agent of the low cell "
-                   "kept at least the high beta wherever its first state (the log's, which no policy moves) "
-                   "allows. The cost charges nothing beyond beta, so a change above the ceiling needs agents to "
-                   "keep more distance than beta asks.\n\n")
-        out.append(_table(["held", "beta low -> high", "min gap at low [m]", "at high [m]", "change [m]",
+        out.append("\nHow much min gap a knob can buy: the ceiling is the change if every agent of the low cell "
+                   "kept at least beta wherever its first state (the log's, which no policy moves) allows: the "
+                   "high beta for beta, the held beta for alpha. The cost charges nothing beyond beta, so a change "
+                   "above the ceiling needs agents to keep more distance than beta asks, and at a beta that only "
+                   "cars in contact come within, alpha has nothing to buy.\n\n")
+        out.append(_table(["held", "knob low -> high", "min gap at low [m]", "at high [m]", "change [m]",
                            "ceiling [m]", "share of the ceiling"], headroom))
     return out
 

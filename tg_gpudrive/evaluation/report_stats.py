@@ -5,7 +5,7 @@
     group_cells(results)               the CCE-MAPPO runs grouped by (beta, alpha), their training seeds together
     flexibility_directions(cells)      Spearman's rho of each figure with beta and with alpha, with intervals
     knob_effects(cells)                each figure's change between a knob's extreme cells, with intervals
-    gap_headroom(cells)                how much min gap a distance threshold of beta can buy at most
+    gap_headroom(cells)                how much min gap beta, or alpha at a beta, can buy at most
     gap_against_mappo(results)         each CCE-MAPPO policy's CCE-gap against plain MAPPO's, agent by agent
     worst_scenes(gen)                  the scenes where the policy's agents fail most
     knob_scene(dists)                  the scene where beta (or alpha) moves the distance kept most
@@ -273,28 +273,36 @@ def knob_effects_by_type(cells: list[dict], n_boot: int = 2000, min_episodes: in
     return rows
 
 
+# m: a min gap ceiling below this (a beta only cars in contact come within) leaves no share of it to print
+SHARE_FLOOR = 0.01
+
+
 def gap_headroom(cells: list[dict]) -> list[list]:
-    """Rows (alpha held, beta low -> high, min gap at low, at high, the change, the ceiling, the share of it
-    the cells reach) of how much min gap beta can buy. The ceiling is the change if every agent of the low
-    cell kept at least the high beta wherever its first state allows: the mean of max(min gap, min(beta high,
-    start gap)) less the low cell's mean min gap. A cost whose distance threshold is beta charges nothing
-    beyond it, and no policy moves the state the log hands over, so a larger change needs agents to keep
-    more than beta asks. Nothing for cells without start gaps (evaluated before the figure existed)."""
+    """Rows (knob held, knob low -> high, min gap at low, at high, the change, the ceiling, the share of it the
+    cells reach) of how much min gap a knob can buy. A cost whose distance threshold is beta charges nothing
+    beyond it, and no policy moves the state the log hands over, so the most a cell can add to the low cell's
+    min gaps is every agent keeping at least beta wherever its first state allows: the mean of max(min gap,
+    min(beta, start gap)) less the low cell's mean min gap. For beta (alpha held) that beta is the high cell's;
+    for alpha (beta held) it is the held beta, the threshold both cells' costs share, so a beta that only
+    contacts reach leaves alpha nothing to buy (no share printed below SHARE_FLOOR). Nothing for cells without
+    start gaps (evaluated before the figure existed)."""
     rows = []
-    for at in sorted({c["alpha"] for c in cells}):
-        row = sorted((c for c in cells if c["alpha"] == at), key=lambda c: c["beta"])
-        lo_c, hi_c = row[0], row[-1]
-        if len(row) < 2 or lo_c["beta"] == hi_c["beta"] or not _run_figures(lo_c, "start_gap"):
-            continue
-        low, ceiling = [], []
-        for gap, start in zip(_run_figures(lo_c, "min_gap"), _run_figures(lo_c, "start_gap")):
-            ok = np.isfinite(gap)
-            low.append(gap[ok].mean())
-            ceiling.append(np.maximum(gap[ok], np.minimum(hi_c["beta"], start[ok])).mean() - gap[ok].mean())
-        high = [g[np.isfinite(g)].mean() for g in _run_figures(hi_c, "min_gap")]
-        change, most = float(np.mean(high) - np.mean(low)), float(np.mean(ceiling))
-        rows.append([f"alpha {at:g}", f"{lo_c['beta']:g} -> {hi_c['beta']:g}", float(np.mean(low)),
-                     float(np.mean(high)), change, most, change / most if most > 0 else float("nan")])
+    for knob, held in (("beta", "alpha"), ("alpha", "beta")):
+        for at in sorted({c[held] for c in cells}):
+            row = sorted((c for c in cells if c[held] == at), key=lambda c: c[knob])
+            lo_c, hi_c = row[0], row[-1]
+            if len(row) < 2 or lo_c[knob] == hi_c[knob] or not _run_figures(lo_c, "start_gap"):
+                continue
+            beta = hi_c["beta"]
+            low, ceiling = [], []
+            for gap, start in zip(_run_figures(lo_c, "min_gap"), _run_figures(lo_c, "start_gap")):
+                ok = np.isfinite(gap)
+                low.append(gap[ok].mean())
+                ceiling.append(np.maximum(gap[ok], np.minimum(beta, start[ok])).mean() - gap[ok].mean())
+            high = [g[np.isfinite(g)].mean() for g in _run_figures(hi_c, "min_gap")]
+            change, most = float(np.mean(high) - np.mean(low)), float(np.mean(ceiling))
+            rows.append([f"{held} {at:g}", f"{knob} {lo_c[knob]:g} -> {hi_c[knob]:g}", float(np.mean(low)),
+                         float(np.mean(high)), change, most, change / most if most > SHARE_FLOOR else float("nan")])
     return rows
 
 
