@@ -448,20 +448,28 @@ def test_grid_moment_is_the_most_pressing_cells_lane_approach_drawn_in_every_cel
 
     ref = _lane_and_abreast()
     wider = _lane_and_abreast((20.0, 18.0, 16.0, 15.0, 14.0, 12.0, 12.0, 12.0))
-    gone = _lane_and_abreast((5.0,) * 8)
-    gone.valid[0, 0, 4:] = False
     far = _lane_and_abreast((30.0,) * 8)
-    cells = {(2.0, 0.125): gone, (0.5, 0.875): wider, (0.5, 0.125): ref}  # least beta, then least alpha: ref
+    cells = {(6.0, 0.125): far, (0.5, 0.875): wider, (0.5, 0.125): ref}  # least beta, then least alpha: ref
     m = grid_moment(cells, margin=8.0)
     assert (m.step, m.agent, m.cell) == (5, 0, (0.5, 0.125)) and m.centre == pytest.approx((0.0, 5.0))
     assert m.gaps[(0.5, 0.875)][1] == pytest.approx(np.hypot(12.0, 0.5), abs=1e-5)
-    assert m.gaps[(2.0, 0.125)] is None and m.present == {(2.0, 0.125): False, (0.5, 0.875): True,
-                                                           (0.5, 0.125): True}
-    assert m.radius == pytest.approx(np.hypot(12.0, 0.5) + 8.0, abs=1e-5)  # the widest cell's gap fits
-    # a car farther than twice the pressing cell's gap is left out of view rather than widen every zoom
-    m = grid_moment({**cells, (6.0, 0.125): far}, margin=8.0)
     assert m.gaps[(6.0, 0.125)][1] == pytest.approx(np.hypot(30.0, 0.5), abs=1e-5)
+    assert all(m.present.values())
+    # the far car is left out of view rather than widen every zoom: twice the pressing cell's gap fits
     assert m.radius == pytest.approx(2 * np.hypot(6.0, 0.5) + 8.0, abs=1e-5)
+    # a cell whose car leaves the road at step 4 (its goal, a step sooner): the moment is the reference cell's
+    # nearest while the car is there in every cell, step 3 at 8 m
+    gone = _lane_and_abreast((5.0,) * 8)
+    gone.valid[0, 0, 4:] = False
+    m = grid_moment({(2.0, 0.125): gone, (0.5, 0.875): wider, (0.5, 0.125): ref}, margin=8.0)
+    assert (m.step, m.agent) == (3, 0) and all(m.present.values())
+    assert m.gaps[(2.0, 0.125)][1] == pytest.approx(np.hypot(5.0, 0.5), abs=1e-5)
+    assert m.radius == pytest.approx(np.hypot(15.0, 0.5) + 8.0, abs=1e-5)  # the widest cell's gap fits
+    # a cell without the car after its first step shares no such moment: the reference cell's own, that cell
+    # drawn without it
+    gone.valid[0, 0, 1:] = False
+    m = grid_moment({(2.0, 0.125): gone, (0.5, 0.125): ref})
+    assert m.step == 5 and m.gaps[(2.0, 0.125)] is None and m.present == {(2.0, 0.125): False, (0.5, 0.125): True}
     # a cell with a nearer lane approach but a larger beta does not choose the moment; without one in the
     # most pressing cell, none is shared
     ref.valid[0, 2, 1:] = False

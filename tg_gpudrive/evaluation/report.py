@@ -281,14 +281,19 @@ class GridMoment:
 def grid_moment(episodes: dict, margin: float = 8.0, reach: float = 2.0) -> GridMoment | None:
     """The grid's shared zoom from each cell's recorded episode ({(beta, alpha): Trajectories}, world 0 as its
     pictures draw it): `risk.lane_approach_moment` in the most pressing cell (the least beta, then the least
-    alpha), with the half-side every cell's distance there fits in (the largest plus `margin` m, at least 10),
-    but for distances beyond `reach` times the most pressing cell's: those cars are left out of view (their
-    titles say how far) rather than shrink every cell's cars to the scale of the whole paths.
+    alpha), at a step where the car is present in every cell if there is one, with the half-side every cell's
+    distance there fits in (the largest plus `margin` m, at least 10), but for distances beyond `reach` times
+    the most pressing cell's: those cars are left out of view (their titles say how far) rather than shrink
+    every cell's cars to the scale of the whole paths.
     None when that cell has no such approach (each cell then zooms on its own closest approach)."""
     if not episodes:
         return None
     ref = min(episodes)
-    found = rk.lane_approach_moment(episodes[ref])
+    # a moment when the car is on the road in every cell, so no cell's zoom shows it gone (e.g. at its goal a
+    # step sooner); any moment of the reference cell where there is none
+    valid = [tr.valid[0] for tr in episodes.values()]
+    everywhere = np.logical_and.reduce(valid) if len({v.shape for v in valid}) == 1 else None
+    found = rk.lane_approach_moment(episodes[ref], allowed=everywhere) or rk.lane_approach_moment(episodes[ref])
     if found is None:
         return None
     k, a, _, dist = found

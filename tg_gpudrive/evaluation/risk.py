@@ -246,15 +246,20 @@ def lane_gap(tr: Trajectories, e: int, a: int, k: int) -> tuple[int, float, bool
     return b, float(d[b]), bool(along >= 0)
 
 
-def lane_approach_moment(tr: Trajectories, e: int = 0) -> tuple[int, int, int, float] | None:
+def lane_approach_moment(tr: Trajectories, e: int = 0,
+                         allowed: np.ndarray | None = None) -> tuple[int, int, int, float] | None:
     """Episode `e`'s closest approach of a policy agent to another ahead of or behind it in its lane, at a step
-    after the agent's first (the logged start state no policy chose): (its step, the agent, the partner, their
-    centre distance in m); None when no such pair came within NEAREST_CAP. The report's grid draws every cell
-    at this moment of its most pressing cell, where `closest_moment` is often the start or a car abreast."""
+    after the agent's first (the logged start state no policy chose) and, with `allowed` ((A, K) bool), at an
+    (agent, step) it marks: (its step, the agent, the partner, their centre distance in m); None when no such
+    pair came within NEAREST_CAP. The report's grid draws every cell at this moment of its most pressing cell
+    (allowed: where the agent is present in every cell), where `closest_moment` is often the start or a car
+    abreast."""
     best = None
     for a in np.nonzero(tr.policy[e] & tr.valid[e].any(-1))[0]:
         d = _lane_distances(tr, e, int(a))
         d[:, :int(np.argmax(tr.valid[e, a])) + 1] = np.inf  # from the step after the agent's first on
+        if allowed is not None:
+            d[:, ~allowed[a]] = np.inf
         b, k = np.unravel_index(int(np.argmin(d)), d.shape)
         if d[b, k] < NEAREST_CAP and (best is None or d[b, k] < best[3]):
             best = (int(k), int(a), int(b), float(d[b, k]))
