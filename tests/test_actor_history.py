@@ -48,6 +48,32 @@ def test_the_window_changes_the_actors_output_and_is_required():
     assert Actor(2, 3, discrete=True, num_actions=5, hidden=16)(obs).shape == (6, 5)  # no history: as before
 
 
+def test_a_plain_actor_grows_per_slot_heads_and_a_window_that_act_as_it_did():
+    """grown_actor_state: each per-slot head a copy of the shared one (the same output exactly, on every slot), and
+    a fresh window of the agent and two partners whose encoder starts near zero: the output moves by a small
+    fraction of a fresh window's effect, the window's last layer still gets gradients, and every other weight is
+    the plain actor's."""
+    from tg_gpudrive.agents.networks import grown_actor_state
+
+    torch.manual_seed(0)
+    plain = Actor(2, 3, discrete=True, num_actions=5, hidden=16)
+    obs, slot = torch.randn(6, 10 + 2 * 10 + 3 * 7), torch.arange(6)
+    heads = Actor(2, 3, discrete=True, num_actions=5, hidden=16, heads=3)
+    heads.load_state_dict(grown_actor_state(plain.state_dict(), heads))
+    assert torch.equal(heads(obs, slot), plain(obs))
+    both = Actor(2, 3, discrete=True, num_actions=5, hidden=16, heads=3, history=4, history_partners=2)
+    fresh = both(obs, slot, torch.randn(6, 4, hist_dim(2)))  # a fresh window's effect, before growing
+    both.load_state_dict(grown_actor_state(plain.state_dict(), both))
+    hist = torch.randn(6, 4, hist_dim(2), requires_grad=False)
+    out = both(obs, slot, hist)
+    moved, fresh_moved = (out - plain(obs)).abs().max(), (fresh - plain(obs)).abs().max()
+    assert 0 < moved < 0.05 * fresh_moved
+    out.sum().backward()
+    assert both.hist_encoder[-2].weight.grad.abs().sum() > 0
+    kept = {k: v for k, v in plain.state_dict().items() if not k.startswith("head_")}
+    assert all(torch.equal(both.state_dict()[k], v) for k, v in kept.items())
+
+
 def test_rollout_stores_the_window_the_actor_saw(tmp_path, device):
     """At the first step of a rollout the newest window entry is the agent's present state: its
     position and heading in its own frame are 0 and its speed is the observation's ego speed."""

@@ -482,6 +482,30 @@ def test_init_policy_fine_tunes_from_a_trained_run(tmp_path):
         Trainer(tiny(tmp_path / "bad2", init_policy="shipped"), tmp_path / "bad2", progress=False)
 
 
+def test_init_policy_grows_per_slot_heads_and_a_window_onto_a_plain_policy(tmp_path):
+    """A fine-tune may add per-slot heads and a motion window to a policy trained without them (the issue's
+    per-agent actors and history of the other agents, fine-tuned from the shipped policy): the heads start as
+    copies of the shared one and the run trains. Fewer heads, or another window, is still a one-line error."""
+    from tg_gpudrive.config import ConfigError
+
+    src = tmp_path / "src"
+    Trainer(tiny(src, updates=1), src, progress=False).train()
+    old = torch.load(src / "checkpoint.pt", weights_only=False)["actor"]
+    dst = tmp_path / "dst"
+    tr = Trainer(tiny(dst, init_policy=str(src), heads=3, actor_history=2, actor_history_partners=1, updates=1), dst,
+                 progress=False)
+    grown = tr.actor.state_dict()
+    assert all(torch.equal(grown["head_w"][i].cpu(), old["head_w"][0].cpu()) for i in range(3))
+    assert torch.equal(grown["encoder.ego.0.weight"].cpu(), old["encoder.ego.0.weight"].cpu())
+    assert tr.train()["update"] == 1
+    with pytest.raises(ConfigError, match=r"heads 3 \(this run: 2\)"):
+        Trainer(tiny(tmp_path / "bad", init_policy=str(dst), heads=2, actor_history=2, actor_history_partners=1),
+                tmp_path / "bad", progress=False)
+    with pytest.raises(ConfigError, match=r"actor_history 2 \(this run: 3\)"):
+        Trainer(tiny(tmp_path / "bad2", init_policy=str(dst), heads=3, actor_history=3, actor_history_partners=1),
+                tmp_path / "bad2", progress=False)
+
+
 def test_training_on_dense_real_scenes_drops_no_agent_and_replays_beyond_its_cap(tmp_path):
     """With env.max_agents below a real scene's agent count, every agent still gets a slot; the policy
     drives at most max_agents per world and the rest replay their logs, counted."""

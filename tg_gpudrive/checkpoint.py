@@ -209,6 +209,17 @@ FIXED_ENGINE_KEYS = tuple(k.removeprefix("env.") for k in NETWORK_KEYS if k.star
 # ... of which the weights do not depend on these: partner and road rows go through one shared encoder
 # and are max-pooled, so a fine-tune (init_policy) may observe more or fewer of them
 POOLED_KEYS = ("env.partner_k", "env.road_k")
+# ... and these a fine-tune may add to a policy trained without them (networks.grown_actor_state): per-slot
+# heads to one shared head, a motion window (with partners) to none
+GROWN_KEYS = ("heads", "actor_history", "actor_history_partners")
+
+
+def grows(old: TrainConfig, key: str, was, now) -> bool:
+    """Whether a run with `now` for network key `key` can start from a policy trained with `old` (`was` there)
+    by growing it: per-slot heads from one head, a motion window from none."""
+    if key == "heads":
+        return was == 1
+    return key in GROWN_KEYS and old.actor_history == 0
 
 
 def network_differences(old: TrainConfig, new: TrainConfig) -> list[tuple[str, object, object]]:

@@ -123,6 +123,29 @@ class Actor(nn.Module):
         return torch.tanh(out) * self.act_scale, self.log_std.expand_as(out)
 
 
+# the grown motion window's encoder starts with its last layer at this fraction of a fresh one's weights: the grown
+# actor acts almost as the policy it grew from, and the window still gets gradients through its active units
+GROWN_HISTORY_SCALE = 0.01
+
+
+def grown_actor_state(state: dict, actor: Actor) -> dict:
+    """`state` (the state_dict of an actor with one shared head and no motion window, e.g. the shipped policy's)
+    laid out for `actor`, which may add per-slot heads and a motion window: each head a copy of the shared
+    one, and the window's encoder `actor`'s own fresh weights with the last layer's scaled by
+    GROWN_HISTORY_SCALE and no bias, so a fine-tune starts from the policy `state` holds. Anything else of
+    `state` is taken as it is (a layout `actor` cannot take is load_state_dict's error)."""
+    own, out = actor.state_dict(), dict(state)
+    if state["head_w"].shape[0] == 1 and own["head_w"].shape[0] > 1:
+        for k in ("head_w", "head_b"):
+            out[k] = state[k].expand_as(own[k]).clone()
+    if actor.history and not any(k.startswith("hist_encoder.") for k in state):
+        out.update({k: v.clone() for k, v in own.items() if k.startswith("hist_encoder.") or k == "hist_scale"})
+        last = max(i for i, m in enumerate(actor.hist_encoder) if isinstance(m, nn.Linear))
+        out[f"hist_encoder.{last}.weight"] = out[f"hist_encoder.{last}.weight"] * GROWN_HISTORY_SCALE
+        out[f"hist_encoder.{last}.bias"] = torch.zeros_like(out[f"hist_encoder.{last}.bias"])
+    return out
+
+
 class CentralCritic(nn.Module):
     """Centralised critic with two heads on one trunk: reward value and cost quantiles.
 

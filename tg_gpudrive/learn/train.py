@@ -31,7 +31,7 @@ import torch
 
 from tqdm import tqdm
 
-from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, POOLED_KEYS, checkpoint_path, load_checkpoint,
+from tg_gpudrive.checkpoint import (POLICY, POLICY_DIR, POOLED_KEYS, checkpoint_path, grows, load_checkpoint,
                                     network_differences, save_atomic)
 from tg_gpudrive.config import ConfigError, TrainConfig, from_dict, to_dict
 from tg_gpudrive.data.sampler import SceneSampler
@@ -55,6 +55,7 @@ from tg_gpudrive.learn.graphs import RolloutGraphs, StepGraphs
 from tg_gpudrive.learn.update import make_optimizer, ppo_update
 from tg_gpudrive.agents.builtin import background_masks, make_background_driver
 from tg_gpudrive.agents.prior import ExpertPrior
+from tg_gpudrive.agents.networks import grown_actor_state
 from tg_gpudrive.agents.policy import BehaviourPrior, PolicyHead, actor_policy, build_models
 from tg_gpudrive.worldmodel import WorldModelPrior, load_shipped, load_world_model
 
@@ -281,18 +282,23 @@ class Trainer:
                                                            "prior_model")
 
     def _init_weights(self, source: str) -> None:
-        """Actor and critic weights from the training checkpoint `source` (init_policy)."""
+        """Actor and critic weights from the training checkpoint `source` (init_policy); per-slot heads or a
+        motion window this run adds to a policy without them are grown from it (networks.grown_actor_state)."""
         path = checkpoint_path(source, "init_policy")
         ck = load_checkpoint(path, "init_policy", map_location=self.device)
         theirs = from_dict(TrainConfig, ck["config"], str(path))
         changes = network_differences(theirs, self.cfg)
-        diff = [f"{k} {was} (this run: {now})" for k, was, now in changes if k not in POOLED_KEYS]
+        grown = [(k, was, now) for k, was, now in changes if grows(theirs, k, was, now)]
+        diff = [f"{k} {was} (this run: {now})" for k, was, now in changes
+                if k not in POOLED_KEYS and (k, was, now) not in grown]
         for k, was, now in changes:
             if k in POOLED_KEYS:
                 log.info("init_policy %s: %s %s, this run observes %s", source, k, was, now)
         if diff:
             raise ConfigError(f"init_policy {source}: its networks differ from this run's: {'; '.join(diff)}")
-        self.actor.load_state_dict(ck["actor"])
+        for k, was, now in grown:
+            log.info("init_policy %s: %s %s, grown to this run's %s", source, k, was, now)
+        self.actor.load_state_dict(grown_actor_state(ck["actor"], self.actor) if grown else ck["actor"])
         self.critic.load_state_dict(ck["critic"])
         log.info("actor and critic initialised from %s (update %s of that run)", path, ck.get("update"))
 
