@@ -23,8 +23,8 @@
 #   generate  `tg-gpudrive generate` under two constraint recipes (GEN_RECIPES: builtin = its default, shipped = the
 #             shipped policy's own; or grid yamls) at beta 2 / 6 x alpha 0.125 / 0.875 (GEN_BETAS, GEN_ALPHAS), all
 #             at once on one GPU (GEN_SEEDS: each seed's cells on the next GPU of GEN_GPUS), GEN_SECONDS of
-#             fine-tuning each on GEN_SCENES scenes; the policies come back slim, for a report on their own scenes
-#             (--scene-seed -1)
+#             fine-tuning each on GEN_SCENES scenes, once more per GEN_VARIANTS (train overrides); the policies
+#             come back slim, for a report on their own scenes (--scene-seed -1)
 #   ccegap    the CCE-gap in both games of runs carried in (GAP_RUNS, e.g. generate's fine-tunes) on their own
 #             scenes, beside plain MAPPO trained from scratch in their game (GAP_MAPPO_SEEDS)
 #   wm        world models on the GPU (discrete + closed-loop fine-tuning, continuous) and as traffic
@@ -216,16 +216,21 @@ grid)
     "${SETS[@]}" 2>&1 | tail -3
   ;;
 generate)
+  # GEN_VARIANTS="name|k=v k=v;name2|k=v": each recipe once more per variant with those train overrides, into
+  # <recipe>_<name> (e.g. "heads|heads=5;hist|actor_history=10 actor_history_partners=4;n1|cost_nstep=1")
   G=$RES; gpus=(${GEN_GPUS:-0}); k=0
+  IFS=';' read -ra variants <<< "${GEN_VARIANTS:-|}"
   for seed in ${GEN_SEEDS:-0}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
-  for rec in ${GEN_RECIPES:-builtin shipped}; do for b in ${GEN_BETAS:-2 6}; do for a in ${GEN_ALPHAS:-0.125 0.875}; do
-    d=$G/$(basename "$rec" .yaml)/b${b}_a${a}_s$seed; mkdir -p "$d"
+  for rec in ${GEN_RECIPES:-builtin shipped}; do for v in "${variants[@]}"; do
+  vname=${v%%|*}; vsets=(); for s in ${v#*|}; do vsets+=(--set "$s"); done
+  for b in ${GEN_BETAS:-2 6}; do for a in ${GEN_ALPHAS:-0.125 0.875}; do
+    d=$G/$(basename "$rec" .yaml)${vname:+_$vname}/b${b}_a${a}_s$seed; mkdir -p "$d"
     recipe=(); [ "$rec" != builtin ] && recipe=(--recipe "$rec")
     CUDA_VISIBLE_DEVICES=$gpu timeout ${GEN_TIMEOUT:-480} python3 -m tg_gpudrive.cli generate --seed $seed \
       --scenes ${GEN_SPEC:-procedural:all} --num-scenes ${GEN_SCENES:-64} --beta $b --alpha $a --num 10 \
       --seconds ${GEN_SECONDS:-240} --rollout-seeds 4 --no-gif --json --device ${GEN_DEVICE:-cuda} --out "$d" \
-      "${recipe[@]}" "${SETS[@]}" > "$d/generate.json" 2> "$d/generate.err" &
-  done; done; done; done
+      "${recipe[@]}" "${SETS[@]}" "${vsets[@]}" > "$d/generate.json" 2> "$d/generate.err" &
+  done; done; done; done; done
   wait
   python3 "$R"/scripts/slim_checkpoints.py "$G"/*/*
   find "$G" -name '*.tfevents*' -delete; find "$G" -path '*/scenarios/*.json' -delete  # the table keeps their risk
@@ -242,15 +247,17 @@ ccegap)
   gpus=(${GAP_GPUS:-0}); k=0; first=""
   for run in ${GAP_RUNS:-}; do d=$RES/$(basename "$run"); mkdir -p "$d"; first=${first:-$d}
     cp "$R/$run"/* "$d"/
-    python3 -c "import json,sys; p=sys.argv[1]; c=json.load(open(p)); c['scenes']=sys.argv[2]; json.dump(c,open(p,'w'))" \
-      "$d/config.json" "$R/${GAP_SCENES:?GAP_SCENES}"
+    python3 -c "import json,sys; p=sys.argv[1]; c=json.load(open(p)); c['scenes']=sys.argv[2]; \
+                json.dump(c,open(p,'w'))" "$d/config.json" "$R/${GAP_SCENES:?GAP_SCENES}"
   done
   for seed in ${GAP_MAPPO_SEEDS:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
     CUDA_VISIBLE_DEVICES=$gpu timeout $(( ${GAP_MAPPO_SECONDS:-480} + 60 )) python3 -m tg_gpudrive.cli train \
-      --config "$first/config.json" --out "$RES/mappo_s$seed" --overwrite --set seed=$seed --set device=${GAP_DEVICE:-cuda} \
+      --config "$first/config.json" --out "$RES/mappo_s$seed" --overwrite --set seed=$seed \
+      --set device=${GAP_DEVICE:-cuda} \
       --set eta1=0 --set eta2=.inf --set constraint=false --set init_policy= --set lr=0.004 --set minibatches=16 \
       --set entropy_coef=0.01 --set num_worlds=1024 --set updates=714 --set checkpoint_every=714 \
-      --set time_limit_s=${GAP_MAPPO_SECONDS:-480} "${SETS[@]}" --json > "$RES/mappo_s$seed.json" 2> "$RES/mappo_s$seed.err" &
+      --set time_limit_s=${GAP_MAPPO_SECONDS:-480} "${SETS[@]}" --json \
+      > "$RES/mappo_s$seed.json" 2> "$RES/mappo_s$seed.err" &
   done
   for d in ${GAP_REPORT:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
     CUDA_VISIBLE_DEVICES=$gpu timeout ${GAP_TIMEOUT:-540} python3 -m tg_gpudrive.cli report --runs "$RES/$d" \
