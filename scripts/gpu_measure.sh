@@ -243,7 +243,7 @@ ccegap)
   # game of GAP_RUNS' first run (its scenes, control and reward; no magnet, no proximal term, no constraint; the
   # shipped recipe's from-scratch steps) for GAP_MAPPO_SECONDS each, side by side, into $RES/mappo_s<seed>.
   # GAP_REPORT: the directories under $RES to report on (copied runs, mappo_s<seed> of this call or an earlier
-  # one on the same machine)
+  # one on the same machine); GAP_HELDOUT (a store of held-out scenes): on those instead, into report_<dir>_heldout
   gpus=(${GAP_GPUS:-0}); k=0; first=""
   for run in ${GAP_RUNS:-}; do d=$RES/$(basename "$run"); mkdir -p "$d"; first=${first:-$d}
     cp "$R/$run"/* "$d"/
@@ -259,10 +259,12 @@ ccegap)
       --set time_limit_s=${GAP_MAPPO_SECONDS:-480} "${SETS[@]}" --json \
       > "$RES/mappo_s$seed.json" 2> "$RES/mappo_s$seed.err" &
   done
-  for d in ${GAP_REPORT:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1))
+  held=(); [ -n "${GAP_HELDOUT:-}" ] && held=(--eval-scenes "$R/$GAP_HELDOUT")
+  for d in ${GAP_REPORT:-}; do gpu=${gpus[$((k % ${#gpus[@]}))]}; k=$((k + 1)); o=report_$d${GAP_HELDOUT:+_heldout}
     CUDA_VISIBLE_DEVICES=$gpu timeout ${GAP_TIMEOUT:-540} python3 -m tg_gpudrive.cli report --runs "$RES/$d" \
-      --out "$RES/report_$d" --scenes 12 --scene-seed -1 --seeds 0 --br-scenes 12 --br-seeds ${GAP_BR_SEEDS:-0 1} \
-      --br-iters ${GAP_BR_ITERS:-100} --no-baselines --top 0 --device ${GAP_DEVICE:-cuda} > "$RES/report_$d.log" 2>&1 &
+      --out "$RES/$o" --scenes 12 --scene-seed -1 --seeds 0 --br-scenes 12 --br-seeds ${GAP_BR_SEEDS:-0 1} \
+      --br-iters ${GAP_BR_ITERS:-100} --no-baselines --top 0 --device ${GAP_DEVICE:-cuda} "${held[@]}" \
+      > "$RES/$o.log" 2>&1 &
   done
   wait
   slim
