@@ -214,9 +214,9 @@ POOLED_KEYS = ("env.partner_k", "env.road_k")
 GROWN_KEYS = ("heads", "actor_history", "actor_history_partners")
 
 
-def grows(old: TrainConfig, key: str, was, now) -> bool:
-    """Whether a run with `now` for network key `key` can start from a policy trained with `old` (`was` there)
-    by growing it: per-slot heads from one head, a motion window from none."""
+def grows(old: TrainConfig, key: str, was) -> bool:
+    """Whether a run that changes network key `key` can start from a policy trained with `old` (`was` there) by
+    growing it: per-slot heads from one head, a motion window from none."""
     if key == "heads":
         return was == 1
     return key in GROWN_KEYS and old.actor_history == 0

@@ -288,7 +288,7 @@ class Trainer:
         ck = load_checkpoint(path, "init_policy", map_location=self.device)
         theirs = from_dict(TrainConfig, ck["config"], str(path))
         changes = network_differences(theirs, self.cfg)
-        grown = [(k, was, now) for k, was, now in changes if grows(theirs, k, was, now)]
+        grown = [(k, was, now) for k, was, now in changes if grows(theirs, k, was)]
         diff = [f"{k} {was} (this run: {now})" for k, was, now in changes
                 if k not in POOLED_KEYS and (k, was, now) not in grown]
         for k, was, now in changes:
