@@ -238,11 +238,9 @@ def lane_gap(tr: Trajectories, e: int, a: int, k: int) -> tuple[int, float, bool
     `_lane_distances`): (its slot, their centre distance in m, whether it is ahead); None when a is not present
     then or no other agent is in its lane."""
     d = _lane_distances(tr, e, a)[:, k]
-    b = int(np.argmin(d))
-    if not np.isfinite(d[b]):
+    if not np.isfinite(d).any():
         return None
-    rel = tr.pos[e, b, k] - tr.pos[e, a, k]
-    along = np.cos(tr.yaw[e, a, k]) * rel[0] + np.sin(tr.yaw[e, a, k]) * rel[1]
+    b, along, _ = _nearest_in_frame(tr, e, a, k, np.isfinite(d))
     return b, float(d[b]), bool(along >= 0)
 
 
